@@ -1,0 +1,163 @@
+"""Narrowphase: contact manifolds (normal, up to 2 points, separations, feature ids) for every candidate pair."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+from flax import struct
+
+from engine.geometry import cross2, rotate
+from engine.pairs import PairLayout
+from engine.params import MAX_POLYGON_VERTICES
+from engine.state import NO_FEATURE, Bodies
+
+REFERENCE_FACE_TOLERANCE = 5e-4
+"""[m] polygon B's face becomes the reference only if it separates more than A's by this (avoids flip-flopping)."""
+
+DIRECTION_EPSILON = 1e-9
+"""[m] below this distance a direction is undefined and a fixed fallback is used."""
+
+
+@struct.dataclass
+class Manifolds:
+    """Contact manifolds of all K candidate pairs; normals point from body_a to body_b."""
+
+    normal: jnp.ndarray  # (K, 2) unit
+    point: jnp.ndarray  # (K, 2, 2) [m] world contact points, midway between the two surfaces
+    separation: jnp.ndarray  # (K, 2) [m] negative when overlapping
+    valid: jnp.ndarray  # (K, 2) bool: point exists (closer than the pair's speculative margin)
+    feature: jnp.ndarray  # (K, 2) i32 geometric feature id of the point, for warm starting
+
+
+@struct.dataclass
+class WorldGeometry:
+    """Per-body geometry in world coordinates, computed once per step."""
+
+    vertices: jnp.ndarray  # (N, 4, 2) [m]; for triangles the 4th vertex repeats the 1st
+    normals: jnp.ndarray  # (N, 4, 2) outward unit normal of edge i (vertex i -> i+1)
+    edge_valid: jnp.ndarray  # (N, 4) bool
+    next_vertex: jnp.ndarray  # (N, 4) i32 index of the vertex after i
+    centre: jnp.ndarray  # (N, 2) [m]
+    radius: jnp.ndarray  # (N,) [m] circle radius (0 for polygons)
+
+
+def world_geometry(bodies: Bodies) -> WorldGeometry:
+    """World-frame vertices and edge normals of every body."""
+    index = jnp.arange(MAX_POLYGON_VERTICES)
+    n = bodies.n_vertices[:, None]
+    edge_valid = index < n
+    next_vertex = jnp.where(index + 1 < n, index + 1, 0)
+    local = jnp.where(edge_valid[..., None], bodies.vertices, bodies.vertices[:, :1])
+    world = bodies.position[:, None, :] + rotate(bodies.rotation[:, None], local)
+    edge = jnp.take_along_axis(world, next_vertex[..., None], axis=1) - world
+    length = jnp.sqrt(jnp.sum(edge * edge, -1, keepdims=True))
+    normals = jnp.stack([edge[..., 1], -edge[..., 0]], -1) / jnp.maximum(length, DIRECTION_EPSILON)
+    return WorldGeometry(world, normals, edge_valid, next_vertex, bodies.position, bodies.radius)
+
+
+def _take(tree, index):
+    return jax.tree_util.tree_map(lambda x: x[index], tree)
+
+
+def _best_edge(normals, vertices, edge_valid, other_vertices):
+    """Largest separation of `other` from any valid edge of this polygon, and that edge's index."""
+    projection = jnp.einsum("id,jd->ij", normals, other_vertices) - jnp.sum(normals * vertices, -1)[:, None]
+    separation = jnp.where(edge_valid, jnp.min(projection, axis=1), -jnp.inf)
+    edge = jnp.argmax(separation)
+    return separation[edge], edge
+
+
+def _clip(p1, p2, id1, id2, plane_normal, offset, clip_id):
+    """Keep the part of segment p1-p2 with dot(plane_normal, x) <= offset; returns points, ids, ok."""
+    d1 = jnp.dot(plane_normal, p1) - offset
+    d2 = jnp.dot(plane_normal, p2) - offset
+    crossing = p1 + (d1 / jnp.where(d1 == d2, 1.0, d1 - d2)) * (p2 - p1)
+    q1 = jnp.where(d1 <= 0, p1, crossing)
+    q2 = jnp.where(d2 <= 0, p2, crossing)
+    return q1, q2, jnp.where(d1 <= 0, id1, clip_id), jnp.where(d2 <= 0, id2, clip_id), (d1 <= 0) | (d2 <= 0)
+
+
+def polygon_polygon(a: WorldGeometry, b: WorldGeometry, margin):
+    """Manifold of two convex polygons (separating axes, then clipping of the incident edge): normal, points, separations, valid, features."""
+    separation_a, edge_a = _best_edge(a.normals, a.vertices, a.edge_valid, b.vertices)
+    separation_b, edge_b = _best_edge(b.normals, b.vertices, b.edge_valid, a.vertices)
+    flip = separation_b > separation_a + REFERENCE_FACE_TOLERANCE
+    ref = jax.tree_util.tree_map(lambda x, y: jnp.where(flip, y, x), a, b)
+    inc = jax.tree_util.tree_map(lambda x, y: jnp.where(flip, x, y), a, b)
+    ref_edge = jnp.where(flip, edge_b, edge_a)
+    normal = ref.normals[ref_edge]
+    # Incident edge: the one most anti-parallel to the reference normal.
+    inc_edge = jnp.argmin(jnp.where(inc.edge_valid, inc.normals @ normal, jnp.inf))
+    inc_next = inc.next_vertex[inc_edge]
+    r1, r2 = ref.vertices[ref_edge], ref.vertices[ref.next_vertex[ref_edge]]
+    tangent = (r2 - r1) / jnp.maximum(jnp.linalg.norm(r2 - r1), DIRECTION_EPSILON)
+    p1, p2, id1, id2, ok1 = _clip(inc.vertices[inc_edge], inc.vertices[inc_next], inc_edge, inc_next, -tangent, -jnp.dot(tangent, r1), MAX_POLYGON_VERTICES)
+    p1, p2, id1, id2, ok2 = _clip(p1, p2, id1, id2, tangent, jnp.dot(tangent, r2), MAX_POLYGON_VERTICES + 1)
+    points = jnp.stack([p1, p2])
+    separation = points @ normal - jnp.dot(normal, r1)
+    valid = ok1 & ok2 & (separation < margin) & (jnp.maximum(separation_a, separation_b) < margin)
+    midpoints = points - 0.5 * separation[:, None] * normal
+    base_id = ((flip.astype(jnp.int32) * MAX_POLYGON_VERTICES + ref_edge) * MAX_POLYGON_VERTICES + inc_edge) * 8
+    feature = jnp.where(valid, base_id + jnp.stack([id1, id2]), NO_FEATURE)
+    return jnp.where(flip, -normal, normal), midpoints, separation, valid, feature
+
+
+def polygon_circle(a: WorldGeometry, b: WorldGeometry, margin):
+    """Manifold of a polygon (a) and a circle (b); one point."""
+    centre, radius = b.centre, b.radius
+    face_distance = jnp.where(a.edge_valid, jnp.sum(a.normals * (centre - a.vertices), -1), -jnp.inf)
+    edge = jnp.argmax(face_distance)
+    distance = face_distance[edge]
+    v1, v2 = a.vertices[edge], a.vertices[a.next_vertex[edge]]
+    before_v1 = jnp.dot(centre - v1, v2 - v1) < 0
+    after_v2 = jnp.dot(centre - v2, v1 - v2) < 0
+    corner = jnp.where(before_v1, v1, v2)
+    to_centre = centre - corner
+    corner_distance = jnp.linalg.norm(to_centre)
+    in_corner_region = (distance > 0) & (before_v1 | after_v2)
+    corner_normal = to_centre / jnp.maximum(corner_distance, DIRECTION_EPSILON)
+    normal = jnp.where(in_corner_region, corner_normal, a.normals[edge])
+    separation = jnp.where(in_corner_region, corner_distance, distance) - radius
+    point = centre - (radius + 0.5 * separation) * normal
+    region = jnp.where(in_corner_region, jnp.where(before_v1, 1, 2), 0)
+    valid = separation < margin
+    return _one_point(normal, point, separation, valid, edge * 3 + region)
+
+
+def circle_circle(a: WorldGeometry, b: WorldGeometry, margin):
+    """Manifold of two circles; coincident centres separate along +y."""
+    offset = b.centre - a.centre
+    distance = jnp.linalg.norm(offset)
+    normal = jnp.where(distance > DIRECTION_EPSILON, offset / jnp.maximum(distance, DIRECTION_EPSILON), jnp.array([0.0, 1.0]))
+    separation = distance - a.radius - b.radius
+    point = a.centre + (a.radius + 0.5 * separation) * normal
+    return _one_point(normal, point, separation, separation < margin, jnp.int32(0))
+
+
+def _one_point(normal, point, separation, valid, feature):
+    return (
+        normal,
+        jnp.stack([point, point]),
+        jnp.stack([separation, jnp.inf]),
+        jnp.stack([valid, False]),
+        jnp.stack([jnp.where(valid, feature, NO_FEATURE), NO_FEATURE]),
+    )
+
+
+def manifolds(geometry: WorldGeometry, layout: PairLayout, margin: jnp.ndarray) -> Manifolds:
+    """Manifolds of all candidate pairs in layout order; `margin` (K,) [m] is each pair's speculative distance."""
+    kinds = (
+        (polygon_polygon, 0, layout.num_polygon_polygon),
+        (polygon_circle, layout.num_polygon_polygon, layout.num_polygon_circle),
+        (circle_circle, layout.num_polygon_polygon + layout.num_polygon_circle, layout.num_circle_circle),
+    )
+    parts = []
+    for function, start, count in kinds:
+        if count == 0:
+            continue
+        pair = slice(start, start + count)
+        a = _take(geometry, layout.body_a[pair])
+        b = _take(geometry, layout.body_b[pair])
+        parts.append(jax.vmap(function)(a, b, margin[pair]))
+    normal, point, separation, valid, feature = (jnp.concatenate(x) for x in zip(*parts))
+    return Manifolds(normal, point, separation, valid, feature.astype(jnp.int32))

@@ -1,0 +1,87 @@
+"""Physics parameters: traced floats (`SimParams`) and compile-time sizes (`StaticSimParams`)."""
+
+from __future__ import annotations
+
+import dataclasses
+
+from flax import struct
+
+MAX_POLYGON_VERTICES = 4
+"""Every polygon slot holds up to this many vertices (triangles and quadrilaterals)."""
+
+KINETIX_SIZES: dict[str, tuple[int, int, int, int]] = {
+    "s": (5, 2, 1, 1),
+    "m": (6, 3, 2, 2),
+    "l": (12, 4, 6, 2),
+}
+"""Kinetix env sizes: (polygons, circles, joints, thrusters), reserved boundary polygons included."""
+
+
+@struct.dataclass
+class SimParams:
+    """Physical constants of a step; every field may differ per scene under `vmap`."""
+
+    # Time
+    dt: float = 1.0 / 60.0  # [s] one physics step
+
+    # Contacts (soft-step solver)
+    contact_hertz: float = 30.0  # [Hz] stiffness of the contact position correction
+    contact_damping_ratio: float = 10.0  # [-] damping of the contact position correction
+    max_push_velocity: float = 3.0  # [m/s] fastest speed at which overlapping shapes are pushed apart
+    restitution_threshold: float = 1.0  # [m/s] approach speeds below this never bounce
+    speculative_distance: float = 0.02  # [m] contacts are created this far before shapes touch
+    touch_distance: float = 0.005  # [m] shapes closer than this count as touching
+    base_friction: float = 0.4  # [-] friction of a pair = base_friction * sqrt(2 * f_a * f_b)
+
+    # Joints
+    joint_hertz: float = 60.0  # [Hz] stiffness of joint position correction
+    joint_damping_ratio: float = 2.0  # [-]
+
+    # Actuators (Kinetix base values)
+    base_motor_speed: float = 6.0  # [rad/s] target relative speed per unit of joint motor_speed and action
+    base_motor_power: float = 900.0  # [rad/s^2] torque bound per unit motor_power, per unit of axial inertia
+    base_thruster_power: float = 10.0  # [N] force per unit of thruster power and action
+
+    # Safety clips applied after every step
+    max_position: float = 15.0  # [m] per coordinate
+    max_velocity: float = 100.0  # [m/s] per component
+    max_angular_velocity: float = 50.0  # [rad/s]
+
+
+@dataclasses.dataclass(frozen=True)
+class StaticSimParams:
+    """Array sizes and iteration counts: hashable, static under `jit`; one compiled step per value."""
+
+    num_polygons: int = 5  # polygon slots, reserved boundary slots included
+    num_circles: int = 2
+    num_joints: int = 1
+    num_thrusters: int = 1
+    num_reserved_static: int = 4  # polygon slots 0.. that are always static (floor, walls, ceiling)
+    num_substeps: int = 4  # solver substeps per step
+
+    def __post_init__(self):
+        for name in ("num_polygons", "num_circles", "num_joints", "num_thrusters", "num_reserved_static"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"StaticSimParams.{name} must be >= 0, got {getattr(self, name)}")
+        if self.num_reserved_static > self.num_polygons:
+            raise ValueError(
+                f"StaticSimParams.num_reserved_static ({self.num_reserved_static}) exceeds "
+                f"num_polygons ({self.num_polygons})"
+            )
+        if self.num_substeps < 1:
+            raise ValueError(f"StaticSimParams.num_substeps must be >= 1, got {self.num_substeps}")
+
+    @property
+    def num_bodies(self) -> int:
+        """Polygons first (global index 0..P-1), then circles (P..P+C-1)."""
+        return self.num_polygons + self.num_circles
+
+    @classmethod
+    def for_size(cls, size: str, **overrides) -> StaticSimParams:
+        """Static params of a Kinetix env size ('s', 'm' or 'l')."""
+        if size not in KINETIX_SIZES:
+            raise ValueError(f"unknown size {size!r}; expected one of {sorted(KINETIX_SIZES)}")
+        polygons, circles, joints, thrusters = KINETIX_SIZES[size]
+        return cls(
+            num_polygons=polygons, num_circles=circles, num_joints=joints, num_thrusters=thrusters, **overrides
+        )

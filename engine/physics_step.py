@@ -1,0 +1,274 @@
+"""One physics step: narrowphase once, then soft substeps (Box2D v3 style), restitution and safety clips."""
+
+from __future__ import annotations
+
+import functools
+
+import jax
+import jax.numpy as jnp
+from flax import struct
+
+from engine.collision import manifolds, world_geometry
+from engine.collision_filter import modes_collide
+from engine.contact_solver import (
+    ContactImpulses,
+    ContactRows,
+    apply_restitution,
+    from_colour_layout,
+    prepare_contacts,
+    solve_contacts,
+    to_colour_layout,
+    warm_start_contacts,
+)
+from engine.geometry import cross2, rotate
+from engine.joint_solver import JointImpulses, JointRows, prepare_joints, solve_joints, warm_start_joints
+from engine.pairs import pair_layout
+from engine.params import SimParams, StaticSimParams
+from engine.batch_last import vmap_batch_last
+from engine.softness import Softness, make_softness
+from engine.state import NO_FEATURE, ContactCache, SimState
+
+STATIC_CONTACT_STIFFNESS_FACTOR = 2.0
+"""Contacts against static bodies are this many times stiffer (in Hz) than between movable bodies."""
+
+
+@struct.dataclass
+class StepInfo:
+    """What happened during a step, per candidate pair (layout of `engine.pairs.pair_layout`)."""
+
+    touching: jnp.ndarray  # (K,) bool: both shapes active, modes allow contact, closer than touch_distance at step start
+    separation: jnp.ndarray  # (K,) [m] smallest separation of the pair's contact points (inf when none)
+
+
+def _bounding_radius(bodies):
+    polygon_radius = jnp.sqrt(jnp.max(jnp.sum(bodies.vertices**2, -1), -1))
+    return jnp.where(bodies.n_vertices > 0, polygon_radius, bodies.radius)
+
+
+def _match_warm_start(cache: ContactCache, feature):
+    """Last step's impulses for points whose feature id reappears (in either point slot)."""
+
+    def pick(values):
+        match0 = feature == cache.feature[:, :1]
+        match1 = feature == cache.feature[:, 1:]
+        found = feature >= 0
+        return jnp.where(found & match0, values[:, :1], jnp.where(found & match1, values[:, 1:], 0.0))
+
+    return pick(cache.normal_impulse), pick(cache.tangent_impulse)
+
+
+@struct.dataclass
+class SolverScalars:
+    """Per-scene scalars of the substep solver."""
+
+    substep: jnp.ndarray  # [s]
+    inverse_substep: jnp.ndarray  # [1/s]
+    max_push_velocity: jnp.ndarray  # [m/s]
+    restitution_threshold: jnp.ndarray  # [m/s]
+    joint_softness: Softness
+
+
+@struct.dataclass
+class SolverInput:
+    """Bodies (N+1 rows: the last is a dummy for colour padding) and constraints entering the substeps."""
+
+    velocity: jnp.ndarray  # (N+1, 3) vx [m/s], vy [m/s], w [rad/s]
+    pose: jnp.ndarray  # (N+1, 3) x [m], y [m], rotation [rad]
+    acceleration: jnp.ndarray  # (N+1, 3) from gravity and thrusters, zero for bodies that cannot move
+    movable: jnp.ndarray  # (N+1,) bool
+    contact_rows: ContactRows
+    contact_impulses: ContactImpulses
+    joint_rows: JointRows
+    joint_impulses: JointImpulses
+    scalars: SolverScalars
+
+
+@struct.dataclass
+class SolverOutput:
+    velocity: jnp.ndarray  # (N+1, 3)
+    pose: jnp.ndarray  # (N+1, 3)
+    contact_impulses: ContactImpulses
+    joint_impulses: JointImpulses
+
+
+@struct.dataclass
+class Prepared:
+    """Result of `prepare_step`."""
+
+    solver_input: SolverInput
+    info: StepInfo
+    point_enabled: jnp.ndarray  # (K, 2) bool
+    feature: jnp.ndarray  # (K, 2) i32
+
+
+@functools.lru_cache(maxsize=None)
+def substep_solver(static: StaticSimParams):
+    """The substep loop and restitution for `static`: `SolverInput -> SolverOutput`, batch-last under vmap."""
+    layout = pair_layout(static)
+
+    def solve(solver_input: SolverInput) -> SolverOutput:
+        velocity, pose = solver_input.velocity, solver_input.pose
+        rows, joint_rows, scalars = solver_input.contact_rows, solver_input.joint_rows, solver_input.scalars
+        acceleration = solver_input.acceleration
+        contact_impulses, joint_impulses = solver_input.contact_impulses, solver_input.joint_impulses
+        start_pose = pose
+        move = solver_input.movable[:, None]
+
+        def substep_body(carry, _):
+            velocity, pose, contact_impulses, joint_impulses = carry
+            velocity = velocity + scalars.substep * acceleration
+            velocity = warm_start_joints(velocity, pose, start_pose, joint_rows, joint_impulses)
+            velocity = warm_start_contacts(velocity, rows, contact_impulses, layout)
+            velocity, joint_impulses = solve_joints(
+                velocity, pose, start_pose, joint_rows, joint_impulses, scalars.joint_softness, scalars.inverse_substep, True
+            )
+            velocity, contact_impulses = solve_contacts(
+                velocity, pose - start_pose, rows, contact_impulses, layout, scalars.inverse_substep, scalars.max_push_velocity, True
+            )
+            pose = jnp.where(move, pose + scalars.substep * velocity, pose)
+            velocity, joint_impulses = solve_joints(
+                velocity, pose, start_pose, joint_rows, joint_impulses, scalars.joint_softness, scalars.inverse_substep, False
+            )
+            velocity, contact_impulses = solve_contacts(
+                velocity, pose - start_pose, rows, contact_impulses, layout, scalars.inverse_substep, scalars.max_push_velocity, False
+            )
+            return (velocity, pose, contact_impulses, joint_impulses), None
+
+        (velocity, pose, contact_impulses, joint_impulses), _ = jax.lax.scan(
+            substep_body, (velocity, pose, contact_impulses, joint_impulses), None, length=static.num_substeps
+        )
+        velocity, contact_impulses = apply_restitution(velocity, rows, contact_impulses, layout, scalars.restitution_threshold)
+        return SolverOutput(velocity, pose, contact_impulses, joint_impulses)
+
+    return vmap_batch_last(solve)
+
+
+def prepare_step(state: SimState, params: SimParams, motor_actions, thruster_actions, static: StaticSimParams) -> Prepared:
+    """Everything computed once per step before the substeps: manifolds, constraint rows, external accelerations."""
+    layout = pair_layout(static)
+    bodies = state.bodies
+    n = static.num_bodies
+    substep = params.dt / static.num_substeps
+    inverse_substep = 1.0 / substep
+    movable = bodies.active & (bodies.inverse_mass > 0)
+    static_body = bodies.inverse_mass == 0
+
+    # Extended body arrays: row N is a dummy body that colour padding reads and writes.
+    def extend(x):
+        return jnp.concatenate([x, jnp.zeros((1,) + x.shape[1:], x.dtype)])
+
+    pose = extend(jnp.concatenate([bodies.position, bodies.rotation[:, None]], -1))
+    velocity = extend(jnp.concatenate([bodies.velocity, bodies.angular_velocity[:, None]], -1))
+    response_scale = extend(
+        jnp.where(movable[:, None], jnp.stack([bodies.inverse_mass, bodies.inverse_mass, bodies.inverse_inertia], -1), 0.0)
+    )
+
+    # Narrowphase with a speculative margin covering this step's motion.
+    a, b = layout.body_a, layout.body_b
+    reach = jnp.linalg.norm(bodies.velocity, axis=-1) + jnp.abs(bodies.angular_velocity) * _bounding_radius(bodies)
+    gravity_reach = jnp.linalg.norm(state.gravity) * params.dt
+    margin = params.speculative_distance + params.dt * (reach[a] + reach[b] + 2 * gravity_reach)
+    manifold = manifolds(world_geometry(bodies), layout, margin)
+    both_active = bodies.active[a] & bodies.active[b]
+    modes = modes_collide(bodies.collision_mode[a], bodies.collision_mode[b])
+    close = manifold.valid & (manifold.separation < params.touch_distance)
+    info = StepInfo(
+        touching=both_active & modes & jnp.any(close, -1),
+        separation=jnp.min(jnp.where(manifold.valid, manifold.separation, jnp.inf), -1),
+    )
+    pair_enabled = both_active & modes & state.collision_matrix[a, b] & ~(static_body[a] & static_body[b])
+    pair_static = static_body[a] | static_body[b]
+    friction = params.base_friction * jnp.sqrt(2.0 * bodies.friction[a] * bodies.friction[b])
+    restitution = jnp.minimum(bodies.restitution[a], bodies.restitution[b])
+    softness = make_softness(params.contact_hertz, params.contact_damping_ratio, substep)
+    static_softness = make_softness(STATIC_CONTACT_STIFFNESS_FACTOR * params.contact_hertz, params.contact_damping_ratio, substep)
+    rows = prepare_contacts(manifold, pair_enabled, pair_static, pose[:n, :2], velocity[:n], response_scale[:n], friction, restitution, layout, softness, static_softness)
+    normal_warm, tangent_warm = _match_warm_start(state.contacts, manifold.feature)
+    point_enabled = manifold.valid & pair_enabled[:, None]
+    contact_impulses = to_colour_layout(
+        ContactImpulses(
+            impulse=jnp.where(jnp.tile(point_enabled, (1, 2)), jnp.concatenate([normal_warm, tangent_warm], -1), 0.0),
+            max_normal=jnp.zeros_like(normal_warm),
+        ),
+        layout,
+    )
+
+    # Joints and thrusters.
+    joint_softness = make_softness(params.joint_hertz, params.joint_damping_ratio, substep)
+    joint_rows = prepare_joints(state.joints, pose, response_scale, motor_actions, params.base_motor_speed, params.base_motor_power, substep)
+    joints = state.joints
+    joint_impulses = JointImpulses(
+        linear=jnp.where(joints.active[:, None], joints.linear_impulse, 0.0),
+        angular=jnp.where(joints.active, joints.angular_impulse, 0.0),
+        motor=jnp.where(joint_rows.solve_motor, joints.motor_impulse, 0.0),
+        limit=jnp.where(joint_rows.solve_limits[:, None], joints.limit_impulse, 0.0),
+    )
+    thrusters = state.thrusters
+    thrust_angle = pose[thrusters.body, 2] + thrusters.angle
+    thrust = (params.base_thruster_power * thrusters.power * jnp.clip(thruster_actions, 0.0, 1.0) * thrusters.active)[:, None] * jnp.stack(
+        [jnp.cos(thrust_angle), jnp.sin(thrust_angle)], -1
+    )
+    thrust_torque = cross2(rotate(pose[thrusters.body, 2], thrusters.anchor), thrust)
+    owner = thrusters.body[:, None] == jnp.arange(n + 1)
+    external = jnp.sum(owner[..., None] * jnp.concatenate([thrust, thrust_torque[:, None]], -1)[:, None, :], axis=0)
+    acceleration = jnp.where(
+        extend(movable)[:, None], response_scale * external + jnp.concatenate([state.gravity, jnp.zeros(1)]), 0.0
+    )
+    solver_input = SolverInput(
+        velocity=velocity,
+        pose=pose,
+        acceleration=acceleration,
+        movable=extend(movable),
+        contact_rows=rows,
+        contact_impulses=contact_impulses,
+        joint_rows=joint_rows,
+        joint_impulses=joint_impulses,
+        scalars=SolverScalars(substep, inverse_substep, params.max_push_velocity, params.restitution_threshold, joint_softness),
+    )
+    return Prepared(solver_input, info, point_enabled, manifold.feature)
+
+
+def finish_step(state: SimState, params: SimParams, prepared: Prepared, solved: SolverOutput, static: StaticSimParams) -> SimState:
+    """Write the solver's velocities, poses and impulses back into the state, with the safety clips."""
+    layout = pair_layout(static)
+    n = static.num_bodies
+    bodies, joints = state.bodies, state.joints
+    movable = bodies.active & (bodies.inverse_mass > 0)
+    velocity, pose, joint_impulses = solved.velocity, solved.pose, solved.joint_impulses
+    per_pair = from_colour_layout(solved.contact_impulses, layout)
+    new_bodies = bodies.replace(
+        position=jnp.where(movable[:, None], jnp.clip(pose[:n, :2], -params.max_position, params.max_position), bodies.position),
+        rotation=jnp.where(movable, pose[:n, 2], bodies.rotation),
+        velocity=jnp.where(movable[:, None], jnp.clip(velocity[:n, :2], -params.max_velocity, params.max_velocity), bodies.velocity),
+        angular_velocity=jnp.where(movable, jnp.clip(velocity[:n, 2], -params.max_angular_velocity, params.max_angular_velocity), bodies.angular_velocity),
+    )
+    new_joints = joints.replace(
+        linear_impulse=joint_impulses.linear,
+        angular_impulse=joint_impulses.angular,
+        motor_impulse=joint_impulses.motor,
+        limit_impulse=joint_impulses.limit,
+    )
+    cache = ContactCache(
+        normal_impulse=per_pair.impulse[:, :2],
+        tangent_impulse=per_pair.impulse[:, 2:],
+        feature=jnp.where(prepared.point_enabled, prepared.feature, NO_FEATURE),
+    )
+    return state.replace(bodies=new_bodies, joints=new_joints, contacts=cache)
+
+
+@functools.partial(jax.jit, static_argnames="static")
+def step(
+    state: SimState,
+    params: SimParams,
+    motor_actions: jnp.ndarray,
+    thruster_actions: jnp.ndarray,
+    static: StaticSimParams,
+) -> tuple[SimState, StepInfo]:
+    """Advance `state` by `params.dt`.
+
+    `motor_actions` (J,) in [-1, 1] scale each joint motor's target speed; `thruster_actions` (T,) in [0, 1]
+    scale each thruster's force. Returns the new state and per-pair contact information.
+    """
+    prepared = prepare_step(state, params, motor_actions, thruster_actions, static)
+    solved = substep_solver(static)(prepared.solver_input)
+    return finish_step(state, params, prepared, solved, static), prepared.info

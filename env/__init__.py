@@ -1,0 +1,1 @@
+"""Kinetix-style tasks on the engine: levels, episodes, rewards, observations (not implemented yet)."""

@@ -1,0 +1,24 @@
+"""The `kforge` command line: one subcommand per entry point, each forwarding its own arguments."""
+
+from __future__ import annotations
+
+import argparse
+from collections.abc import Callable, Sequence
+
+import engine.demo
+
+COMMANDS: dict[str, tuple[str, Callable[..., None]]] = {
+    "demo": ("simulate a small engine scene and write it as a GIF", engine.demo.main),
+}
+"""Subcommand name -> (help line, `main(argv, prog)` that parses the remaining arguments)."""
+
+
+def main(argv: Sequence[str] | None = None) -> None:
+    """Run `kforge <command> [arguments]`; `kforge <command> --help` shows the command's own options."""
+    parser = argparse.ArgumentParser(prog="kforge", description=__doc__)
+    subcommands = parser.add_subparsers(dest="command", required=True, metavar="command")
+    for name, (help_line, _) in COMMANDS.items():
+        subcommands.add_parser(name, help=help_line, add_help=False)
+    args, rest = parser.parse_known_args(argv)
+    _, run = COMMANDS[args.command]
+    run(rest, prog=f"{parser.prog} {args.command}")

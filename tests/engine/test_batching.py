@@ -1,0 +1,230 @@
+"""Test group F: vmap equals a Python loop, jit equals eager, runs are bitwise repeatable, no retracing."""
+
+from __future__ import annotations
+
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from engine_test_helpers import (
+    PARAMS,
+    ROLLOUT_STEPS,
+    STATIC_M,
+    python_loop,
+    random_actions,
+    random_scene,
+    run_batch,
+)
+
+import engine
+from engine import SceneBuilder, SimParams
+
+COMPARE_STEPS = 50
+VMAP_ATOL = 1e-6
+EAGER_ATOL = 1e-5
+EAGER_STEPS = 3
+
+
+def _stack_scene():
+    b = SceneBuilder(STATIC_M)
+    b.add_box((2.5, 0.65), (0.6, 0.5), friction=0.8)
+    b.add_box((2.55, 1.16), (0.4, 0.5), rotation=0.05)
+    b.add_circle((2.5, 1.7), 0.15, restitution=0.3)
+    return b.build()
+
+
+def _pendulum_scene():
+    b = SceneBuilder(STATIC_M)
+    link1 = b.add_box((3.0, 4.0), (1.0, 0.1), rotation=0.0)
+    link2 = b.add_box((3.5, 3.5), (0.1, 1.0))
+    b.add_revolute_joint(3, link1, (2.5, 4.0))  # hinge on the ceiling
+    b.add_revolute_joint(link1, link2, (3.5, 4.0), limits=(-0.8, 0.8))
+    return b.build()
+
+
+def _thruster_scene():
+    b = SceneBuilder(STATIC_M)
+    box = b.add_box((1.0, 0.6), (0.4, 0.4), friction=0.3)
+    ball = b.add_circle((3.0, 2.0), 0.2)
+    b.add_thruster(box, (1.1, 0.6), np.pi / 2 + 0.3, 2.0)
+    b.add_thruster(ball, (3.0, 2.0), 0.5, 1.0)
+    return b.build()
+
+
+def _vehicle_scene():
+    """Motorised wheels on the floor, a thruster on the chassis, and a triangle falling onto it: every feature."""
+    b = SceneBuilder(STATIC_M)
+    chassis = b.add_box((2.0, 0.9), (1.0, 0.2))
+    wheel_a = b.add_circle((1.6, 0.65), 0.25, friction=1.0)
+    wheel_b = b.add_circle((2.4, 0.65), 0.25, friction=1.0)
+    b.add_revolute_joint(chassis, wheel_a, (1.6, 0.65), motor_on=True, motor_speed=1.0, motor_power=2.0)
+    b.add_revolute_joint(
+        chassis, wheel_b, (2.4, 0.65), motor_on=True, motor_speed=-1.0, motor_power=1.0, limits=(-0.3, 0.3)
+    )
+    b.add_thruster(chassis, (1.5, 0.9), 0.2, 1.0)
+    b.add_polygon((2.1, 1.3), np.array([[-0.15, 0.0], [0.15, 0.0], [0.0, 0.2]]), rotation=0.4, angular_velocity=2.0)
+    return b.build()
+
+
+def _circles_scene():
+    b = SceneBuilder(STATIC_M)
+    b.add_circle((1.0, 1.0), 0.2, velocity=(3.0, 0.0), restitution=1.0)
+    b.add_circle((2.0, 1.05), 0.3, velocity=(-1.0, 0.5), restitution=0.5)
+    b.add_circle((4.0, 3.0), 0.15, velocity=(-2.0, -3.0), friction=0.0)
+    b.add_polygon((3.0, 2.0), np.array([[0.0, 0.0], [0.4, 0.0], [0.1, 0.3]]), angular_velocity=4.0)
+    return b.build()
+
+
+def _scenes():
+    rng = np.random.default_rng(7)
+    return {
+        "stack": _stack_scene(),
+        "pendulum": _pendulum_scene(),
+        "thrusters": _thruster_scene(),
+        "vehicle": _vehicle_scene(),
+        "circles": _circles_scene(),
+        "empty_arena": SceneBuilder(STATIC_M).build(),
+        "empty": SceneBuilder(STATIC_M, boundaries=False).build(),
+        "random": random_scene(rng, overlapping=True),
+    }
+
+
+@pytest.fixture(scope="module")
+def batch():
+    scenes = _scenes()
+    names = list(scenes)
+    states = [scenes[k] for k in names]
+    motors, thrusters = random_actions(np.random.default_rng(3), STATIC_M, batch=len(states))
+    final, traj = run_batch(states, motors, thrusters)
+    return dict(names=names, states=states, motors=motors, thrusters=thrusters, final=final, traj=traj)
+
+
+def _dynamic_fields(bodies):
+    return {f: np.asarray(getattr(bodies, f)) for f in ("position", "rotation", "velocity", "angular_velocity")}
+
+
+def test_scenes_are_not_trivial(batch):
+    """Guard: the comparison below is meaningless if nothing moves."""
+    traj = batch["traj"]
+    for i, name in enumerate(batch["names"]):
+        if name.startswith("empty"):
+            continue
+        moved = np.abs(traj.bodies.position[i, COMPARE_STEPS - 1] - batch["states"][i].bodies.position).max()
+        assert moved > 1e-3, name
+    assert np.any(traj.info.touching[batch["names"].index("stack"), :COMPARE_STEPS])
+
+
+def test_vmap_equals_python_loop(batch):
+    """Each scene of the vmapped batch equals the same scene stepped alone with `engine.step` (<= 1e-6)."""
+    traj = batch["traj"]
+    failures = []
+    for i, name in enumerate(batch["names"]):
+        loop = python_loop(
+            batch["states"][i], batch["motors"][i, :COMPARE_STEPS], batch["thrusters"][i, :COMPARE_STEPS]
+        )
+        worst, first_bad = {}, None
+        for k, (state, info) in enumerate(loop):
+            pairs = {
+                f"bodies.{f}": (traj_f[i, k], loop_f)
+                for f, traj_f, loop_f in (
+                    (f, np.asarray(getattr(traj.bodies, f)), np.asarray(getattr(state.bodies, f)))
+                    for f in ("position", "rotation", "velocity", "angular_velocity")
+                )
+            }
+            for f in ("linear_impulse", "motor_impulse", "limit_impulse"):
+                pairs[f"joints.{f}"] = (np.asarray(getattr(traj.joints, f))[i, k], np.asarray(getattr(state.joints, f)))
+            np.testing.assert_array_equal(
+                traj.info.touching[i, k], np.asarray(info.touching), err_msg=f"{name} step {k + 1}"
+            )
+            sep_loop, sep_vmap = np.asarray(info.separation), traj.info.separation[i, k]
+            np.testing.assert_array_equal(np.isfinite(sep_loop), np.isfinite(sep_vmap), err_msg=f"{name} step {k + 1}")
+            finite = np.isfinite(sep_loop)
+            pairs["info.separation"] = (sep_vmap[finite], sep_loop[finite])
+            for field, (got, expected) in pairs.items():
+                err = float(np.max(np.abs(got - expected), initial=0.0))
+                worst[field] = max(worst.get(field, 0.0), err)
+                if err > VMAP_ATOL and first_bad is None:
+                    first_bad = (k + 1, field, err)
+        if first_bad is not None:
+            field, err = max(worst.items(), key=lambda item: item[1])
+            failures.append(
+                f"{name}: first diff > {VMAP_ATOL:g} at step {first_bad[0]} ({first_bad[1]} {first_bad[2]:.3g}); "
+                f"max over {COMPARE_STEPS} steps {err:.3g} ({field})"
+            )
+    assert not failures, "vmap vs Python loop:\n" + "\n".join(failures)
+
+
+def test_batched_runs_are_bitwise_repeatable(batch):
+    final, traj = run_batch(batch["states"], batch["motors"], batch["thrusters"])
+    first = jax.tree_util.tree_leaves((batch["final"], batch["traj"]))
+    for got, expected in zip(jax.tree_util.tree_leaves((final, traj)), first, strict=True):
+        np.testing.assert_array_equal(got, expected)
+    assert traj.bodies.position.shape[1] == ROLLOUT_STEPS
+
+
+def test_single_steps_are_bitwise_repeatable(batch):
+    i = batch["names"].index("random")
+    first = python_loop(batch["states"][i], batch["motors"][i, :5], batch["thrusters"][i, :5])
+    second = python_loop(batch["states"][i], batch["motors"][i, :5], batch["thrusters"][i, :5])
+    for a, b in zip(jax.tree_util.tree_leaves(first), jax.tree_util.tree_leaves(second), strict=True):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+
+
+@pytest.mark.slow  # eager execution compiles every primitive separately: about a minute on 2 CPU cores
+def test_jit_equals_eager(batch):
+    name = "vehicle"
+    i = batch["names"].index(name)
+    state = batch["states"][i]
+    motors, thrusters = batch["motors"][i, :EAGER_STEPS], batch["thrusters"][i, :EAGER_STEPS]
+    jitted = python_loop(state, motors, thrusters)
+    with jax.disable_jit():
+        eager = python_loop(state, motors, thrusters)
+    for k, ((s_jit, i_jit), (s_eager, i_eager)) in enumerate(zip(jitted, eager, strict=True)):
+        for field, value in _dynamic_fields(s_jit.bodies).items():
+            err = np.max(np.abs(value - _dynamic_fields(s_eager.bodies)[field]))
+            assert err <= EAGER_ATOL, f"{name} step {k + 1} {field}: jit vs eager max abs diff {err:.3g}"
+        finite = np.isfinite(np.asarray(i_jit.separation))
+        np.testing.assert_array_equal(finite, np.isfinite(np.asarray(i_eager.separation)))
+        np.testing.assert_allclose(
+            np.asarray(i_eager.separation)[finite], np.asarray(i_jit.separation)[finite], atol=EAGER_ATOL, rtol=0
+        )
+
+
+# --------------------------------------------------------------------------- retracing
+_traces: list[int] = []
+
+
+@functools.partial(jax.jit, static_argnames="static")
+def _counted_step(state, params, motor_actions, thruster_actions, static):
+    _traces.append(1)  # runs only while tracing
+    return engine.step(state, params, motor_actions, thruster_actions, static=static)
+
+
+def test_no_retrace_for_new_scenes_of_the_same_size(batch):
+    """Different scenes, step outputs fed back, and new parameter values all reuse the compiled step."""
+    zeros_m, zeros_t = jnp.zeros(STATIC_M.num_joints), jnp.zeros(STATIC_M.num_thrusters)
+    states = batch["states"]
+    if hasattr(engine.step, "_cache_size"):
+        call, count = engine.step, engine.step._cache_size
+    else:  # pragma: no cover - fallback when JAX removes the private counter
+        call, count = _counted_step, lambda: len(_traces)
+    first, _ = call(states[0], PARAMS, zeros_m, zeros_t, static=STATIC_M)
+    before = count()
+    after_step, _ = call(first, PARAMS, zeros_m, zeros_t, static=STATIC_M)
+    for state in states[1:]:
+        call(state, PARAMS, zeros_m, zeros_t, static=STATIC_M)
+    fresh = SceneBuilder(STATIC_M)
+    fresh.add_circle((1.0, 1.0), 0.3)
+    call(fresh.build(), PARAMS, zeros_m, zeros_t, static=STATIC_M)
+    # Same array types as before (strong float32), new values; parameters are traced floats.
+    half = jnp.asarray(np.full(STATIC_M.num_thrusters, 0.5, np.float32))
+    call(
+        after_step,
+        SimParams(dt=1.0 / 120.0, base_friction=0.7),
+        jnp.ones(STATIC_M.num_joints, jnp.float32),
+        half,
+        static=STATIC_M,
+    )
+    assert count() == before, f"step was retraced: cache size {before} -> {count()}"

@@ -1,0 +1,498 @@
+"""Test group C of the engine plan (reference/engine.md section 10): contacts, stacking, restitution, friction,
+tunnelling, deep overlap, joint filtering and collision modes, at the plan's pass thresholds.
+
+Every test prints a `MEASURED` line (run pytest with -s to see them).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from engine import SceneBuilder, SimParams
+from tests.engine.physics_helpers import (
+    SIZE_L,
+    SIZE_M,
+    SIZE_S,
+    G,
+    pair_index,
+    rotate_np,
+    run,
+    speed,
+    world_vertices,
+    zero_gravity,
+)
+
+PARAMS = SimParams()
+DT = PARAMS.dt
+FLOOR_TOP = 0.4  # [m] top of the Kinetix floor
+SLOP = PARAMS.touch_distance  # [m] allowed resting penetration
+MU = PARAMS.base_friction * math.sqrt(2.0)  # [-] pair friction of two shapes of friction 1 (0.566)
+
+
+def measured(name: str, **values):
+    text = ", ".join(f"{k}={v:.6g}" if isinstance(v, float) else f"{k}={v}" for k, v in values.items())
+    print(f"\nMEASURED {name}: {text}")
+
+
+def _own_floor(builder: SceneBuilder, slot: int = 0, restitution: float = 0.0, top: float = FLOOR_TOP) -> int:
+    """A static 10 m wide, 1 m thick floor whose top is at `top`, in reserved polygon `slot`."""
+    return builder.add_box((2.5, top - 0.5), (10.0, 1.0), static=True, slot=slot, restitution=restitution)
+
+
+# =========================================================================== resting contact and stacking
+def test_box_at_rest_1000_steps():
+    builder = SceneBuilder(SIZE_S)
+    box = builder.add_box((2.5, FLOOR_TOP + 0.25), (0.5, 0.5))
+    state = builder.build()
+    final, traj = run(state, SIZE_S, 1000)
+    penetration = FLOOR_TOP - world_vertices(traj, state, box)[..., 1].min(-1)
+    drift = np.abs(traj.position[:, box, 0] - 2.5).max()
+    end_speed = speed(traj, box)[-1]
+    end_spin = abs(traj.angular_velocity[-1, box])
+    measured("box at rest", max_penetration_m=penetration.max(), drift_m=drift, end_speed=end_speed, end_spin=end_spin)
+    assert penetration.max() <= SLOP
+    assert drift < 1e-3
+    assert end_speed < 1e-4 and end_spin < 1e-4
+
+
+def _stack_metrics(traj, state, boxes, x0, y0):
+    drift = max(np.abs(traj.position[:, b, 0] - x).max() for b, x in zip(boxes, x0, strict=True))
+    sag = y0[-1] - traj.position[-1, boxes[-1], 1]
+    return drift, sag
+
+
+def test_three_stack_1000_steps():
+    builder = SceneBuilder(SIZE_L)
+    y0 = [FLOOR_TOP + 0.2 + 0.4 * i for i in range(3)]
+    boxes = [builder.add_box((2.5, y), (0.4, 0.4)) for y in y0]
+    state = builder.build()
+    _, traj = run(state, SIZE_L, 1000)
+    drift, sag = _stack_metrics(traj, state, boxes, [2.5] * 3, y0)
+    end_speed = max(speed(traj, b)[-1] for b in boxes)
+    measured("3-stack", drift_m=drift, sag_m=sag, end_speed=end_speed)
+    assert drift < 1e-3
+    assert sag < 0.015
+
+
+def test_six_stack_with_offsets_1000_steps():
+    builder = SceneBuilder(SIZE_L)
+    x0 = [2.5 + 0.025 * (1 if i % 2 == 0 else -1) for i in range(6)]
+    y0 = [FLOOR_TOP + 0.2 + 0.4 * i for i in range(6)]
+    boxes = [builder.add_box((x, y), (0.4, 0.4)) for x, y in zip(x0, y0, strict=True)]
+    state = builder.build()
+    _, traj = run(state, SIZE_L, 1000)
+    drift, sag = _stack_metrics(traj, state, boxes, x0, y0)
+    max_tilt = max(np.abs(traj.rotation[:, b]).max() for b in boxes)
+    measured("6-stack +-2.5 cm", drift_m=drift, sag_m=sag, max_tilt_rad=max_tilt)
+    assert drift < 5e-3
+    # No topple: every box stays upright and the top box stays on the stack.
+    assert max_tilt < 0.05
+    assert sag < 0.05
+    assert np.all(np.diff(traj.position[-1, boxes, 1]) > 0.35)
+
+
+@pytest.mark.parametrize("size", ["s", "m", "l"])
+def test_stack_in_last_slots_b1_regression(size):
+    """Jax2D B1: the last pair of each pair type lost its warm start and clamping (padding index -1).
+
+    A loaded column in the last slots, inside a static channel 0.5 m wide (walls in reserved slots 1 and 2,
+    floor in 3): the last polygon-polygon pair (box on box in the two last polygon slots; for `s`, whose only
+    movable polygon slot is 4, box on the floor in reserved slot 3), the last polygon-circle pair (last circle
+    on the top box) and the last circle-circle pair (the other circle on it). The circles fill the channel's
+    width, so the walls keep the circle column upright without carrying load. Criterion as the 3-stack.
+    """
+    static = {"s": SIZE_S, "m": SIZE_M, "l": SIZE_L}[size]
+    p, n = static.num_polygons, static.num_bodies
+    left_wall, right_wall, radius, box_h = 2.25, 2.75, 0.25, 0.2
+    builder = SceneBuilder(static, boundaries=False)
+    builder.add_box((left_wall - 0.25, 1.0), (0.5, 2.0), static=True, slot=1)
+    builder.add_box((right_wall + 0.25, 1.0), (0.5, 2.0), static=True, slot=2)
+    _own_floor(builder, slot=3)
+    first_box = p - 1 if size == "s" else p - 2
+    boxes = [
+        builder.add_box((2.5, FLOOR_TOP + box_h * (i + 0.5)), (0.48, box_h), slot=slot)
+        for i, slot in enumerate(range(first_box, p))
+    ]
+    top_of_boxes = FLOOR_TOP + box_h * len(boxes)
+    lower = builder.add_circle((2.5, top_of_boxes + radius), radius, slot=n - 1 - p)
+    upper = builder.add_circle((2.5, top_of_boxes + 3 * radius), radius, slot=n - 2 - p)
+    state = builder.build()
+    bodies = boxes + [lower, upper]
+    x0 = [float(state.bodies.position[b, 0]) for b in bodies]
+    y0 = [float(state.bodies.position[b, 1]) for b in bodies]
+    last_pairs = [pair_index(static, p - 2, p - 1), pair_index(static, p - 1, n - 1), pair_index(static, n - 2, n - 1)]
+    assert last_pairs[-1] == len(state.contacts.normal_impulse) - 1
+    _, traj = run(state, static, 1000)
+    drift, sag = _stack_metrics(traj, state, bodies, x0, y0)
+    loads = traj.normal_impulse[-1, last_pairs].sum(-1)
+    end_speed = max(speed(traj, b)[-1] for b in bodies)
+    measured(
+        f"B1 last slots {size}",
+        drift_m=drift,
+        sag_m=sag,
+        end_speed=end_speed,
+        last_pair_impulses=np.round(loads, 6).tolist(),
+    )
+    assert drift < 1e-3
+    assert sag < 0.015
+    # The last pairs really carry the load (none of them lost its impulse).
+    assert np.all(loads > 0)
+
+
+def test_pyramid_stable_and_symmetric():
+    builder = SceneBuilder(SIZE_L)
+    left = builder.add_box((2.5 - 0.21, FLOOR_TOP + 0.2), (0.4, 0.4))
+    right = builder.add_box((2.5 + 0.21, FLOOR_TOP + 0.2), (0.4, 0.4))
+    top = builder.add_box((2.5, FLOOR_TOP + 0.6), (0.4, 0.4))
+    state = builder.build()
+    _, traj = run(state, SIZE_L, 600)
+    pos, rot = traj.position, traj.rotation
+    top_shift = np.abs(pos[:, top, 0] - 2.5).max()
+    top_tilt = np.abs(rot[:, top]).max()
+    asymmetry_x = np.abs((pos[:, left, 0] + pos[:, right, 0]) / 2 - 2.5).max()
+    asymmetry_y = np.abs(pos[:, left, 1] - pos[:, right, 1]).max()
+    asymmetry_rot = np.abs(rot[:, left] + rot[:, right]).max()
+    spread = np.abs((pos[:, right, 0] - pos[:, left, 0]) - 0.42).max()
+    sag = FLOOR_TOP + 0.6 - pos[-1, top, 1]
+    end_speed = max(speed(traj, b)[-1] for b in (left, right, top))
+    measured(
+        "pyramid",
+        top_shift_m=top_shift,
+        top_tilt_rad=top_tilt,
+        asym_x_m=asymmetry_x,
+        asym_y_m=asymmetry_y,
+        asym_rot_rad=asymmetry_rot,
+        base_spread_change_m=spread,
+        sag_m=sag,
+        end_speed=end_speed,
+    )
+    # Stable: nothing slides, tips or sinks.
+    assert top_shift < 1e-3 and top_tilt < 0.01
+    assert spread < 2e-3
+    assert sag < 0.015
+    assert end_speed < 1e-3
+    # Symmetric about x = 2.5.
+    assert asymmetry_x < 1e-3 and asymmetry_y < 1e-3 and asymmetry_rot < 1e-3
+
+
+def test_drop_tilted_box_settles_flat():
+    builder = SceneBuilder(SIZE_S)
+    tilt, half = 0.3, np.array([0.3, 0.15])
+    lowest = half[0] * math.sin(tilt) + half[1] * math.cos(tilt)
+    box = builder.add_box((2.5, FLOOR_TOP + 0.1 + lowest), (0.6, 0.3), rotation=tilt)
+    state = builder.build()
+    _, traj = run(state, SIZE_S, 300)
+    bottom = world_vertices(traj, state, box)[..., 1].min(-1)
+    landing = int(np.flatnonzero(bottom < FLOOR_TOP + SLOP)[0])
+    angle = np.abs(traj.rotation[:, box])
+    not_flat = np.flatnonzero(angle >= 0.01)
+    flat_from = int(not_flat[-1]) + 1 if not_flat.size else 0
+    measured("drop at 0.3 rad", landing_step=landing, flat_after_steps=flat_from - landing, final_angle_rad=angle[-1])
+    assert flat_from - landing <= 60
+
+
+# =========================================================================== restitution
+def _bounce_heights(restitution: float, drop: float, steps: int, radius: float = 0.1):
+    """Ball of `restitution` dropped from `drop` [m] (bottom clearance) onto a static floor of restitution 1.
+
+    Returns (heights [m] of successive apexes, bottom clearance each step, impact speeds [m/s])."""
+    builder = SceneBuilder(SIZE_S, boundaries=False)
+    _own_floor(builder, restitution=1.0)
+    ball = builder.add_circle((2.5, FLOOR_TOP + radius + drop), radius, restitution=restitution)
+    _, traj = run(builder.build(), SIZE_S, steps)
+    clearance = traj.position[:, ball, 1] - radius - FLOOR_TOP
+    vy = traj.velocity[:, ball, 1]
+    bounces = np.flatnonzero((vy[:-1] < -0.1) & (vy[1:] > 0.05)) + 1  # downward before, upward after
+    impacts = -vy[bounces - 1]
+    heights = []
+    for start, end in zip(bounces, list(bounces[1:]) + [len(vy)], strict=True):
+        if np.any(vy[start:end] <= 0.0):  # the apex of this flight lies inside the run
+            heights.append(clearance[start:end].max())
+    return np.asarray(heights), clearance, impacts
+
+
+def test_bounce_restitution_one():
+    heights, _, impacts = _bounce_heights(1.0, drop=1.0, steps=340)
+    ratios = heights / np.concatenate([[1.0], heights[:-1]])
+    measured("bounce e=1", heights_m=np.round(heights, 5).tolist(), ratios=np.round(ratios, 4).tolist())
+    assert len(ratios) >= 5
+    assert np.all((ratios[:5] >= 0.97) & (ratios[:5] <= 1.01))
+
+
+def test_bounce_restitution_half():
+    heights, _, impacts = _bounce_heights(0.5, drop=1.5, steps=240)
+    ratios = heights / np.concatenate([[1.5], heights[:-1]])
+    # Bounces whose impact speed is well above the 1 m/s restitution threshold.
+    checked = ratios[: int(np.sum(impacts[: len(ratios)] > 1.2))]
+    measured(
+        "bounce e=0.5",
+        heights_m=np.round(heights, 5).tolist(),
+        ratios=np.round(ratios, 4).tolist(),
+        impact_speeds=np.round(impacts, 3).tolist(),
+        checked=len(checked),
+    )
+    assert len(checked) >= 2
+    assert np.all(np.abs(checked - 0.25) <= 0.03)
+
+
+def test_slow_contact_below_threshold_does_not_bounce():
+    drop = 0.03  # impact speed sqrt(2 g h) = 0.77 m/s < restitution_threshold (1 m/s)
+    assert math.sqrt(2 * G * drop) < PARAMS.restitution_threshold
+    builder = SceneBuilder(SIZE_S, boundaries=False)
+    _own_floor(builder, restitution=1.0)
+    ball = builder.add_circle((2.5, FLOOR_TOP + 0.1 + drop), 0.1, restitution=1.0)
+    _, traj = run(builder.build(), SIZE_S, 120)
+    clearance = traj.position[:, ball, 1] - 0.1 - FLOOR_TOP
+    landing = int(np.flatnonzero(clearance < SLOP)[0])
+    rebound = clearance[landing:].max()
+    max_up_speed = traj.velocity[landing:, ball, 1].max()
+    measured(
+        "slow contact e=1",
+        landing_step=landing,
+        max_height_after_landing_m=rebound,
+        max_upward_speed=max_up_speed,
+        end_speed=speed(traj, ball)[-1],
+    )
+    assert rebound < 1e-3
+    assert max_up_speed < 0.05
+    assert speed(traj, ball)[-1] < 1e-3
+
+
+def _circle_collision(r_a: float, r_b: float, v: float = 2.0, steps: int = 60):
+    """Zero gravity: circle A moving at v along +x hits resting circle B head-on; both restitution 1."""
+    builder = SceneBuilder(SIZE_S, boundaries=False)
+    a = builder.add_circle((1.0, 2.0), r_a, restitution=1.0, velocity=(v, 0.0))
+    b = builder.add_circle((1.0 + r_a + r_b + 0.3, 2.0), r_b, restitution=1.0)
+    state = zero_gravity(builder.build())
+    mass = 1.0 / np.asarray(state.bodies.inverse_mass, np.float64)[[a, b]]
+    _, traj = run(state, SIZE_S, steps)
+    v0, v1 = traj.velocity[0, [a, b]], traj.velocity[-1, [a, b]]
+    w1 = traj.angular_velocity[-1, [a, b]]
+    inertia = 1.0 / np.asarray(state.bodies.inverse_inertia, np.float64)[[a, b]]
+    p0, p1 = (mass[:, None] * v0).sum(0), (mass[:, None] * v1).sum(0)
+    ke0 = 0.5 * np.sum(mass * np.sum(v0**2, -1))
+    ke1 = 0.5 * np.sum(mass * np.sum(v1**2, -1)) + 0.5 * np.sum(inertia * w1**2)
+    return mass, v1, np.linalg.norm(p1 - p0) / np.linalg.norm(p0), ke1 / ke0 - 1.0
+
+
+def test_elastic_circles_equal_mass():
+    mass, v1, momentum_error, ke_error = _circle_collision(0.1, 0.1)
+    measured(
+        "elastic equal mass",
+        v_a=v1[0].tolist(),
+        v_b=v1[1].tolist(),
+        momentum_rel_error=momentum_error,
+        ke_rel_error=ke_error,
+    )
+    np.testing.assert_allclose(v1[0], [0.0, 0.0], atol=0.02)
+    np.testing.assert_allclose(v1[1], [2.0, 0.0], atol=0.02)
+    assert momentum_error <= 1e-5
+    assert abs(ke_error) <= 0.02
+
+
+def test_elastic_circles_mass_ratio_one_to_four():
+    v = 2.0
+    mass, v1, momentum_error, ke_error = _circle_collision(0.1, 0.2, v=v)
+    m1, m2 = mass
+    assert abs(m2 / m1 - 4.0) < 1e-5
+    expected_a, expected_b = (m1 - m2) / (m1 + m2) * v, 2 * m1 / (m1 + m2) * v
+    measured(
+        "elastic 1:4",
+        v_a=v1[0].tolist(),
+        v_b=v1[1].tolist(),
+        expected=(expected_a, expected_b),
+        momentum_rel_error=momentum_error,
+        ke_rel_error=ke_error,
+    )
+    assert abs(v1[0, 0] - expected_a) <= 0.01 * abs(expected_a)
+    assert abs(v1[1, 0] - expected_b) <= 0.01 * abs(expected_b)
+    assert np.abs(v1[:, 1]).max() <= 0.01 * v
+    assert momentum_error <= 1e-5
+    assert abs(ke_error) <= 0.02
+
+
+# =========================================================================== friction
+def _on_slope(angle_deg: float, shape: str, steps: int = 60):
+    """A body resting on a static slope (8 m x 1 m box rotated by the angle); returns (traj, body, tangent)."""
+    angle = math.radians(angle_deg)
+    tangent, normal = np.array([math.cos(angle), math.sin(angle)]), np.array([-math.sin(angle), math.cos(angle)])
+    centre = np.array([5.0, 3.0])
+    builder = SceneBuilder(SIZE_S, boundaries=False)
+    builder.add_box(centre, (8.0, 1.0), rotation=angle, static=True, slot=0)
+    surface = centre + 0.5 * normal + 2.0 * tangent
+    if shape == "box":
+        body = builder.add_box(surface + 0.15 * normal, (0.3, 0.3), rotation=angle)
+    else:
+        body = builder.add_circle(surface + 0.1 * normal, 0.1)
+    _, traj = run(builder.build(), SIZE_S, steps)
+    return traj, body, tangent
+
+
+def _fitted_acceleration(traj, body, tangent, first: int = 5):
+    """Down-slope acceleration [m/s^2]: least-squares slope of the down-slope speed over steps first..end."""
+    v = -(traj.velocity[first:, body] @ tangent)
+    t = np.arange(first, traj.num_steps + 1) * DT
+    return np.polyfit(t, v, 1)[0]
+
+
+def test_box_sticks_on_20_degree_slope():
+    traj, box, tangent = _on_slope(20.0, "box", steps=60)
+    along = (traj.position[:, box] - traj.position[0, box]) @ tangent
+    total = np.linalg.norm(traj.position[:, box] - traj.position[0, box], axis=-1)
+    measured("slope 20 deg stick", max_slide_m=np.abs(along).max(), max_displacement_m=total.max(), mu=MU)
+    assert math.tan(math.radians(20.0)) < MU
+    assert np.abs(along).max() < 2e-3
+
+
+def test_box_slides_on_40_degree_slope():
+    angle = math.radians(40.0)
+    traj, box, tangent = _on_slope(40.0, "box", steps=60)
+    acceleration = _fitted_acceleration(traj, box, tangent)
+    expected = G * (math.sin(angle) - MU * math.cos(angle))
+    measured("slope 40 deg slide", acceleration=acceleration, expected=expected, rel_error=acceleration / expected - 1)
+    assert abs(acceleration / expected - 1.0) <= 0.02
+
+
+def test_disc_rolls_on_20_degree_slope():
+    angle = math.radians(20.0)
+    traj, disc, tangent = _on_slope(20.0, "circle", steps=60)
+    acceleration = _fitted_acceleration(traj, disc, tangent)
+    expected = G * math.sin(angle) / (1.0 + 0.5)  # I = m r^2 / 2
+    slip = traj.velocity[-1, disc] @ tangent + traj.angular_velocity[-1, disc] * 0.1
+    measured(
+        "rolling disc 20 deg",
+        acceleration=acceleration,
+        expected=expected,
+        rel_error=acceleration / expected - 1,
+        slip_speed=slip,
+    )
+    assert abs(acceleration / expected - 1.0) <= 0.03
+
+
+# =========================================================================== tunnelling
+TUNNEL_SPEEDS = (1.0, 5.0, 10.0, 20.0, 30.0, 50.0, 100.0)
+TUNNEL_PHASES = (0.0, 1.0 / 3.0, 2.0 / 3.0)  # start offsets in units of one step's travel
+WALL_X, WALL_THICKNESS = 5.0, 0.1
+
+
+def _shoot(shape: str, v: float, phase: float) -> bool:
+    """Zero gravity: a 0.1 m box or 5 cm circle shot along +x at a 0.1 m thick static wall; True if it passes."""
+    builder = SceneBuilder(SIZE_S, boundaries=False)
+    builder.add_box((WALL_X, 2.0), (WALL_THICKNESS, 2.0), static=True, slot=0)
+    start = WALL_X - WALL_THICKNESS / 2 - 0.05 - 0.5 - phase * v * DT
+    if shape == "box":
+        body = builder.add_box((start, 2.0), (0.1, 0.1), velocity=(v, 0.0))
+    else:
+        body = builder.add_circle((start, 2.0), 0.05, velocity=(v, 0.0))
+    _, traj = run(zero_gravity(builder.build()), SIZE_S, 100)
+    return bool(traj.position[:, body, 0].max() > WALL_X)
+
+
+@pytest.fixture(scope="module")
+def tunnelling_sweep():
+    """{shape: {speed: number of phases that passed through}}."""
+    return {
+        shape: {v: sum(_shoot(shape, v, ph) for ph in TUNNEL_PHASES) for v in TUNNEL_SPEEDS}
+        for shape in ("box", "circle")
+    }
+
+
+@pytest.mark.parametrize("shape", ["box", "circle"])
+def test_no_tunnelling_up_to_20_m_per_s(tunnelling_sweep, shape):
+    passes = tunnelling_sweep[shape]
+    failing = [v for v in TUNNEL_SPEEDS if passes[v]]
+    v_max = max([v for v in TUNNEL_SPEEDS if not failing or v < failing[0]], default=0.0)
+    measured(
+        f"tunnelling {shape}",
+        v_max_m_per_s=v_max,
+        first_failure=failing[0] if failing else None,
+        pass_throughs_per_speed={v: passes[v] for v in TUNNEL_SPEEDS},
+    )
+    assert v_max >= 20.0
+
+
+# =========================================================================== deep overlap
+def _box_signed_distance(point_local, half):
+    q = np.abs(point_local) - half
+    return np.linalg.norm(np.maximum(q, 0.0), axis=-1) + np.minimum(q.max(-1), 0.0)
+
+
+def test_circle_centre_inside_box_separates():
+    builder = SceneBuilder(SIZE_S, boundaries=False)
+    box = builder.add_box((2.5, 2.0), (0.4, 0.4))
+    circle = builder.add_circle((2.55, 2.02), 0.1)
+    _, traj = run(zero_gravity(builder.build()), SIZE_S, 100)
+    local = rotate_np(-traj.rotation[:, box, None], (traj.position[:, circle] - traj.position[:, box])[:, None])[:, 0]
+    separation = _box_signed_distance(local, np.array([0.2, 0.2])) - 0.1
+    separated = np.flatnonzero(separation < -SLOP)
+    steps_to_separate = int(separated[-1]) + 1 if separated.size else 0
+    max_speed = max(speed(traj, box).max(), speed(traj, circle).max())
+    measured(
+        "circle in box", steps_to_separate=steps_to_separate, final_separation_m=separation[-1], max_speed=max_speed
+    )
+    assert steps_to_separate <= 60
+    assert max_speed < 5.0
+
+
+def test_coincident_circles_separate():
+    builder = SceneBuilder(SIZE_S, boundaries=False)
+    a = builder.add_circle((2.5, 2.0), 0.1)
+    b = builder.add_circle((2.5, 2.0), 0.1)
+    _, traj = run(zero_gravity(builder.build()), SIZE_S, 100)
+    separation = np.linalg.norm(traj.position[:, a] - traj.position[:, b], axis=-1) - 0.2
+    overlapping = np.flatnonzero(separation < -SLOP)
+    steps_to_separate = int(overlapping[-1]) + 1 if overlapping.size else 0
+    max_speed = max(speed(traj, a).max(), speed(traj, b).max())
+    measured(
+        "coincident circles",
+        steps_to_separate=steps_to_separate,
+        final_separation_m=separation[-1],
+        max_speed=max_speed,
+    )
+    assert steps_to_separate <= 60
+    assert max_speed < 5.0
+
+
+# =========================================================================== filtering
+def test_jointed_overlapping_bodies_get_no_contact_impulse():
+    builder = SceneBuilder(SIZE_M)
+    a = builder.add_box((2.3, FLOOR_TOP + 0.2), (0.4, 0.4))
+    b = builder.add_box((2.5, FLOOR_TOP + 0.2), (0.4, 0.4))  # overlaps a by 0.2 m
+    builder.add_revolute_joint(a, b, (2.4, FLOOR_TOP + 0.2))
+    state = builder.build()
+    _, traj = run(state, SIZE_M, 200)
+    pair = pair_index(SIZE_M, a, b)
+    floor_pair = pair_index(SIZE_M, 0, a)
+    max_speed = max(speed(traj, a).max(), speed(traj, b).max())
+    measured(
+        "jointed overlap",
+        max_pair_impulse=np.abs(traj.normal_impulse[:, pair]).max(),
+        floor_impulse=traj.normal_impulse[-1, floor_pair].sum(),
+        max_speed=max_speed,
+    )
+    assert np.all(traj.normal_impulse[:, pair] == 0.0)
+    assert traj.normal_impulse[-1, floor_pair].sum() > 0.0  # contacts with the floor still work
+    assert max_speed < 0.05
+
+
+@pytest.mark.parametrize("mode_static", [0, 1, 2])
+@pytest.mark.parametrize("mode_falling", [0, 1, 2])
+def test_collision_modes(mode_static, mode_falling):
+    """0 hits only 2, 1 hits 1 and 2, 2 hits everything: a box dropped on a static platform rests or falls through."""
+    builder = SceneBuilder(SIZE_S, boundaries=False)
+    builder.add_box((2.5, 1.0), (2.0, 0.2), static=True, slot=0, collision_mode=mode_static)
+    box = builder.add_box((2.5, 1.4), (0.2, 0.2), collision_mode=mode_falling)
+    _, traj = run(builder.build(), SIZE_S, 100)
+    should_collide = mode_static == 2 or mode_falling == 2 or (mode_static == 1 and mode_falling == 1)
+    final_y = traj.position[-1, box, 1]
+    measured(
+        f"collision modes static={mode_static} falling={mode_falling}", final_y=final_y, expected_collide=should_collide
+    )
+    if should_collide:
+        assert abs(final_y - 1.2) < SLOP
+        assert speed(traj, box)[-1] < 1e-3
+    else:
+        assert final_y < 0.0

@@ -1,0 +1,293 @@
+"""Test group D of the engine plan (reference/engine.md section 10): joints, motors and limits, at the plan's
+pass thresholds. Every scene uses the `l` size (6 joints), so this module compiles one runner.
+
+Every test prints a `MEASURED` line (run pytest with -s to see them).
+"""
+
+from __future__ import annotations
+
+import math
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from engine import SceneBuilder, SimParams
+from tests.engine.physics_helpers import SIZE_L, G, crossings, elliptic_k, joint_anchor_error, rotate_np, run
+
+STATIC = SIZE_L
+PARAMS = SimParams()
+DT = PARAMS.dt
+SUBSTEP = DT / STATIC.num_substeps
+PIVOT = np.array([5.0, 4.0])
+
+
+def measured(name: str, **values):
+    text = ", ".join(f"{k}={v:.6g}" if isinstance(v, float) else f"{k}={v}" for k, v in values.items())
+    print(f"\nMEASURED {name}: {text}")
+
+
+def _builder_with_pivot() -> SceneBuilder:
+    """No boundaries; a small static box at PIVOT in reserved polygon slot 0 (body 0)."""
+    builder = SceneBuilder(STATIC, boundaries=False)
+    builder.add_box(PIVOT, (0.1, 0.1), static=True, slot=0)
+    return builder
+
+
+def _joint_angle(traj, state, joint: int) -> np.ndarray:
+    j = state.joints
+    a, b = int(j.body_a[joint]), int(j.body_b[joint])
+    return traj.rotation[:, b] - traj.rotation[:, a] - float(j.reference_angle[joint])
+
+
+def _motor_bound(state, joint: int) -> float:
+    """[N m s] largest motor impulse of one substep: motor_power * base_motor_power * axial inertia * h."""
+    j, b = state.joints, state.bodies
+    inverse_sum = float(b.inverse_inertia[int(j.body_a[joint])]) + float(b.inverse_inertia[int(j.body_b[joint])])
+    return float(j.motor_power[joint]) * PARAMS.base_motor_power / inverse_sum * SUBSTEP
+
+
+# =========================================================================== pendulums
+LENGTH, BOB_RADIUS = 1.0, 0.05
+
+
+def _pendulum(theta0: float, seconds: float = 10.0):
+    """Small disc on a 1 m massless arm (revolute joint to a static pivot), released at rest from `theta0`."""
+    builder = _builder_with_pivot()
+    bob = builder.add_circle(PIVOT + LENGTH * np.array([math.sin(theta0), -math.cos(theta0)]), BOB_RADIUS)
+    builder.add_revolute_joint(0, bob, PIVOT)
+    state = builder.build()
+    _, traj = run(state, STATIC, int(round(seconds / DT)))
+    arm = traj.position[:, bob] - PIVOT
+    theta = np.arctan2(arm[:, 0], -arm[:, 1])
+    # Period from all zero crossings (two per period): slope of crossing time vs crossing index, doubled.
+    times = np.sort(np.concatenate([crossings(theta, DT, 1), crossings(theta, DT, -1)]))
+    period = 2.0 * np.polyfit(np.arange(len(times)), times, 1)[0]
+    # Compound pendulum: I_pivot / (m g L) with I_pivot = m r^2 / 2 + m L^2 (the mass cancels).
+    inertia_ratio = (0.5 * BOB_RADIUS**2 + LENGTH**2) / (G * LENGTH)
+    return state, traj, theta, period, inertia_ratio
+
+
+def test_pendulum_small_amplitude():
+    theta0 = 0.1
+    state, traj, theta, period, inertia_ratio = _pendulum(theta0)
+    expected = 2.0 * math.pi * math.sqrt(inertia_ratio)
+    anchor_error = joint_anchor_error(traj, state, 0).max()
+    last_period = theta[-int(round(period / DT)) :]
+    amplitude_loss = 1.0 - np.abs(last_period).max() / theta0
+    measured(
+        "pendulum 0.1 rad",
+        period_s=period,
+        expected_s=expected,
+        period_rel_error=period / expected - 1,
+        anchor_error_m=anchor_error,
+        amplitude_loss_10s=amplitude_loss,
+    )
+    assert abs(period / expected - 1.0) <= 0.005
+    assert anchor_error < 5e-3
+    assert amplitude_loss < 0.05
+
+
+def test_pendulum_large_amplitude_elliptic_period():
+    theta0 = 1.5
+    state, traj, theta, period, inertia_ratio = _pendulum(theta0)
+    expected = 4.0 * math.sqrt(inertia_ratio) * elliptic_k(math.sin(theta0 / 2.0))
+    measured(
+        "pendulum 1.5 rad",
+        period_s=period,
+        expected_s=expected,
+        period_rel_error=period / expected - 1,
+        small_angle_period_s=2 * math.pi * math.sqrt(inertia_ratio),
+        anchor_error_m=joint_anchor_error(traj, state, 0).max(),
+    )
+    assert abs(period / expected - 1.0) <= 0.01
+
+
+def test_elliptic_integral_helper():
+    assert abs(elliptic_k(0.0) - math.pi / 2) < 1e-12
+    assert abs(elliptic_k(math.sin(math.pi / 4)) - 1.8540746773013719) < 1e-12
+
+
+# =========================================================================== chains and mass ratios
+@pytest.fixture(scope="module")
+def chain_errors():
+    """5 links (0.4 m x 0.1 m) hinged end to end from a static pivot, released horizontally, 10 s:
+    (n+1,) largest anchor separation over the 5 joints at every step, and the lowest height of the last link."""
+    builder = _builder_with_pivot()
+    links = [builder.add_box(PIVOT + (0.2 + 0.4 * i, 0.0), (0.4, 0.1)) for i in range(5)]
+    builder.add_revolute_joint(0, links[0], PIVOT)
+    for i in range(1, 5):
+        builder.add_revolute_joint(links[i - 1], links[i], PIVOT + (0.4 * i, 0.0))
+    state = builder.build()
+    _, traj = run(state, STATIC, 600)
+    errors = np.stack([joint_anchor_error(traj, state, j) for j in range(5)], -1).max(-1)
+    lowest = traj.position[:, links[-1], 1].min()
+    measured(
+        "5-link chain",
+        max_separation_m=errors.max(),
+        final_separation_m=errors[-1],
+        median_separation_m=np.median(errors),
+        last_second_median_m=np.median(errors[-60:]),
+        last_second_max_m=errors[-60:].max(),
+        lowest_link_y=lowest,
+    )
+    assert lowest < PIVOT[1] - 1.5  # it really fell and swung
+    return errors
+
+
+def test_five_link_chain_max_separation(chain_errors):
+    assert chain_errors.max() < 0.015
+
+
+def test_five_link_chain_final_separation(chain_errors):
+    """Separation at the end of the 10 s run (the chain is still swinging)."""
+    assert chain_errors[-1] < 1e-3
+
+
+def test_mass_ratio_100_to_1_across_a_joint():
+    builder = _builder_with_pivot()
+    light = builder.add_box(PIVOT + (0.2, 0.0), (0.4, 0.1), density=1.0)
+    heavy = builder.add_box(PIVOT + (0.6, 0.0), (0.4, 0.1), density=100.0)
+    builder.add_revolute_joint(0, light, PIVOT)
+    builder.add_revolute_joint(light, heavy, PIVOT + (0.4, 0.0))
+    state = builder.build()
+    inverse_mass = np.asarray(state.bodies.inverse_mass)
+    assert abs(inverse_mass[light] / inverse_mass[heavy] - 100.0) < 1e-3
+    _, traj = run(state, STATIC, 300)
+    errors = np.stack([joint_anchor_error(traj, state, j) for j in range(2)], -1)
+    measured(
+        "mass ratio 100:1",
+        max_error_m=errors.max(),
+        max_error_per_joint_m=errors.max(0).round(5).tolist(),
+        final_error_m=errors[-1].max(),
+    )
+    assert errors.max() < 0.02
+
+
+# =========================================================================== fixed joints
+def test_fixed_joint_cantilever_holds_relative_angle():
+    """A beam welded at a rotated static wall, with a heavy rotated block welded at its tip."""
+    builder = SceneBuilder(STATIC, boundaries=False)
+    wall_angle, beam_angle, load_angle = 0.2, -0.3, 0.7
+    wall = builder.add_box(PIVOT, (0.2, 1.0), rotation=wall_angle, static=True, slot=0)
+    root = PIVOT + rotate_np(wall_angle, np.array([0.1, 0.0]))
+    beam_dir = rotate_np(beam_angle, np.array([1.0, 0.0]))
+    beam = builder.add_box(root + 0.5 * beam_dir, (1.0, 0.1), rotation=beam_angle)
+    tip = root + beam_dir
+    load = builder.add_box(
+        tip + rotate_np(load_angle, np.array([0.1, 0.0])), (0.2, 0.2), rotation=load_angle, density=10.0
+    )
+    builder.add_fixed_joint(wall, beam, root)
+    builder.add_fixed_joint(beam, load, tip)
+    state = builder.build()
+    _, traj = run(state, STATIC, 300)
+    angle_errors = np.stack([np.abs(_joint_angle(traj, state, j)) for j in range(2)], -1)
+    anchor_errors = np.stack([joint_anchor_error(traj, state, j) for j in range(2)], -1)
+    tip_drop = traj.position[0, load, 1] - traj.position[:, load, 1]
+    measured(
+        "fixed-joint cantilever",
+        max_angle_error_rad=angle_errors.max(),
+        per_joint=angle_errors.max(0).round(5).tolist(),
+        final_angle_error_rad=angle_errors[-1].max(),
+        max_anchor_error_m=anchor_errors.max(),
+        max_tip_drop_m=tip_drop.max(),
+    )
+    assert angle_errors.max() < 0.01
+
+
+# =========================================================================== limits and motors
+def test_revolute_limits_under_gravity_and_release():
+    """Two bars hinged at a static pivot (one pointing +x, one -x), limits +-0.5 rad, released horizontally:
+    they swing onto the lower and upper limits; then motors drive each back through the range onto the other limit."""
+    builder = _builder_with_pivot()
+    right = builder.add_box(PIVOT + (0.25, 0.0), (0.5, 0.05))
+    left = builder.add_box(PIVOT - (0.25, 0.0), (0.5, 0.05))
+    for bar in (right, left):
+        builder.add_revolute_joint(0, bar, PIVOT, motor_speed=1.0, motor_power=1.0, motor_on=False, limits=(-0.5, 0.5))
+    state = builder.build()
+    state, fall = run(state, STATIC, 120)
+    fall_right, fall_left = _joint_angle(fall, state, 0), _joint_angle(fall, state, 1)
+    overshoot_fall = max(-0.5 - fall_right.min(), fall_left.max() - 0.5)
+    # Drive away from the limits: motors on, the right bar up (positive), the left bar down (negative).
+    motor_on = np.zeros(STATIC.num_joints, bool)
+    motor_on[:2] = True
+    state = state.replace(joints=state.joints.replace(motor_on=jnp.asarray(motor_on)))
+    actions = np.zeros(STATIC.num_joints, np.float32)
+    actions[:2] = (1.0, -1.0)
+    _, drive = run(state, STATIC, 120, motor=actions)
+    drive_right, drive_left = _joint_angle(drive, state, 0), _joint_angle(drive, state, 1)
+    released_after = int(np.flatnonzero((drive_right > 0.0) & (drive_left < 0.0))[0])
+    overshoot_drive = max(drive_right.max() - 0.5, -0.5 - drive_left.min())
+    measured(
+        "revolute limits",
+        fall_min_right_rad=fall_right.min(),
+        fall_max_left_rad=fall_left.max(),
+        overshoot_fall_rad=overshoot_fall,
+        rest_right_rad=fall_right[-1],
+        rest_left_rad=fall_left[-1],
+        steps_to_cross_zero=released_after,
+        drive_end_right_rad=drive_right[-1],
+        drive_end_left_rad=drive_left[-1],
+        overshoot_drive_rad=overshoot_drive,
+    )
+    assert fall_right.min() < -0.45 and fall_left.max() > 0.45  # both reached their limit
+    assert overshoot_fall < 0.05
+    assert abs(fall_right[-1] + 0.5) < 0.05 and abs(fall_left[-1] - 0.5) < 0.05  # resting on the limits
+    assert released_after <= 30  # the limits let go when driven inward
+    assert overshoot_drive < 0.05
+    assert abs(drive_right[-1] - 0.5) < 0.05 and abs(drive_left[-1] + 0.5) < 0.05  # now held at the other limits
+
+
+def test_motor_free_wheel_reaches_target_speed():
+    builder = _builder_with_pivot()
+    wheel = builder.add_circle(PIVOT, 0.2)
+    builder.add_revolute_joint(0, wheel, PIVOT, motor_speed=1.0, motor_power=1.0, motor_on=True)
+    state = builder.build()
+    actions = np.zeros(STATIC.num_joints, np.float32)
+    actions[0] = 1.0
+    _, traj = run(state, STATIC, 100, motor=actions)
+    target = 1.0 * PARAMS.base_motor_speed * 1.0
+    omega = traj.angular_velocity[:, wheel]
+    relative_error = np.abs(omega / target - 1.0)
+    within = np.flatnonzero(relative_error >= 0.01)
+    settled_after = int(within[-1]) + 1 if within.size else 0
+    bound = _motor_bound(state, 0)
+    measured(
+        "motor free wheel",
+        target_rad_s=target,
+        omega_steps_1_to_5=omega[1:6].round(4).tolist(),
+        settled_after_steps=settled_after,
+        max_error_after_30=relative_error[30:].max(),
+        max_impulse_over_bound=np.abs(traj.motor_impulse[:, 0]).max() / bound,
+    )
+    assert settled_after <= 30
+    assert np.all(np.abs(traj.motor_impulse[:, 0]) <= bound * (1 + 1e-5))
+
+
+def test_motor_under_heavy_load_respects_and_saturates_torque_bound():
+    """A 1 m bar hinged at its end; a weak motor (power 0.02) cannot lift it, so it stays saturated."""
+    builder = _builder_with_pivot()
+    bar = builder.add_box(PIVOT + (0.5, 0.0), (1.0, 0.1))
+    builder.add_revolute_joint(0, bar, PIVOT, motor_speed=1.0, motor_power=0.02, motor_on=True)
+    state = builder.build()
+    bound = _motor_bound(state, 0)
+    mass = 1.0 / float(state.bodies.inverse_mass[bar])
+    assert bound / SUBSTEP < mass * G * 0.5  # the motor torque cannot hold the bar horizontal
+    actions = np.zeros(STATIC.num_joints, np.float32)
+    actions[0] = 1.0
+    _, traj = run(state, STATIC, 300, motor=actions)
+    impulse = np.abs(traj.motor_impulse[:, 0])
+    saturated = impulse >= bound * (1 - 1e-4)
+    angle = _joint_angle(traj, state, 0)
+    equilibrium = -math.acos(bound / SUBSTEP / (mass * G * 0.5))
+    measured(
+        "motor under load",
+        bound_n_m_s=bound,
+        max_impulse_over_bound=impulse.max() / bound,
+        saturated_fraction=saturated.mean(),
+        mean_angle_last_2s=angle[-120:].mean(),
+        static_equilibrium_angle=equilibrium,
+        max_speed=np.abs(traj.angular_velocity[:, bar]).max(),
+    )
+    assert np.all(impulse <= bound * (1 + 1e-5))
+    assert saturated.mean() > 0.9
