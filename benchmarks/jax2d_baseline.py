@@ -90,17 +90,13 @@ def _build_state(size: str, poses: jax.Array) -> SimState:
 
     global_idx = []  # global shape index of each body of D
     for i, (x, y, rot) in enumerate(poses):
-        common = dict(
-            rotation=rot, density=DENSITY_KG_PER_M2, friction=FRICTION, restitution=RESTITUTION
-        )
+        common = dict(rotation=rot, density=DENSITY_KG_PER_M2, friction=FRICTION, restitution=RESTITUTION)
         if i < n_boxes:
             state, (_, g) = scene.add_rectangle_to_scene(
                 state, static, jnp.stack([x, y]), jnp.array(BOX_SIZE_M), **common
             )
         else:
-            state, (_, g) = scene.add_circle_to_scene(
-                state, static, jnp.stack([x, y]), CIRCLE_RADIUS_M, **common
-            )
+            state, (_, g) = scene.add_circle_to_scene(state, static, jnp.stack([x, y]), CIRCLE_RADIUS_M, **common)
         global_idx.append(g)
 
     for j in range(n_joints):
@@ -129,6 +125,7 @@ def _assert_full(state: SimState, size: str) -> None:
         ("polygons", "circles", "joints", "thrusters"),
         (state.polygon, state.circle, state.joint, state.thruster),
         SIZES[size],
+        strict=True,
     ):
         counts = np.asarray(parts.active.sum(axis=-1))
         assert (counts == expected).all(), f"scene {size}: active {name} {counts} != {expected}"

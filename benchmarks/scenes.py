@@ -22,7 +22,7 @@ def build_scene(size: str, seed: int) -> tuple[SimState, StaticSimParams]:
     jitter = np.random.default_rng(seed).uniform(-JITTER_M, JITTER_M, static.num_bodies)
     num_boxes = static.num_polygons - static.num_reserved_static
     kinds = ["box"] * num_boxes + ["circle"] * static.num_circles
-    bodies = []
+    bodies, centres = [], []
     for i, kind in enumerate(kinds):
         if i <= static.num_joints:
             x, y, rotation = CHAIN_START_X_M + CHAIN_SPACING_M * i, CHAIN_Y_M, 0.0
@@ -31,17 +31,15 @@ def build_scene(size: str, seed: int) -> tuple[SimState, StaticSimParams]:
             x = GRID_START_X_M + (m % GRID_COLUMNS) * GRID_SPACING_X_M
             y = GRID_START_Y_M + (m // GRID_COLUMNS) * GRID_SPACING_Y_M
             rotation = GRID_ROTATION_STEP_RAD * m
-        position = (x + jitter[i], y)
+        centre = np.array([x + jitter[i], y])
         if kind == "box":
-            bodies.append(builder.add_box(position, BOX_SIZE_M, rotation=rotation))
+            bodies.append(builder.add_box(centre, BOX_SIZE_M, rotation=rotation))
         else:
-            bodies.append(builder.add_circle(position, CIRCLE_RADIUS_M, rotation=rotation))
-    state = builder.build()
+            bodies.append(builder.add_circle(centre, CIRCLE_RADIUS_M, rotation=rotation))
+        centres.append(centre)
     for j in range(static.num_joints):
-        a, b = bodies[j], bodies[j + 1]
-        anchor = (np.asarray(state.bodies.position[a]) + np.asarray(state.bodies.position[b])) / 2
-        builder.add_revolute_joint(a, b, anchor, motor_on=True, motor_speed=1.0, motor_power=1.0)
-    state = builder.build()
+        anchor = (centres[j] + centres[j + 1]) / 2
+        builder.add_revolute_joint(bodies[j], bodies[j + 1], anchor, motor_on=True, motor_speed=1.0, motor_power=1.0)
     for t in range(static.num_thrusters):
-        builder.add_thruster(bodies[t], np.asarray(state.bodies.position[bodies[t]]), THRUSTER_ANGLE_RAD)
+        builder.add_thruster(bodies[t], centres[t], THRUSTER_ANGLE_RAD)
     return builder.build(), static

@@ -3,11 +3,11 @@
 Public surface: state and parameter types, the scene builder, and `step`.
 """
 
-from engine.params import KINETIX_SIZES, MAX_POLYGON_VERTICES, SimParams, StaticSimParams
 from engine.pairs import PairLayout, pair_layout
+from engine.params import KINETIX_SIZES, MAX_POLYGON_VERTICES, SimParams, StaticSimParams
+from engine.physics_step import StepInfo, step
 from engine.scene import SceneBuilder
 from engine.state import Bodies, ContactCache, Joints, SimState, Thrusters, empty_state
-from engine.physics_step import StepInfo, step
 
 __all__ = [
     "KINETIX_SIZES",

@@ -6,7 +6,7 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from engine.geometry import cross2, rotate
+from engine.geometry import rotate
 from engine.pairs import PairLayout
 from engine.params import MAX_POLYGON_VERTICES
 from engine.state import NO_FEATURE, Bodies
@@ -78,7 +78,7 @@ def _clip(p1, p2, id1, id2, plane_normal, offset, clip_id):
 
 
 def polygon_polygon(a: WorldGeometry, b: WorldGeometry, margin):
-    """Manifold of two convex polygons (separating axes, then clipping of the incident edge): normal, points, separations, valid, features."""
+    """Manifold of two convex polygons: separating axes, then clipping of the incident edge to the reference face."""
     separation_a, edge_a = _best_edge(a.normals, a.vertices, a.edge_valid, b.vertices)
     separation_b, edge_b = _best_edge(b.normals, b.vertices, b.edge_valid, a.vertices)
     flip = separation_b > separation_a + REFERENCE_FACE_TOLERANCE
@@ -91,7 +91,15 @@ def polygon_polygon(a: WorldGeometry, b: WorldGeometry, margin):
     inc_next = inc.next_vertex[inc_edge]
     r1, r2 = ref.vertices[ref_edge], ref.vertices[ref.next_vertex[ref_edge]]
     tangent = (r2 - r1) / jnp.maximum(jnp.linalg.norm(r2 - r1), DIRECTION_EPSILON)
-    p1, p2, id1, id2, ok1 = _clip(inc.vertices[inc_edge], inc.vertices[inc_next], inc_edge, inc_next, -tangent, -jnp.dot(tangent, r1), MAX_POLYGON_VERTICES)
+    p1, p2, id1, id2, ok1 = _clip(
+        inc.vertices[inc_edge],
+        inc.vertices[inc_next],
+        inc_edge,
+        inc_next,
+        -tangent,
+        -jnp.dot(tangent, r1),
+        MAX_POLYGON_VERTICES,
+    )
     p1, p2, id1, id2, ok2 = _clip(p1, p2, id1, id2, tangent, jnp.dot(tangent, r2), MAX_POLYGON_VERTICES + 1)
     points = jnp.stack([p1, p2])
     separation = points @ normal - jnp.dot(normal, r1)
@@ -128,7 +136,9 @@ def circle_circle(a: WorldGeometry, b: WorldGeometry, margin):
     """Manifold of two circles; coincident centres separate along +y."""
     offset = b.centre - a.centre
     distance = jnp.linalg.norm(offset)
-    normal = jnp.where(distance > DIRECTION_EPSILON, offset / jnp.maximum(distance, DIRECTION_EPSILON), jnp.array([0.0, 1.0]))
+    normal = jnp.where(
+        distance > DIRECTION_EPSILON, offset / jnp.maximum(distance, DIRECTION_EPSILON), jnp.array([0.0, 1.0])
+    )
     separation = distance - a.radius - b.radius
     point = a.centre + (a.radius + 0.5 * separation) * normal
     return _one_point(normal, point, separation, separation < margin, jnp.int32(0))
@@ -159,5 +169,5 @@ def manifolds(geometry: WorldGeometry, layout: PairLayout, margin: jnp.ndarray) 
         a = _take(geometry, layout.body_a[pair])
         b = _take(geometry, layout.body_b[pair])
         parts.append(jax.vmap(function)(a, b, margin[pair]))
-    normal, point, separation, valid, feature = (jnp.concatenate(x) for x in zip(*parts))
+    normal, point, separation, valid, feature = (jnp.concatenate(x) for x in zip(*parts, strict=True))
     return Manifolds(normal, point, separation, valid, feature.astype(jnp.int32))

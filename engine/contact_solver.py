@@ -35,6 +35,7 @@ class ContactRows:
     response_a: jnp.ndarray  # (C, W, 4, 3) velocity change of body a per unit row impulse
     response_b: jnp.ndarray  # (C, W, 4, 3)
     mass: jnp.ndarray  # (C, W, 4) [kg] effective mass of each row (0 when disabled)
+    coupling: jnp.ndarray  # (C, W, 4, 4) speed change of row r per unit impulse on row s (Delassus matrix)
     separation: jnp.ndarray  # (C, W, 2) [m] of each point at the start of the step
     approach_velocity: jnp.ndarray  # (C, W, 2) [m/s] normal relative velocity at the start of the step
     friction: jnp.ndarray  # (C, W, 1) [-] mixed coefficient
@@ -54,9 +55,11 @@ class ContactImpulses:
 def prepare_contacts(
     manifolds: Manifolds,
     pair_enabled,
+    *,
     pair_static,
     centre,
     velocity,
+    acceleration,
     response_scale,
     friction,
     restitution,
@@ -66,8 +69,10 @@ def prepare_contacts(
 ) -> ContactRows:
     """Constraint rows of every candidate pair, gathered into colour layout.
 
-    `centre` (N, 2) and `velocity` (N, 3) are body centres and velocities at the start of the step,
-    `response_scale` (N, 3) the inverse mass, inverse mass and inverse inertia of each body.
+    `centre` (N, 2), `velocity` (N, 3) and `acceleration` (N, 3) describe the bodies at the start of the step,
+    `response_scale` (N, 3) holds the inverse mass, inverse mass and inverse inertia of each body.
+    The approach velocity that restitution reverses is the speed at impact: points still apart at the start of
+    the step close the remaining gap under the step's accelerations before they touch.
     """
     a, b = layout.body_a, layout.body_b
     lever_a = manifolds.point - centre[a][:, None, :]
@@ -81,9 +86,17 @@ def prepare_contacts(
     jac_a = jnp.where(row_enabled, -jnp.concatenate([direction, cross2(lever_a, direction)[..., None]], -1), 0.0)
     jac_b = jnp.where(row_enabled, jnp.concatenate([direction, cross2(lever_b, direction)[..., None]], -1), 0.0)
     resp_a, resp_b = response_scale[a][:, None, :] * jac_a, response_scale[b][:, None, :] * jac_b
-    k = jnp.sum(jac_a * resp_a, -1) + jnp.sum(jac_b * resp_b, -1)
+    coupling = jnp.einsum("krc,ksc->krs", jac_a, resp_a) + jnp.einsum("krc,ksc->krs", jac_b, resp_b)
+    k = jnp.diagonal(coupling, axis1=1, axis2=2)
     mass = jnp.where(k > 0, 1.0 / jnp.where(k > 0, k, 1.0), 0.0)
-    approach = jnp.sum(jac_a[:, :2] * velocity[a][:, None, :], -1) + jnp.sum(jac_b[:, :2] * velocity[b][:, None, :], -1)
+
+    def normal_rate(per_body):
+        return jnp.sum(jac_a[:, :2] * per_body[a][:, None, :], -1) + jnp.sum(jac_b[:, :2] * per_body[b][:, None, :], -1)
+
+    start_speed, closing_acceleration = normal_rate(velocity), normal_rate(acceleration)
+    gap = jnp.maximum(manifolds.separation, 0.0)
+    impact_speed = -jnp.sqrt(jnp.maximum(start_speed**2 - 2.0 * closing_acceleration * gap, 0.0))
+    approach = jnp.where(start_speed < 0, impact_speed, start_speed)
     soft = jax.tree_util.tree_map(lambda s, h: jnp.where(pair_static, h, s)[:, None], softness, static_softness)
     per_pair = ContactRows(
         jacobian_a=jac_a,
@@ -91,6 +104,7 @@ def prepare_contacts(
         response_a=resp_a,
         response_b=resp_b,
         mass=mass,
+        coupling=coupling,
         separation=jnp.where(enabled, manifolds.separation, 0.0),
         approach_velocity=jnp.where(enabled, approach, 0.0),
         friction=friction[:, None],
@@ -121,19 +135,33 @@ def _row_speed(rows: ContactRows, r: int, vel_a, vel_b):
     """Velocity along row `r` of each pair: (W, *batch); body velocities (W, 3, *batch)."""
     ja, jb = rows.jacobian_a[:, r], rows.jacobian_b[:, r]
     return (
-        ja[:, 0] * vel_a[:, 0] + ja[:, 1] * vel_a[:, 1] + ja[:, 2] * vel_a[:, 2]
-        + jb[:, 0] * vel_b[:, 0] + jb[:, 1] * vel_b[:, 1] + jb[:, 2] * vel_b[:, 2]
+        ja[:, 0] * vel_a[:, 0]
+        + ja[:, 1] * vel_a[:, 1]
+        + ja[:, 2] * vel_a[:, 2]
+        + jb[:, 0] * vel_b[:, 0]
+        + jb[:, 1] * vel_b[:, 1]
+        + jb[:, 2] * vel_b[:, 2]
     )
 
 
-def _push(rows: ContactRows, r: int, vel_a, vel_b, delta):
-    """Body velocities after impulse `delta` (W, *batch) along row `r`."""
-    return vel_a + rows.response_a[:, r] * delta[:, None], vel_b + rows.response_b[:, r] * delta[:, None]
+def _apply_rows(rows: ContactRows, vel_a, vel_b, deltas):
+    """Body velocities (W, 3, *batch) after impulse `deltas[r]` (W, *batch) along each row r."""
+    for r, delta in enumerate(deltas):
+        vel_a = vel_a + rows.response_a[:, r] * delta[:, None]
+        vel_b = vel_b + rows.response_b[:, r] * delta[:, None]
+    return vel_a, vel_b
 
 
-def warm_start_contacts(velocity, rows: ContactRows, impulses: ContactImpulses, layout: PairLayout):
-    """Apply the accumulated impulses of every row to the (N+1, 3, *batch) velocities at once."""
-    impulse = impulses.impulse
+def _speed_after(rows: ContactRows, r: int, speed, deltas):
+    """Speed along row r after the impulse changes `deltas` of the rows solved before it."""
+    for s, delta in enumerate(deltas):
+        speed = speed + rows.coupling[:, r, s] * delta
+    return speed
+
+
+def warm_start_contacts(velocity, rows: ContactRows, impulses: ContactImpulses, layout: PairLayout, scale=1.0):
+    """Apply `scale` times the accumulated impulses of every row to the (N+1, 3, *batch) velocities at once."""
+    impulse = impulses.impulse * scale
     delta_a = sum(rows.response_a[:, :, r] * impulse[:, :, r, None] for r in range(NUM_ROWS))
     delta_b = sum(rows.response_b[:, :, r] * impulse[:, :, r, None] for r in range(NUM_ROWS))
     flat = (-1,) + delta_a.shape[2:]
@@ -141,48 +169,64 @@ def warm_start_contacts(velocity, rows: ContactRows, impulses: ContactImpulses, 
     return velocity.at[layout.colour_body_b.reshape(-1)].add(delta_b.reshape(flat))
 
 
-def _solve_colour(rows: ContactRows, impulses: ContactImpulses, a, b, velocity, moved, inverse_substep, max_push_velocity, use_bias: bool):
-    """Normal rows, then friction rows, of one colour's pairs (sequential per pair, pairs at once).
+def _solve_colour(
+    rows: ContactRows, impulses: ContactImpulses, a, b, velocity, moved, inverse_substep, max_push_velocity, use_bias
+):
+    """Normal rows, then friction rows, of one colour's pairs (Gauss-Seidel per pair, pairs at once).
 
-    `moved` (N+1, 3, *batch) is each body's displacement since the start of the step.
+    Row speeds after earlier rows' impulses come from the pair's coupling matrix, so velocities are gathered and
+    written once per colour. `moved` (N+1, 3, *batch) is each body's displacement since the start of the step;
+    `use_bias` (bool scalar) selects the soft position-correcting solve, otherwise the relaxing solve.
     """
     vel_a, vel_b = velocity[a], velocity[b]
     moved_a, moved_b = moved[a], moved[b]
-    impulse = [impulses.impulse[:, r] for r in range(NUM_ROWS)]
-    max_normal = [impulses.max_normal[:, p] for p in range(2)]
+    soft = rows.softness
+    deltas, new_impulses = [], []
     for p in range(2):
         separation = rows.separation[:, p] + _row_speed(rows, p, moved_a, moved_b)
         speculative = separation > 0
-        if use_bias:
-            soft = rows.softness
-            bias = jnp.where(speculative, separation * inverse_substep, jnp.maximum(soft.bias_rate[:, 0] * separation, -max_push_velocity))
-            mass_scale = jnp.where(speculative, 1.0, soft.mass_scale[:, 0])
-            impulse_scale = jnp.where(speculative, 0.0, soft.impulse_scale[:, 0])
-        else:
-            bias = jnp.where(speculative, separation * inverse_substep, 0.0)
-            mass_scale, impulse_scale = 1.0, 0.0
-        old = impulse[p]
-        new = old - rows.mass[:, p] * mass_scale * (_row_speed(rows, p, vel_a, vel_b) + bias) - impulse_scale * old
+        pushing = use_bias & ~speculative
+        bias = jnp.where(
+            speculative,
+            separation * inverse_substep,
+            jnp.where(use_bias, jnp.maximum(soft.bias_rate[:, 0] * separation, -max_push_velocity), 0.0),
+        )
+        mass_scale = jnp.where(pushing, soft.mass_scale[:, 0], 1.0)
+        impulse_scale = jnp.where(pushing, soft.impulse_scale[:, 0], 0.0)
+        speed = _speed_after(rows, p, _row_speed(rows, p, vel_a, vel_b), deltas)
+        old = impulses.impulse[:, p]
+        new = old - rows.mass[:, p] * mass_scale * (speed + bias) - impulse_scale * old
         new = jnp.where(rows.enabled[:, p], jnp.maximum(new, 0.0), 0.0)
-        vel_a, vel_b = _push(rows, p, vel_a, vel_b, new - old)
-        impulse[p] = new
-        max_normal[p] = jnp.maximum(max_normal[p], new)
+        deltas.append(new - old)
+        new_impulses.append(new)
     for p in range(2):
         r = 2 + p
-        old = impulse[r]
-        bound = rows.friction[:, 0] * impulse[p]
-        new = jnp.clip(old - rows.mass[:, r] * _row_speed(rows, r, vel_a, vel_b), -bound, bound)
-        vel_a, vel_b = _push(rows, r, vel_a, vel_b, new - old)
-        impulse[r] = new
+        speed = _speed_after(rows, r, _row_speed(rows, r, vel_a, vel_b), deltas)
+        old = impulses.impulse[:, r]
+        bound = rows.friction[:, 0] * new_impulses[p]
+        new = jnp.clip(old - rows.mass[:, r] * speed, -bound, bound)
+        deltas.append(new - old)
+        new_impulses.append(new)
+    vel_a, vel_b = _apply_rows(rows, vel_a, vel_b, deltas)
     velocity = velocity.at[a].set(vel_a).at[b].set(vel_b)
-    return velocity, ContactImpulses(jnp.stack(impulse, 1), jnp.stack(max_normal, 1))
+    max_normal = jnp.maximum(impulses.max_normal, jnp.stack(new_impulses[:2], 1))
+    return velocity, ContactImpulses(jnp.stack(new_impulses, 1), max_normal)
 
 
 def _colour(tree, c: int):
     return jax.tree_util.tree_map(lambda x: x[c], tree)
 
 
-def solve_contacts(velocity, moved, rows: ContactRows, impulses: ContactImpulses, layout: PairLayout, inverse_substep, max_push_velocity, use_bias: bool):
+def solve_contacts(
+    velocity,
+    moved,
+    rows: ContactRows,
+    impulses: ContactImpulses,
+    layout: PairLayout,
+    inverse_substep,
+    max_push_velocity,
+    use_bias,
+):
     """Sweep all colours in order; returns velocities and impulses.
 
     Colours are unrolled: static slices and static body indices are several times faster on CPU than a
@@ -191,8 +235,15 @@ def solve_contacts(velocity, moved, rows: ContactRows, impulses: ContactImpulses
     solved = []
     for c in range(layout.num_colours):
         velocity, colour_impulses = _solve_colour(
-            _colour(rows, c), _colour(impulses, c), layout.colour_body_a[c], layout.colour_body_b[c],
-            velocity, moved, inverse_substep, max_push_velocity, use_bias,
+            _colour(rows, c),
+            _colour(impulses, c),
+            layout.colour_body_a[c],
+            layout.colour_body_b[c],
+            velocity,
+            moved,
+            inverse_substep,
+            max_push_velocity,
+            use_bias,
         )
         solved.append(colour_impulses)
     return velocity, jax.tree_util.tree_map(lambda *x: jnp.stack(x), *solved)
@@ -205,15 +256,19 @@ def apply_restitution(velocity, rows: ContactRows, impulses: ContactImpulses, la
         r, imp = _colour(rows, c), _colour(impulses, c)
         a, b = layout.colour_body_a[c], layout.colour_body_b[c]
         vel_a, vel_b = velocity[a], velocity[b]
-        impulse = [imp.impulse[:, row] for row in range(NUM_ROWS)]
+        deltas, normal = [], []
         for p in range(2):
             approach = r.approach_velocity[:, p]
             applies = r.enabled[:, p] & (r.restitution[:, 0] > 0) & (approach < -threshold) & (imp.max_normal[:, p] > 0)
-            old = impulse[p]
-            new = old - r.mass[:, p] * (_row_speed(r, p, vel_a, vel_b) + r.restitution[:, 0] * approach)
-            new = jnp.where(applies, jnp.maximum(new, 0.0), old)
-            vel_a, vel_b = _push(r, p, vel_a, vel_b, new - old)
-            impulse[p] = new
+            old = imp.impulse[:, p]
+            speed = _speed_after(r, p, _row_speed(r, p, vel_a, vel_b), deltas)
+            new = jnp.where(
+                applies, jnp.maximum(old - r.mass[:, p] * (speed + r.restitution[:, 0] * approach), 0.0), old
+            )
+            deltas.append(new - old)
+            normal.append(new)
+        vel_a, vel_b = _apply_rows(r, vel_a, vel_b, deltas)
         velocity = velocity.at[a].set(vel_a).at[b].set(vel_b)
+        impulse = normal + [imp.impulse[:, 2], imp.impulse[:, 3]]
         solved.append(imp.replace(impulse=jnp.stack(impulse, 1)))
     return velocity, jax.tree_util.tree_map(lambda *x: jnp.stack(x), *solved)

@@ -67,7 +67,9 @@ def check_convex_polygon(vertices: np.ndarray) -> np.ndarray:
     if not np.all(np.isfinite(vertices)):
         raise ValueError(f"polygon vertices must be finite, got {vertices.tolist()}")
     edges = np.roll(vertices, -1, axis=0) - vertices
-    doubled_area = float(np.sum(vertices[:, 0] * np.roll(vertices, -1, 0)[:, 1] - vertices[:, 1] * np.roll(vertices, -1, 0)[:, 0]))
+    doubled_area = float(
+        np.sum(vertices[:, 0] * np.roll(vertices, -1, 0)[:, 1] - vertices[:, 1] * np.roll(vertices, -1, 0)[:, 0])
+    )
     if abs(doubled_area) < 2 * MIN_POLYGON_AREA:
         raise ValueError(f"degenerate polygon (area {abs(doubled_area) / 2:.3g} m^2): {vertices.tolist()}")
     if doubled_area < 0:

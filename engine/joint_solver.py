@@ -10,7 +10,7 @@ from __future__ import annotations
 import jax.numpy as jnp
 from flax import struct
 
-from engine.geometry import cross2, rotate
+from engine.geometry import rotate
 from engine.softness import Softness
 from engine.state import Joints
 
@@ -50,12 +50,16 @@ class JointImpulses:
     limit: jnp.ndarray  # (J, 2) [N m s] lower, upper (both >= 0)
 
 
-def prepare_joints(joints: Joints, pose, response_scale, motor_actions, base_motor_speed, base_motor_power, substep) -> JointRows:
+def prepare_joints(
+    joints: Joints, pose, response_scale, motor_actions, base_motor_speed, base_motor_power, substep
+) -> JointRows:
     """Joint constants from start-of-step poses (N+1, 3); `motor_actions` (J,) in [-1, 1]."""
     a, b = joints.body_a, joints.body_b
     response_a, response_b = response_scale[a], response_scale[b]
     inverse_inertia_sum = response_a[:, 2] + response_b[:, 2]
-    axial_mass = jnp.where(inverse_inertia_sum > 0, 1.0 / jnp.where(inverse_inertia_sum > 0, inverse_inertia_sum, 1.0), 0.0)
+    axial_mass = jnp.where(
+        inverse_inertia_sum > 0, 1.0 / jnp.where(inverse_inertia_sum > 0, inverse_inertia_sum, 1.0), 0.0
+    )
     movable = (response_a[:, 0] + response_b[:, 0] + inverse_inertia_sum) > 0
     revolute = joints.active & ~joints.is_fixed & movable
     rotatable = inverse_inertia_sum > 0
@@ -122,25 +126,29 @@ def _push(vel_a, vel_b, rows: JointRows, j, lever_a, lever_b, linear, axial):
     return vel_a, vel_b
 
 
-def warm_start_joints(velocity, pose, start_pose, rows: JointRows, impulses: JointImpulses):
-    """Apply every joint's accumulated impulses to the (N+1, 3, *batch) velocities."""
+def warm_start_joints(velocity, pose, start_pose, rows: JointRows, impulses: JointImpulses, scale=1.0):
+    """Apply `scale` times every joint's accumulated impulses to the (N+1, 3, *batch) velocities."""
     for j in range(rows.body_a.shape[0]):
         mask_a, mask_b, _, _, lever_a, lever_b = _joint_frame(rows, j, pose, start_pose)
-        axial = impulses.angular[j] + impulses.motor[j] + impulses.limit[j, 0] - impulses.limit[j, 1]
-        vel_a, vel_b = _push(_select(velocity, mask_a), _select(velocity, mask_b), rows, j, lever_a, lever_b, impulses.linear[j], axial)
+        axial = scale * (impulses.angular[j] + impulses.motor[j] + impulses.limit[j, 0] - impulses.limit[j, 1])
+        linear = scale * impulses.linear[j]
+        vel_a, vel_b = _push(
+            _select(velocity, mask_a), _select(velocity, mask_b), rows, j, lever_a, lever_b, linear, axial
+        )
         velocity = _replace(_replace(velocity, mask_a, vel_a), mask_b, vel_b)
     return velocity
 
 
-def _angular_row(axial_mass, relative_speed, error, old, softness: Softness, use_bias: bool, inverse_substep, one_sided: bool):
+def _angular_row(
+    axial_mass, relative_speed, error, old, softness: Softness, use_bias, inverse_substep, one_sided: bool
+):
     """New impulse of an angular row driving `relative_speed` and the position `error` to zero.
 
     One-sided rows (limits) are speculative while `error` > 0: they only stop the motion that would cross it.
     """
-    if use_bias:
-        bias, mass_scale, impulse_scale = softness.bias_rate * error, softness.mass_scale, softness.impulse_scale
-    else:
-        bias, mass_scale, impulse_scale = 0.0, 1.0, 0.0
+    bias = jnp.where(use_bias, softness.bias_rate * error, 0.0)
+    mass_scale = jnp.where(use_bias, softness.mass_scale, 1.0)
+    impulse_scale = jnp.where(use_bias, softness.impulse_scale, 0.0)
     if one_sided:
         ahead = error > 0
         bias = jnp.where(ahead, error * inverse_substep, bias)
@@ -149,7 +157,9 @@ def _angular_row(axial_mass, relative_speed, error, old, softness: Softness, use
     return old - axial_mass * mass_scale * (relative_speed + bias) - impulse_scale * old
 
 
-def solve_joints(velocity, pose, start_pose, rows: JointRows, impulses: JointImpulses, softness: Softness, inverse_substep, use_bias: bool):
+def solve_joints(
+    velocity, pose, start_pose, rows: JointRows, impulses: JointImpulses, softness: Softness, inverse_substep, use_bias
+):
     """One sweep over the joints in index order: motor, limits, fixed angle, then the point constraint."""
     linear, angular, motor, limit = impulses.linear, impulses.angular, impulses.motor, impulses.limit
     for j in range(rows.body_a.shape[0]):
@@ -159,7 +169,7 @@ def solve_joints(velocity, pose, start_pose, rows: JointRows, impulses: JointImp
         mass = rows.axial_mass[j]
         angle = pose_b[2] - pose_a[2] - rows.reference_angle[j]
 
-        def spin(vel_a, vel_b, delta):
+        def spin(vel_a, vel_b, delta, ia=ia, ib=ib):
             return vel_a.at[2].add(-ia * delta), vel_b.at[2].add(ib * delta)
 
         # Motor: velocity row with a bounded impulse.
@@ -168,14 +178,34 @@ def solve_joints(velocity, pose, start_pose, rows: JointRows, impulses: JointImp
         new_motor = jnp.where(rows.solve_motor[j], new_motor, 0.0)
         vel_a, vel_b = spin(vel_a, vel_b, new_motor - motor[j])
         # Limits: one-sided rows.
-        lower = _angular_row(mass, vel_b[2] - vel_a[2], angle - rows.lower_angle[j], limit[j, 0], softness, use_bias, inverse_substep, True)
+        lower = _angular_row(
+            mass,
+            vel_b[2] - vel_a[2],
+            angle - rows.lower_angle[j],
+            limit[j, 0],
+            softness,
+            use_bias,
+            inverse_substep,
+            True,
+        )
         lower = jnp.where(rows.solve_limits[j], jnp.maximum(lower, 0.0), 0.0)
         vel_a, vel_b = spin(vel_a, vel_b, lower - limit[j, 0])
-        upper = _angular_row(mass, vel_a[2] - vel_b[2], rows.upper_angle[j] - angle, limit[j, 1], softness, use_bias, inverse_substep, True)
+        upper = _angular_row(
+            mass,
+            vel_a[2] - vel_b[2],
+            rows.upper_angle[j] - angle,
+            limit[j, 1],
+            softness,
+            use_bias,
+            inverse_substep,
+            True,
+        )
         upper = jnp.where(rows.solve_limits[j], jnp.maximum(upper, 0.0), 0.0)
         vel_a, vel_b = spin(vel_a, vel_b, limit[j, 1] - upper)
         # Fixed joint: relative angle held at the reference.
-        new_angular = _angular_row(mass, vel_b[2] - vel_a[2], angle, angular[j], softness, use_bias, inverse_substep, False)
+        new_angular = _angular_row(
+            mass, vel_b[2] - vel_a[2], angle, angular[j], softness, use_bias, inverse_substep, False
+        )
         new_angular = jnp.where(rows.solve_angle[j], new_angular, 0.0)
         vel_a, vel_b = spin(vel_a, vel_b, new_angular - angular[j])
         # Point constraint: anchors coincide (2x2 effective-mass solve).
@@ -189,12 +219,10 @@ def solve_joints(velocity, pose, start_pose, rows: JointRows, impulses: JointImp
         det = k11 * k22 - k12 * k12
         solvable = rows.solve_point[j] & (det > SINGULAR_DETERMINANT)
         inverse_det = jnp.where(solvable, 1.0 / jnp.where(solvable, det, 1.0), 0.0)
-        if use_bias:
-            gap = (pose_b[:2] + lever_b) - (pose_a[:2] + lever_a)
-            target = relative + softness.bias_rate * gap
-            mass_scale, impulse_scale = softness.mass_scale, softness.impulse_scale
-        else:
-            target, mass_scale, impulse_scale = relative, 1.0, 0.0
+        gap = (pose_b[:2] + lever_b) - (pose_a[:2] + lever_a)
+        target = relative + jnp.where(use_bias, softness.bias_rate, 0.0) * gap
+        mass_scale = jnp.where(use_bias, softness.mass_scale, 1.0)
+        impulse_scale = jnp.where(use_bias, softness.impulse_scale, 0.0)
         solved = inverse_det * jnp.stack([k22 * target[0] - k12 * target[1], k11 * target[1] - k12 * target[0]])
         new_linear = jnp.where(solvable, linear[j] - mass_scale * solved - impulse_scale * linear[j], 0.0)
         vel_a, vel_b = _push(vel_a, vel_b, rows, j, lever_a, lever_b, new_linear - linear[j], 0.0)

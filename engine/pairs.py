@@ -84,7 +84,7 @@ def _balanced_edge_colouring(pairs: list[tuple[int, int]], num_reserved: int) ->
         num_colours += 1
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def pair_layout(static: StaticSimParams) -> PairLayout:
     """The candidate pairs of `static` and their solver colours (cached per static params)."""
     p, n, reserved = static.num_polygons, static.num_bodies, static.num_reserved_static

@@ -35,7 +35,7 @@ class SimParams:
 
     # Joints
     joint_hertz: float = 60.0  # [Hz] stiffness of joint position correction
-    joint_damping_ratio: float = 2.0  # [-]
+    joint_damping_ratio: float = 1.0  # [-]
 
     # Actuators (Kinetix base values)
     base_motor_speed: float = 6.0  # [rad/s] target relative speed per unit of joint motor_speed and action
@@ -82,6 +82,4 @@ class StaticSimParams:
         if size not in KINETIX_SIZES:
             raise ValueError(f"unknown size {size!r}; expected one of {sorted(KINETIX_SIZES)}")
         polygons, circles, joints, thrusters = KINETIX_SIZES[size]
-        return cls(
-            num_polygons=polygons, num_circles=circles, num_joints=joints, num_thrusters=thrusters, **overrides
-        )
+        return cls(num_polygons=polygons, num_circles=circles, num_joints=joints, num_thrusters=thrusters, **overrides)

@@ -8,6 +8,7 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
+from engine.batch_last import vmap_batch_last
 from engine.collision import manifolds, world_geometry
 from engine.collision_filter import modes_collide
 from engine.contact_solver import (
@@ -21,10 +22,15 @@ from engine.contact_solver import (
     warm_start_contacts,
 )
 from engine.geometry import cross2, rotate
-from engine.joint_solver import JointImpulses, JointRows, prepare_joints, solve_joints, warm_start_joints
+from engine.joint_solver import (
+    JointImpulses,
+    JointRows,
+    prepare_joints,
+    solve_joints,
+    warm_start_joints,
+)
 from engine.pairs import pair_layout
 from engine.params import SimParams, StaticSimParams
-from engine.batch_last import vmap_batch_last
 from engine.softness import Softness, make_softness
 from engine.state import NO_FEATURE, ContactCache, SimState
 
@@ -36,7 +42,9 @@ STATIC_CONTACT_STIFFNESS_FACTOR = 2.0
 class StepInfo:
     """What happened during a step, per candidate pair (layout of `engine.pairs.pair_layout`)."""
 
-    touching: jnp.ndarray  # (K,) bool: both shapes active, modes allow contact, closer than touch_distance at step start
+    touching: (
+        jnp.ndarray
+    )  # (K,) bool: both shapes active, modes allow contact, closer than touch_distance at step start
     separation: jnp.ndarray  # (K,) [m] smallest separation of the pair's contact points (inf when none)
 
 
@@ -101,7 +109,7 @@ class Prepared:
     feature: jnp.ndarray  # (K, 2) i32
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def substep_solver(static: StaticSimParams):
     """The substep loop and restitution for `static`: `SolverInput -> SolverOutput`, batch-last under vmap."""
     layout = pair_layout(static)
@@ -115,76 +123,117 @@ def substep_solver(static: StaticSimParams):
         move = solver_input.movable[:, None]
 
         def substep_body(carry, _):
+            """Integrate velocities, warm start, soft solve, integrate positions, then relax without bias."""
             velocity, pose, contact_impulses, joint_impulses = carry
             velocity = velocity + scalars.substep * acceleration
             velocity = warm_start_joints(velocity, pose, start_pose, joint_rows, joint_impulses)
             velocity = warm_start_contacts(velocity, rows, contact_impulses, layout)
-            velocity, joint_impulses = solve_joints(
-                velocity, pose, start_pose, joint_rows, joint_impulses, scalars.joint_softness, scalars.inverse_substep, True
-            )
-            velocity, contact_impulses = solve_contacts(
-                velocity, pose - start_pose, rows, contact_impulses, layout, scalars.inverse_substep, scalars.max_push_velocity, True
-            )
-            pose = jnp.where(move, pose + scalars.substep * velocity, pose)
-            velocity, joint_impulses = solve_joints(
-                velocity, pose, start_pose, joint_rows, joint_impulses, scalars.joint_softness, scalars.inverse_substep, False
-            )
-            velocity, contact_impulses = solve_contacts(
-                velocity, pose - start_pose, rows, contact_impulses, layout, scalars.inverse_substep, scalars.max_push_velocity, False
-            )
+            for use_bias in (True, False):
+                velocity, joint_impulses = solve_joints(
+                    velocity,
+                    pose,
+                    start_pose,
+                    joint_rows,
+                    joint_impulses,
+                    scalars.joint_softness,
+                    scalars.inverse_substep,
+                    use_bias,
+                )
+                velocity, contact_impulses = solve_contacts(
+                    velocity,
+                    pose - start_pose,
+                    rows,
+                    contact_impulses,
+                    layout,
+                    scalars.inverse_substep,
+                    scalars.max_push_velocity,
+                    use_bias,
+                )
+                if use_bias:
+                    pose = jnp.where(move, pose + scalars.substep * velocity, pose)
             return (velocity, pose, contact_impulses, joint_impulses), None
 
         (velocity, pose, contact_impulses, joint_impulses), _ = jax.lax.scan(
             substep_body, (velocity, pose, contact_impulses, joint_impulses), None, length=static.num_substeps
         )
-        velocity, contact_impulses = apply_restitution(velocity, rows, contact_impulses, layout, scalars.restitution_threshold)
+        velocity, contact_impulses = apply_restitution(
+            velocity, rows, contact_impulses, layout, scalars.restitution_threshold
+        )
         return SolverOutput(velocity, pose, contact_impulses, joint_impulses)
 
     return vmap_batch_last(solve)
 
 
-def prepare_step(state: SimState, params: SimParams, motor_actions, thruster_actions, static: StaticSimParams) -> Prepared:
+def _external_acceleration(state: SimState, params: SimParams, thruster_actions, movable, response_scale):
+    """(N+1, 3) acceleration of each body from gravity and thrusters, held over the step; 0 if it cannot move."""
+    bodies, thrusters = state.bodies, state.thrusters
+    n = bodies.active.shape[0]
+    rotation = bodies.rotation[thrusters.body]
+    thrust_angle = rotation + thrusters.angle
+    strength = params.base_thruster_power * thrusters.power * jnp.clip(thruster_actions, 0.0, 1.0) * thrusters.active
+    thrust = strength[:, None] * jnp.stack([jnp.cos(thrust_angle), jnp.sin(thrust_angle)], -1)
+    torque = cross2(rotate(rotation, thrusters.anchor), thrust)
+    owner = (thrusters.body[:, None] == jnp.arange(n + 1)).astype(thrust.dtype)
+    external = owner.T @ jnp.concatenate([thrust, torque[:, None]], -1)
+    gravity = jnp.concatenate([state.gravity, jnp.zeros(1)])
+    return jnp.where(movable[:, None], response_scale * external + gravity, 0.0)
+
+
+def prepare_step(
+    state: SimState, params: SimParams, motor_actions, thruster_actions, static: StaticSimParams
+) -> Prepared:
     """Everything computed once per step before the substeps: manifolds, constraint rows, external accelerations."""
     layout = pair_layout(static)
-    bodies = state.bodies
+    bodies, joints = state.bodies, state.joints
     n = static.num_bodies
     substep = params.dt / static.num_substeps
-    inverse_substep = 1.0 / substep
-    movable = bodies.active & (bodies.inverse_mass > 0)
     static_body = bodies.inverse_mass == 0
 
     # Extended body arrays: row N is a dummy body that colour padding reads and writes.
     def extend(x):
         return jnp.concatenate([x, jnp.zeros((1,) + x.shape[1:], x.dtype)])
 
+    movable = extend(bodies.active & ~static_body)
     pose = extend(jnp.concatenate([bodies.position, bodies.rotation[:, None]], -1))
     velocity = extend(jnp.concatenate([bodies.velocity, bodies.angular_velocity[:, None]], -1))
-    response_scale = extend(
-        jnp.where(movable[:, None], jnp.stack([bodies.inverse_mass, bodies.inverse_mass, bodies.inverse_inertia], -1), 0.0)
-    )
+    inverse_masses = jnp.stack([bodies.inverse_mass, bodies.inverse_mass, bodies.inverse_inertia], -1)
+    response_scale = jnp.where(movable[:, None], extend(inverse_masses), 0.0)
+    acceleration = _external_acceleration(state, params, thruster_actions, movable, response_scale)
 
     # Narrowphase with a speculative margin covering this step's motion.
     a, b = layout.body_a, layout.body_b
     reach = jnp.linalg.norm(bodies.velocity, axis=-1) + jnp.abs(bodies.angular_velocity) * _bounding_radius(bodies)
-    gravity_reach = jnp.linalg.norm(state.gravity) * params.dt
-    margin = params.speculative_distance + params.dt * (reach[a] + reach[b] + 2 * gravity_reach)
+    reach = reach + params.dt * jnp.linalg.norm(acceleration[:n, :2], axis=-1)
+    margin = params.speculative_distance + params.dt * (reach[a] + reach[b])
     manifold = manifolds(world_geometry(bodies), layout, margin)
     both_active = bodies.active[a] & bodies.active[b]
     modes = modes_collide(bodies.collision_mode[a], bodies.collision_mode[b])
-    close = manifold.valid & (manifold.separation < params.touch_distance)
+    present = manifold.valid & both_active[:, None]
     info = StepInfo(
-        touching=both_active & modes & jnp.any(close, -1),
-        separation=jnp.min(jnp.where(manifold.valid, manifold.separation, jnp.inf), -1),
+        touching=modes & jnp.any(present & (manifold.separation < params.touch_distance), -1),
+        separation=jnp.min(jnp.where(present, manifold.separation, jnp.inf), -1),
     )
+
+    # Contact rows, warm-started from last step's impulses of the same features.
     pair_enabled = both_active & modes & state.collision_matrix[a, b] & ~(static_body[a] & static_body[b])
-    pair_static = static_body[a] | static_body[b]
-    friction = params.base_friction * jnp.sqrt(2.0 * bodies.friction[a] * bodies.friction[b])
-    restitution = jnp.minimum(bodies.restitution[a], bodies.restitution[b])
-    softness = make_softness(params.contact_hertz, params.contact_damping_ratio, substep)
-    static_softness = make_softness(STATIC_CONTACT_STIFFNESS_FACTOR * params.contact_hertz, params.contact_damping_ratio, substep)
-    rows = prepare_contacts(manifold, pair_enabled, pair_static, pose[:n, :2], velocity[:n], response_scale[:n], friction, restitution, layout, softness, static_softness)
-    normal_warm, tangent_warm = _match_warm_start(state.contacts, manifold.feature)
     point_enabled = manifold.valid & pair_enabled[:, None]
+    rows = prepare_contacts(
+        manifold,
+        pair_enabled,
+        pair_static=static_body[a] | static_body[b],
+        centre=pose[:n, :2],
+        velocity=velocity[:n],
+        acceleration=acceleration[:n],
+        response_scale=response_scale[:n],
+        friction=params.base_friction * jnp.sqrt(2.0 * bodies.friction[a] * bodies.friction[b]),
+        restitution=jnp.minimum(bodies.restitution[a], bodies.restitution[b]),
+        layout=layout,
+        softness=make_softness(params.contact_hertz, params.contact_damping_ratio, substep),
+        static_softness=make_softness(
+            STATIC_CONTACT_STIFFNESS_FACTOR * params.contact_hertz, params.contact_damping_ratio, substep
+        ),
+    )
+    normal_warm, tangent_warm = _match_warm_start(state.contacts, manifold.feature)
     contact_impulses = to_colour_layout(
         ContactImpulses(
             impulse=jnp.where(jnp.tile(point_enabled, (1, 2)), jnp.concatenate([normal_warm, tangent_warm], -1), 0.0),
@@ -193,42 +242,32 @@ def prepare_step(state: SimState, params: SimParams, motor_actions, thruster_act
         layout,
     )
 
-    # Joints and thrusters.
-    joint_softness = make_softness(params.joint_hertz, params.joint_damping_ratio, substep)
-    joint_rows = prepare_joints(state.joints, pose, response_scale, motor_actions, params.base_motor_speed, params.base_motor_power, substep)
-    joints = state.joints
+    # Joints.
+    joint_rows = prepare_joints(
+        joints, pose, response_scale, motor_actions, params.base_motor_speed, params.base_motor_power, substep
+    )
     joint_impulses = JointImpulses(
         linear=jnp.where(joints.active[:, None], joints.linear_impulse, 0.0),
         angular=jnp.where(joints.active, joints.angular_impulse, 0.0),
         motor=jnp.where(joint_rows.solve_motor, joints.motor_impulse, 0.0),
         limit=jnp.where(joint_rows.solve_limits[:, None], joints.limit_impulse, 0.0),
     )
-    thrusters = state.thrusters
-    thrust_angle = pose[thrusters.body, 2] + thrusters.angle
-    thrust = (params.base_thruster_power * thrusters.power * jnp.clip(thruster_actions, 0.0, 1.0) * thrusters.active)[:, None] * jnp.stack(
-        [jnp.cos(thrust_angle), jnp.sin(thrust_angle)], -1
-    )
-    thrust_torque = cross2(rotate(pose[thrusters.body, 2], thrusters.anchor), thrust)
-    owner = thrusters.body[:, None] == jnp.arange(n + 1)
-    external = jnp.sum(owner[..., None] * jnp.concatenate([thrust, thrust_torque[:, None]], -1)[:, None, :], axis=0)
-    acceleration = jnp.where(
-        extend(movable)[:, None], response_scale * external + jnp.concatenate([state.gravity, jnp.zeros(1)]), 0.0
+    scalars = SolverScalars(
+        substep=substep,
+        inverse_substep=1.0 / substep,
+        max_push_velocity=params.max_push_velocity,
+        restitution_threshold=params.restitution_threshold,
+        joint_softness=make_softness(params.joint_hertz, params.joint_damping_ratio, substep),
     )
     solver_input = SolverInput(
-        velocity=velocity,
-        pose=pose,
-        acceleration=acceleration,
-        movable=extend(movable),
-        contact_rows=rows,
-        contact_impulses=contact_impulses,
-        joint_rows=joint_rows,
-        joint_impulses=joint_impulses,
-        scalars=SolverScalars(substep, inverse_substep, params.max_push_velocity, params.restitution_threshold, joint_softness),
+        velocity, pose, acceleration, movable, rows, contact_impulses, joint_rows, joint_impulses, scalars
     )
     return Prepared(solver_input, info, point_enabled, manifold.feature)
 
 
-def finish_step(state: SimState, params: SimParams, prepared: Prepared, solved: SolverOutput, static: StaticSimParams) -> SimState:
+def finish_step(
+    state: SimState, params: SimParams, prepared: Prepared, solved: SolverOutput, static: StaticSimParams
+) -> SimState:
     """Write the solver's velocities, poses and impulses back into the state, with the safety clips."""
     layout = pair_layout(static)
     n = static.num_bodies
@@ -237,10 +276,18 @@ def finish_step(state: SimState, params: SimParams, prepared: Prepared, solved: 
     velocity, pose, joint_impulses = solved.velocity, solved.pose, solved.joint_impulses
     per_pair = from_colour_layout(solved.contact_impulses, layout)
     new_bodies = bodies.replace(
-        position=jnp.where(movable[:, None], jnp.clip(pose[:n, :2], -params.max_position, params.max_position), bodies.position),
+        position=jnp.where(
+            movable[:, None], jnp.clip(pose[:n, :2], -params.max_position, params.max_position), bodies.position
+        ),
         rotation=jnp.where(movable, pose[:n, 2], bodies.rotation),
-        velocity=jnp.where(movable[:, None], jnp.clip(velocity[:n, :2], -params.max_velocity, params.max_velocity), bodies.velocity),
-        angular_velocity=jnp.where(movable, jnp.clip(velocity[:n, 2], -params.max_angular_velocity, params.max_angular_velocity), bodies.angular_velocity),
+        velocity=jnp.where(
+            movable[:, None], jnp.clip(velocity[:n, :2], -params.max_velocity, params.max_velocity), bodies.velocity
+        ),
+        angular_velocity=jnp.where(
+            movable,
+            jnp.clip(velocity[:n, 2], -params.max_angular_velocity, params.max_angular_velocity),
+            bodies.angular_velocity,
+        ),
     )
     new_joints = joints.replace(
         linear_impulse=joint_impulses.linear,

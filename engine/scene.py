@@ -49,10 +49,22 @@ class SceneBuilder:
                 raise ValueError("boundaries need StaticSimParams.num_reserved_static >= 4")
             half = ARENA_SIZE / 2
             floor_height = 2 * ARENA_SIZE + FLOOR_TOP
-            self.add_box((half, FLOOR_TOP - floor_height / 2), (ARENA_SIZE, floor_height), static=True, slot=0, collision_mode=2)
-            self.add_box((-BOUNDARY_THICKNESS / 2, half), (BOUNDARY_THICKNESS, ARENA_SIZE), static=True, slot=1, collision_mode=2)
-            self.add_box((ARENA_SIZE + BOUNDARY_THICKNESS / 2, half), (BOUNDARY_THICKNESS, ARENA_SIZE), static=True, slot=2, collision_mode=2)
-            self.add_box((half, ARENA_SIZE + floor_height / 2), (ARENA_SIZE, floor_height), static=True, slot=3, collision_mode=2)
+            self.add_box(
+                (half, FLOOR_TOP - floor_height / 2), (ARENA_SIZE, floor_height), static=True, slot=0, collision_mode=2
+            )
+            self.add_box(
+                (-BOUNDARY_THICKNESS / 2, half), (BOUNDARY_THICKNESS, ARENA_SIZE), static=True, slot=1, collision_mode=2
+            )
+            self.add_box(
+                (ARENA_SIZE + BOUNDARY_THICKNESS / 2, half),
+                (BOUNDARY_THICKNESS, ARENA_SIZE),
+                static=True,
+                slot=2,
+                collision_mode=2,
+            )
+            self.add_box(
+                (half, ARENA_SIZE + floor_height / 2), (ARENA_SIZE, floor_height), static=True, slot=3, collision_mode=2
+            )
 
     # ----------------------------------------------------------------- shapes
     def add_polygon(
@@ -79,7 +91,9 @@ class SceneBuilder:
         self._check_material(index, density, friction, restitution, collision_mode, static)
         padded = np.zeros((MAX_POLYGON_VERTICES, 2))
         padded[: len(local)] = local
-        mass, centroid, inertia = (np.asarray(x, np.float64) for x in polygon_mass_properties(padded, len(local), density))
+        mass, centroid, inertia = (
+            np.asarray(x, np.float64) for x in polygon_mass_properties(padded, len(local), density)
+        )
         centred = padded - centroid
         centred[len(local) :] = 0.0
         b = self._state.bodies
@@ -87,7 +101,20 @@ class SceneBuilder:
         b.n_vertices[index] = len(local)
         b.radius[index] = 0.0
         world_centroid = np.asarray(position, np.float64) + _rotate(rotation, centroid)
-        self._set_body(index, world_centroid, rotation, velocity, angular_velocity, mass, inertia, friction, restitution, collision_mode, static, density)
+        self._set_body(
+            index,
+            world_centroid,
+            rotation,
+            velocity,
+            angular_velocity,
+            mass,
+            inertia,
+            friction,
+            restitution,
+            collision_mode,
+            static,
+            density,
+        )
         return index
 
     def add_box(self, position, size, **kwargs) -> int:
@@ -119,7 +146,20 @@ class SceneBuilder:
         self._check_material(index, density, friction, restitution, collision_mode, static)
         mass, inertia = (float(x) for x in circle_mass_properties(radius, density))
         self._state.bodies.radius[index] = radius
-        self._set_body(index, np.asarray(position, np.float64), rotation, velocity, angular_velocity, mass, inertia, friction, restitution, collision_mode, static, density)
+        self._set_body(
+            index,
+            np.asarray(position, np.float64),
+            rotation,
+            velocity,
+            angular_velocity,
+            mass,
+            inertia,
+            friction,
+            restitution,
+            collision_mode,
+            static,
+            density,
+        )
         return index
 
     # ----------------------------------------------------------------- joints and thrusters
@@ -140,7 +180,9 @@ class SceneBuilder:
         if limits is not None:
             lower, upper = limits
             if not (lower <= 0.0 <= upper):
-                raise ValueError(f"joint limits must satisfy lower <= 0 <= upper (angles relative to now), got {limits}")
+                raise ValueError(
+                    f"joint limits must satisfy lower <= 0 <= upper (angles relative to now), got {limits}"
+                )
             j.has_limits[index], j.lower_angle[index], j.upper_angle[index] = True, lower, upper
         if motor_power < 0:
             raise ValueError(f"motor_power must be >= 0, got {motor_power}")
@@ -209,7 +251,21 @@ class SceneBuilder:
         if collision_mode not in (0, 1, 2):
             raise ValueError(f"body {index}: collision_mode must be 0, 1 or 2, got {collision_mode}")
 
-    def _set_body(self, index, position, rotation, velocity, angular_velocity, mass, inertia, friction, restitution, collision_mode, static, density):
+    def _set_body(
+        self,
+        index,
+        position,
+        rotation,
+        velocity,
+        angular_velocity,
+        mass,
+        inertia,
+        friction,
+        restitution,
+        collision_mode,
+        static,
+        density,
+    ):
         values = np.concatenate([np.ravel(position), np.ravel(velocity), [rotation, angular_velocity]])
         if not np.all(np.isfinite(values)) or len(values) != 6:
             raise ValueError(f"body {index}: position, velocity, rotation must be finite 2-vectors/scalars")

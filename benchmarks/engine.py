@@ -1,0 +1,152 @@
+"""Physics throughput of our engine and of Jax2D on the same fully populated s, m and l scenes.
+
+Prints physics steps per second under jit + vmap at each batch size, the compile time of one step, and with
+`--vs jax2d` the same figures for Jax2D (PyPI package `jax2d`, extra `bench`) measured in the same run, with
+the speed-up. `--json` prints one JSON document instead. On a GPU it also measures large batches and prints
+Jax2D's published peak throughputs next to ours.
+
+    python benchmarks/engine.py --vs jax2d
+    python benchmarks/engine.py --sizes s --batches 256 --json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import sys
+import time
+
+import jax
+import jax.numpy as jnp
+
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+
+from benchmarks.scenes import build_scene  # noqa: E402
+from engine import SimParams, step  # noqa: E402
+
+DISTINCT_SCENES = 16
+"""Scenes with different jitter seeds, tiled to fill a batch (building thousands on the host is slow)."""
+
+GPU_BATCHES = (4096, 16384, 65536)
+JAX2D_PUBLISHED_PEAK_STEPS_PER_SECOND = {"s": 2e7, "m": 9e6, "l": 1.7e6}
+"""Jax2D README plots (hardware not stated), for comparison when a GPU is present."""
+
+
+def _best_time(function, argument, repeats: int) -> float:
+    jax.block_until_ready(function(argument))
+    best = float("inf")
+    for _ in range(repeats):
+        start = time.perf_counter()
+        jax.block_until_ready(function(argument))
+        best = min(best, time.perf_counter() - start)
+    return best
+
+
+def _batched_states(size: str, batch: int):
+    scenes = [build_scene(size, seed)[0] for seed in range(min(batch, DISTINCT_SCENES))]
+    stacked = jax.tree_util.tree_map(lambda *x: jnp.stack(x), *scenes)
+    repeat = -(-batch // len(scenes))
+    return jax.tree_util.tree_map(lambda x: jnp.concatenate([x] * repeat)[:batch], stacked)
+
+
+def measure_ours(size: str, batch: int, n_steps: int, repeats: int) -> dict:
+    """Steps per second of `n_steps` vmapped steps inside one jitted scan (motors at +1, thrusters on)."""
+    static = build_scene(size, 0)[1]
+    states = _batched_states(size, batch)
+    params = SimParams()
+    motors, thrusters = jnp.ones(static.num_joints), jnp.ones(static.num_thrusters)
+    batched = jax.vmap(lambda s: step(s, params, motors, thrusters, static=static)[0])
+
+    def rollout(states):
+        return jax.lax.scan(lambda s, _: (batched(s), None), states, None, length=n_steps)[0]
+
+    compiled = jax.jit(rollout).lower(states).compile()
+    seconds = _best_time(compiled, states, repeats)
+    return {"engine": "ours", "size": size, "batch": batch, "steps_per_second": batch * n_steps / seconds}
+
+
+def compile_ours(size: str) -> float:
+    """Seconds to trace and compile one (unbatched) step."""
+    state, static = build_scene(size, 0)
+    params = SimParams()
+    start = time.perf_counter()
+    step.lower(state, params, jnp.ones(static.num_joints), jnp.ones(static.num_thrusters), static=static).compile()
+    return time.perf_counter() - start
+
+
+def compile_jax2d(size: str) -> float:
+    """Seconds to trace and compile one (unbatched) Jax2D step."""
+    from jax2d.engine import PhysicsEngine
+    from jax2d.sim_state import SimParams as Jax2dParams
+
+    from benchmarks import jax2d_baseline
+
+    state, static = jax2d_baseline.build_scene(size, 0)
+    actions = jnp.ones(static.num_joints + static.num_thrusters)
+    start = time.perf_counter()
+    jax.jit(PhysicsEngine(static).step).lower(state, Jax2dParams(), actions).compile()
+    return time.perf_counter() - start
+
+
+def run(sizes, batches, n_steps: int, repeats: int, versus_jax2d: bool, log=print) -> dict:
+    """Measure every (size, batch); `log` receives one human-readable line per figure."""
+    on_gpu = jax.default_backend() == "gpu"
+    engines = ["ours", "jax2d"] if versus_jax2d else ["ours"]
+    report = {
+        "machine": {
+            "backend": jax.default_backend(),
+            "devices": [str(device) for device in jax.devices()],
+            "cpu_count": os.cpu_count(),
+            "platform": platform.platform(),
+        },
+        "steps_per_timed_call": n_steps,
+        "steps_per_second": {engine: {} for engine in engines},
+        "compile_seconds": {engine: {} for engine in engines},
+    }
+    if versus_jax2d:
+        from benchmarks import jax2d_baseline
+
+        report["speedup_vs_jax2d"] = {}
+    for size in sizes:
+        report["compile_seconds"]["ours"][size] = compile_ours(size)
+        line = f"size={size} compile one step: ours {report['compile_seconds']['ours'][size]:.1f} s"
+        if versus_jax2d:
+            report["compile_seconds"]["jax2d"][size] = compile_jax2d(size)
+            line += f", jax2d {report['compile_seconds']['jax2d'][size]:.1f} s"
+        log(line)
+        for batch in list(batches) + (list(GPU_BATCHES) if on_gpu else []):
+            ours = measure_ours(size, batch, n_steps, repeats)["steps_per_second"]
+            report["steps_per_second"]["ours"].setdefault(size, {})[str(batch)] = ours
+            line = f"size={size} batch={batch:>6} ours={ours:>12,.0f} steps/s"
+            if versus_jax2d:
+                theirs = jax2d_baseline.measure(size, batch, n_steps, repeats)["steps_per_second"]
+                report["steps_per_second"]["jax2d"].setdefault(size, {})[str(batch)] = theirs
+                report["speedup_vs_jax2d"].setdefault(size, {})[str(batch)] = ours / theirs
+                line += f"  jax2d={theirs:>12,.0f} steps/s  speedup={ours / theirs:6.2f}x"
+            if on_gpu and batch in GPU_BATCHES:
+                line += f"  (jax2d published peak {JAX2D_PUBLISHED_PEAK_STEPS_PER_SECOND[size]:,.0f})"
+            log(line)
+    return report
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--sizes", nargs="+", default=["s", "m", "l"], choices=["s", "m", "l"])
+    parser.add_argument("--batches", nargs="+", type=int, default=[1, 256, 2048])
+    parser.add_argument("--steps", type=int, default=20, help="physics steps per timed call")
+    parser.add_argument("--repeats", type=int, default=3, help="timed calls; the fastest is kept")
+    parser.add_argument("--vs", choices=["jax2d"], help="also measure the reference engine in the same run")
+    parser.add_argument("--json", action="store_true", help="print one JSON document with every figure")
+    args = parser.parse_args(argv)
+    log = (
+        (lambda line: print(line, file=sys.stderr, flush=True)) if args.json else (lambda line: print(line, flush=True))
+    )
+    report = run(args.sizes, args.batches, args.steps, args.repeats, args.vs == "jax2d", log)
+    if args.json:
+        print(json.dumps(report, indent=2))
+
+
+if __name__ == "__main__":
+    main()
