@@ -15,12 +15,29 @@ import numpy as np
 from flax import struct
 
 from engine.collision import Manifolds
-from engine.geometry import cross2
 from engine.pairs import PairLayout
 from engine.softness import Softness
 
 NUM_ROWS = 4
 """Rows per pair: normal point 0, normal point 1, friction point 0, friction point 1."""
+
+
+@struct.dataclass
+class ContactGeometry:
+    """Compact per-point contact data of one step in colour layout (C colours, W pairs, 2 points).
+
+    This is what crosses into the solver; `build_rows` expands it into constraint rows there.
+    """
+
+    normal: jnp.ndarray  # (C, W, 2) unit, from body a to body b
+    lever_a: jnp.ndarray  # (C, W, 2, 2) [m] point minus a's centre, per point
+    lever_b: jnp.ndarray  # (C, W, 2, 2) [m]
+    separation: jnp.ndarray  # (C, W, 2) [m] of each point at the start of the step
+    approach_velocity: jnp.ndarray  # (C, W, 2) [m/s] normal relative velocity at impact
+    friction: jnp.ndarray  # (C, W, 1) [-] mixed coefficient
+    restitution: jnp.ndarray  # (C, W, 1) [-] mixed coefficient
+    enabled: jnp.ndarray  # (C, W, 2) bool, per point
+    softness: Softness  # fields (C, W, 1): stiffer against static bodies
 
 
 @struct.dataclass
@@ -36,12 +53,12 @@ class ContactRows:
     response_b: jnp.ndarray  # (C, W, 4, 3)
     mass: jnp.ndarray  # (C, W, 4) [kg] effective mass of each row (0 when disabled)
     coupling: jnp.ndarray  # (C, W, 4, 4) speed change of row r per unit impulse on row s (Delassus matrix)
-    separation: jnp.ndarray  # (C, W, 2) [m] of each point at the start of the step
-    approach_velocity: jnp.ndarray  # (C, W, 2) [m/s] normal relative velocity at the start of the step
-    friction: jnp.ndarray  # (C, W, 1) [-] mixed coefficient
-    restitution: jnp.ndarray  # (C, W, 1) [-] mixed coefficient
-    enabled: jnp.ndarray  # (C, W, 2) bool, per point
-    softness: Softness  # fields (C, W, 1): stiffer against static bodies
+    separation: jnp.ndarray  # (C, W, 2) [m]
+    approach_velocity: jnp.ndarray  # (C, W, 2) [m/s]
+    friction: jnp.ndarray  # (C, W, 1)
+    restitution: jnp.ndarray  # (C, W, 1)
+    enabled: jnp.ndarray  # (C, W, 2) bool
+    softness: Softness  # fields (C, W, 1)
 
 
 @struct.dataclass
@@ -60,51 +77,40 @@ def prepare_contacts(
     centre,
     velocity,
     acceleration,
-    response_scale,
     friction,
     restitution,
     layout: PairLayout,
     softness: Softness,
     static_softness: Softness,
-) -> ContactRows:
-    """Constraint rows of every candidate pair, gathered into colour layout.
+) -> ContactGeometry:
+    """Contact geometry of every candidate pair, gathered into colour layout.
 
-    `centre` (N, 2), `velocity` (N, 3) and `acceleration` (N, 3) describe the bodies at the start of the step,
-    `response_scale` (N, 3) holds the inverse mass, inverse mass and inverse inertia of each body.
+    `centre` (N, 2), `velocity` (N, 3) and `acceleration` (N, 3) describe the bodies at the start of the step.
     The approach velocity that restitution reverses is the speed at impact: points still apart at the start of
     the step close the remaining gap under the step's accelerations before they touch.
     """
     a, b = layout.body_a, layout.body_b
     lever_a = manifolds.point - centre[a][:, None, :]
     lever_b = manifolds.point - centre[b][:, None, :]
-    normal = jnp.broadcast_to(manifolds.normal[:, None, :], lever_a.shape)
-    tangent = jnp.stack([-normal[..., 1], normal[..., 0]], -1)
     enabled = manifolds.valid & pair_enabled[:, None]
-    direction = jnp.concatenate([normal, tangent], axis=1)  # (K, 4, 2)
-    lever_a, lever_b = jnp.tile(lever_a, (1, 2, 1)), jnp.tile(lever_b, (1, 2, 1))
-    row_enabled = jnp.tile(enabled, (1, 2))[..., None]
-    jac_a = jnp.where(row_enabled, -jnp.concatenate([direction, cross2(lever_a, direction)[..., None]], -1), 0.0)
-    jac_b = jnp.where(row_enabled, jnp.concatenate([direction, cross2(lever_b, direction)[..., None]], -1), 0.0)
-    resp_a, resp_b = response_scale[a][:, None, :] * jac_a, response_scale[b][:, None, :] * jac_b
-    coupling = jnp.einsum("krc,ksc->krs", jac_a, resp_a) + jnp.einsum("krc,ksc->krs", jac_b, resp_b)
-    k = jnp.diagonal(coupling, axis1=1, axis2=2)
-    mass = jnp.where(k > 0, 1.0 / jnp.where(k > 0, k, 1.0), 0.0)
 
     def normal_rate(per_body):
-        return jnp.sum(jac_a[:, :2] * per_body[a][:, None, :], -1) + jnp.sum(jac_b[:, :2] * per_body[b][:, None, :], -1)
+        def point_rate(index, lever):
+            rate = per_body[index][:, None, :]
+            return rate[..., :2] + rate[..., 2:] * jnp.stack([-lever[..., 1], lever[..., 0]], -1)
+
+        relative = point_rate(b, lever_b) - point_rate(a, lever_a)
+        return jnp.sum(relative * manifolds.normal[:, None, :], -1)
 
     start_speed, closing_acceleration = normal_rate(velocity), normal_rate(acceleration)
     gap = jnp.maximum(manifolds.separation, 0.0)
     impact_speed = -jnp.sqrt(jnp.maximum(start_speed**2 - 2.0 * closing_acceleration * gap, 0.0))
     approach = jnp.where(start_speed < 0, impact_speed, start_speed)
     soft = jax.tree_util.tree_map(lambda s, h: jnp.where(pair_static, h, s)[:, None], softness, static_softness)
-    per_pair = ContactRows(
-        jacobian_a=jac_a,
-        jacobian_b=jac_b,
-        response_a=resp_a,
-        response_b=resp_b,
-        mass=mass,
-        coupling=coupling,
+    per_pair = ContactGeometry(
+        normal=manifolds.normal,
+        lever_a=lever_a,
+        lever_b=lever_b,
         separation=jnp.where(enabled, manifolds.separation, 0.0),
         approach_velocity=jnp.where(enabled, approach, 0.0),
         friction=friction[:, None],
@@ -113,6 +119,48 @@ def prepare_contacts(
         softness=soft,
     )
     return to_colour_layout(per_pair, layout)
+
+
+def build_rows(geometry: ContactGeometry, response_scale, layout: PairLayout) -> ContactRows:
+    """Constraint rows from contact geometry (rank-polymorphic; `response_scale` is (N+1, 3, *batch))."""
+    g = geometry
+    scale_a = response_scale[layout.colour_body_a]
+    scale_b = response_scale[layout.colour_body_b]
+    nx, ny = g.normal[:, :, 0], g.normal[:, :, 1]
+    directions = ((nx, ny), (nx, ny), (-ny, nx), (-ny, nx))
+    jac_a, jac_b = [], []
+    for r, (dx, dy) in enumerate(directions):
+        point = r % 2
+        on = g.enabled[:, :, point][:, :, None]
+        la, lb = g.lever_a[:, :, point], g.lever_b[:, :, point]
+        ja = jnp.stack([-dx, -dy, la[:, :, 1] * dx - la[:, :, 0] * dy], 2)
+        jb = jnp.stack([dx, dy, lb[:, :, 0] * dy - lb[:, :, 1] * dx], 2)
+        jac_a.append(jnp.where(on, ja, 0.0))
+        jac_b.append(jnp.where(on, jb, 0.0))
+    jac_a, jac_b = jnp.stack(jac_a, 2), jnp.stack(jac_b, 2)
+    resp_a, resp_b = scale_a[:, :, None] * jac_a, scale_b[:, :, None] * jac_b
+    # Explicit component sums (not a reduction): the same rounding whether or not a batch axis trails.
+    rows_a, cols_a = jac_a[:, :, :, None], resp_a[:, :, None]
+    rows_b, cols_b = jac_b[:, :, :, None], resp_b[:, :, None]
+    coupling = sum(
+        rows_a[:, :, :, :, c] * cols_a[:, :, :, :, c] + rows_b[:, :, :, :, c] * cols_b[:, :, :, :, c] for c in range(3)
+    )
+    k = jnp.stack([coupling[:, :, r, r] for r in range(NUM_ROWS)], 2)
+    mass = jnp.where(k > 0, 1.0 / jnp.where(k > 0, k, 1.0), 0.0)
+    return ContactRows(
+        jacobian_a=jac_a,
+        jacobian_b=jac_b,
+        response_a=resp_a,
+        response_b=resp_b,
+        mass=mass,
+        coupling=coupling,
+        separation=g.separation,
+        approach_velocity=g.approach_velocity,
+        friction=g.friction,
+        restitution=g.restitution,
+        enabled=g.enabled,
+        softness=g.softness,
+    )
 
 
 def to_colour_layout(per_pair, layout: PairLayout):

@@ -19,12 +19,6 @@ def cross2(a, b):
     return a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]
 
 
-def rotation_matrix(angle):
-    """(..., 2, 2) counter-clockwise rotation by `angle` radians."""
-    c, s = jnp.cos(angle), jnp.sin(angle)
-    return jnp.stack([jnp.stack([c, -s], -1), jnp.stack([s, c], -1)], -2)
-
-
 def rotate(angle, vector):
     """Rotate (..., 2) vectors counter-clockwise by `angle` radians."""
     c, s = jnp.cos(angle), jnp.sin(angle)

@@ -12,9 +12,10 @@ from engine.batch_last import vmap_batch_last
 from engine.collision import manifolds, world_geometry
 from engine.collision_filter import modes_collide
 from engine.contact_solver import (
+    ContactGeometry,
     ContactImpulses,
-    ContactRows,
     apply_restitution,
+    build_rows,
     from_colour_layout,
     prepare_contacts,
     solve_contacts,
@@ -84,7 +85,8 @@ class SolverInput:
     pose: jnp.ndarray  # (N+1, 3) x [m], y [m], rotation [rad]
     acceleration: jnp.ndarray  # (N+1, 3) from gravity and thrusters, zero for bodies that cannot move
     movable: jnp.ndarray  # (N+1,) bool
-    contact_rows: ContactRows
+    response_scale: jnp.ndarray  # (N+1, 3) inverse mass, inverse mass, inverse inertia; 0 if it cannot move
+    contact_geometry: ContactGeometry
     contact_impulses: ContactImpulses
     joint_rows: JointRows
     joint_impulses: JointImpulses
@@ -116,7 +118,8 @@ def substep_solver(static: StaticSimParams):
 
     def solve(solver_input: SolverInput) -> SolverOutput:
         velocity, pose = solver_input.velocity, solver_input.pose
-        rows, joint_rows, scalars = solver_input.contact_rows, solver_input.joint_rows, solver_input.scalars
+        rows = build_rows(solver_input.contact_geometry, solver_input.response_scale, layout)
+        joint_rows, scalars = solver_input.joint_rows, solver_input.scalars
         acceleration = solver_input.acceleration
         contact_impulses, joint_impulses = solver_input.contact_impulses, solver_input.joint_impulses
         start_pose = pose
@@ -187,7 +190,7 @@ def prepare_step(
     bodies, joints = state.bodies, state.joints
     n = static.num_bodies
     substep = params.dt / static.num_substeps
-    static_body = bodies.inverse_mass == 0
+    static_body = bodies.is_static
 
     # Extended body arrays: row N is a dummy body that colour padding reads and writes.
     def extend(x):
@@ -217,14 +220,13 @@ def prepare_step(
     # Contact rows, warm-started from last step's impulses of the same features.
     pair_enabled = both_active & modes & state.collision_matrix[a, b] & ~(static_body[a] & static_body[b])
     point_enabled = manifold.valid & pair_enabled[:, None]
-    rows = prepare_contacts(
+    contact_geometry = prepare_contacts(
         manifold,
         pair_enabled,
         pair_static=static_body[a] | static_body[b],
         centre=pose[:n, :2],
         velocity=velocity[:n],
         acceleration=acceleration[:n],
-        response_scale=response_scale[:n],
         friction=params.base_friction * jnp.sqrt(2.0 * bodies.friction[a] * bodies.friction[b]),
         restitution=jnp.minimum(bodies.restitution[a], bodies.restitution[b]),
         layout=layout,
@@ -260,7 +262,16 @@ def prepare_step(
         joint_softness=make_softness(params.joint_hertz, params.joint_damping_ratio, substep),
     )
     solver_input = SolverInput(
-        velocity, pose, acceleration, movable, rows, contact_impulses, joint_rows, joint_impulses, scalars
+        velocity=velocity,
+        pose=pose,
+        acceleration=acceleration,
+        movable=movable,
+        response_scale=response_scale,
+        contact_geometry=contact_geometry,
+        contact_impulses=contact_impulses,
+        joint_rows=joint_rows,
+        joint_impulses=joint_impulses,
+        scalars=scalars,
     )
     return Prepared(solver_input, info, point_enabled, manifold.feature)
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -323,7 +324,6 @@ def _rotate(angle: float, vector: np.ndarray) -> np.ndarray:
 
 def jax_to_numpy(state: SimState) -> SimState:
     """Writable float64/int/bool numpy copy of a state (for host-side editing)."""
-    import jax
 
     def convert(x):
         array = np.array(x)
@@ -334,7 +334,6 @@ def jax_to_numpy(state: SimState) -> SimState:
 
 def jax_from_numpy(state: SimState) -> SimState:
     """Device copy of a numpy state with float32 floats."""
-    import jax
 
     def convert(x):
         array = np.asarray(x)
