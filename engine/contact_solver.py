@@ -207,9 +207,9 @@ def _speed_after(rows: ContactRows, r: int, speed, deltas):
     return speed
 
 
-def warm_start_contacts(velocity, rows: ContactRows, impulses: ContactImpulses, layout: PairLayout, scale=1.0):
-    """Apply `scale` times the accumulated impulses of every row to the (N+1, 3, *batch) velocities at once."""
-    impulse = impulses.impulse * scale
+def warm_start_contacts(velocity, rows: ContactRows, impulses: ContactImpulses, layout: PairLayout):
+    """Apply the accumulated impulses of every row to the (N+1, 3, *batch) velocities at once."""
+    impulse = impulses.impulse
     delta_a = sum(rows.response_a[:, :, r] * impulse[:, :, r, None] for r in range(NUM_ROWS))
     delta_b = sum(rows.response_b[:, :, r] * impulse[:, :, r, None] for r in range(NUM_ROWS))
     flat = (-1,) + delta_a.shape[2:]

@@ -126,12 +126,12 @@ def _push(vel_a, vel_b, rows: JointRows, j, lever_a, lever_b, linear, axial):
     return vel_a, vel_b
 
 
-def warm_start_joints(velocity, pose, start_pose, rows: JointRows, impulses: JointImpulses, scale=1.0):
-    """Apply `scale` times every joint's accumulated impulses to the (N+1, 3, *batch) velocities."""
+def warm_start_joints(velocity, pose, start_pose, rows: JointRows, impulses: JointImpulses):
+    """Apply every joint's accumulated impulses to the (N+1, 3, *batch) velocities."""
     for j in range(rows.body_a.shape[0]):
         mask_a, mask_b, _, _, lever_a, lever_b = _joint_frame(rows, j, pose, start_pose)
-        axial = scale * (impulses.angular[j] + impulses.motor[j] + impulses.limit[j, 0] - impulses.limit[j, 1])
-        linear = scale * impulses.linear[j]
+        axial = impulses.angular[j] + impulses.motor[j] + impulses.limit[j, 0] - impulses.limit[j, 1]
+        linear = impulses.linear[j]
         vel_a, vel_b = _push(
             _select(velocity, mask_a), _select(velocity, mask_b), rows, j, lever_a, lever_b, linear, axial
         )

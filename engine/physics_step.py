@@ -43,9 +43,9 @@ STATIC_CONTACT_STIFFNESS_FACTOR = 2.0
 class StepInfo:
     """What happened during a step, per candidate pair (layout of `engine.pairs.pair_layout`)."""
 
-    touching: (
-        jnp.ndarray
-    )  # (K,) bool: both shapes active, modes allow contact, closer than touch_distance at step start
+    # (K,) bool: both shapes active, their collision modes allow contact, closer than touch_distance at step start;
+    # joints are ignored here (as in Kinetix), so jointed shapes that overlap count as touching.
+    touching: jnp.ndarray
     separation: jnp.ndarray  # (K,) [m] smallest separation of the pair's contact points (inf when none)
 
 
