@@ -26,6 +26,17 @@ DEFAULT_DENSITY = 1.0  # [kg/m^2]
 DEFAULT_FRICTION = 1.0  # [-]
 
 
+@dataclasses.dataclass(frozen=True)
+class _Material:
+    """Surface and mass parameters of one body, as given to an `add_*` call."""
+
+    density: float
+    friction: float
+    restitution: float
+    collision_mode: int
+    static: bool
+
+
 def _box_vertices(width: float, height: float) -> np.ndarray:
     half_w, half_h = width / 2, height / 2
     return np.array([[-half_w, -half_h], [half_w, -half_h], [half_w, half_h], [-half_w, half_h]])
@@ -89,7 +100,7 @@ class SceneBuilder:
         """
         local = check_convex_polygon(vertices)
         index = self._take_slot("polygon", slot, static)
-        self._check_material(index, density, friction, restitution, collision_mode, static)
+        material = self._check_material(index, density, friction, restitution, collision_mode, static)
         padded = np.zeros((MAX_POLYGON_VERTICES, 2))
         padded[: len(local)] = local
         mass, centroid, inertia = (
@@ -102,20 +113,7 @@ class SceneBuilder:
         b.n_vertices[index] = len(local)
         b.radius[index] = 0.0
         world_centroid = np.asarray(position, np.float64) + _rotate(rotation, centroid)
-        self._set_body(
-            index,
-            world_centroid,
-            rotation,
-            velocity,
-            angular_velocity,
-            mass,
-            inertia,
-            friction,
-            restitution,
-            collision_mode,
-            static,
-            density,
-        )
+        self._set_body(index, world_centroid, rotation, velocity, angular_velocity, mass, inertia, material)
         return index
 
     def add_box(self, position, size, **kwargs) -> int:
@@ -144,22 +142,11 @@ class SceneBuilder:
         if not (np.isfinite(radius) and radius > 0):
             raise ValueError(f"circle radius must be positive and finite, got {radius}")
         index = self._take_slot("circle", slot, static)
-        self._check_material(index, density, friction, restitution, collision_mode, static)
+        material = self._check_material(index, density, friction, restitution, collision_mode, static)
         mass, inertia = (float(x) for x in circle_mass_properties(radius, density))
         self._state.bodies.radius[index] = radius
         self._set_body(
-            index,
-            np.asarray(position, np.float64),
-            rotation,
-            velocity,
-            angular_velocity,
-            mass,
-            inertia,
-            friction,
-            restitution,
-            collision_mode,
-            static,
-            density,
+            index, np.asarray(position, np.float64), rotation, velocity, angular_velocity, mass, inertia, material
         )
         return index
 
@@ -240,7 +227,7 @@ class SceneBuilder:
             raise ValueError(f"polygon slot {slot} is reserved for static bodies (num_reserved_static={reserved})")
         return index
 
-    def _check_material(self, index, density, friction, restitution, collision_mode, static):
+    def _check_material(self, index, density, friction, restitution, collision_mode, static) -> _Material:
         if not static and not (np.isfinite(density) and density > 0):
             raise ValueError(f"body {index}: density must be positive for a movable body, got {density}")
         if static and not (np.isfinite(density) and density >= 0):
@@ -251,22 +238,9 @@ class SceneBuilder:
             raise ValueError(f"body {index}: restitution must be in [0, 1], got {restitution}")
         if collision_mode not in (0, 1, 2):
             raise ValueError(f"body {index}: collision_mode must be 0, 1 or 2, got {collision_mode}")
+        return _Material(density, friction, restitution, collision_mode, static)
 
-    def _set_body(
-        self,
-        index,
-        position,
-        rotation,
-        velocity,
-        angular_velocity,
-        mass,
-        inertia,
-        friction,
-        restitution,
-        collision_mode,
-        static,
-        density,
-    ):
+    def _set_body(self, index, position, rotation, velocity, angular_velocity, mass, inertia, material: _Material):
         values = np.concatenate([np.ravel(position), np.ravel(velocity), [rotation, angular_velocity]])
         if not np.all(np.isfinite(values)) or len(values) != 6:
             raise ValueError(f"body {index}: position, velocity, rotation must be finite 2-vectors/scalars")
@@ -275,13 +249,13 @@ class SceneBuilder:
         b.rotation[index] = rotation
         b.velocity[index] = velocity
         b.angular_velocity[index] = angular_velocity
-        b.inverse_mass[index] = 0.0 if static else 1.0 / mass
-        b.inverse_inertia[index] = 0.0 if static else 1.0 / inertia
-        b.friction[index] = friction
-        b.restitution[index] = restitution
-        b.collision_mode[index] = collision_mode
+        b.inverse_mass[index] = 0.0 if material.static else 1.0 / mass
+        b.inverse_inertia[index] = 0.0 if material.static else 1.0 / inertia
+        b.friction[index] = material.friction
+        b.restitution[index] = material.restitution
+        b.collision_mode[index] = material.collision_mode
         b.active[index] = True
-        self._densities[index] = 0.0 if static else density
+        self._densities[index] = 0.0 if material.static else material.density
 
     def _check_body(self, body: int, what: str):
         n = self.static.num_bodies
