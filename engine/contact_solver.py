@@ -53,12 +53,7 @@ class ContactRows:
     response_b: jnp.ndarray  # (C, W, 4, 3)
     mass: jnp.ndarray  # (C, W, 4) [kg] effective mass of each row (0 when disabled)
     coupling: jnp.ndarray  # (C, W, 4, 4) speed change of row r per unit impulse on row s (Delassus matrix)
-    separation: jnp.ndarray  # (C, W, 2) [m]
-    approach_velocity: jnp.ndarray  # (C, W, 2) [m/s]
-    friction: jnp.ndarray  # (C, W, 1)
-    restitution: jnp.ndarray  # (C, W, 1)
-    enabled: jnp.ndarray  # (C, W, 2) bool
-    softness: Softness  # fields (C, W, 1)
+    geometry: ContactGeometry  # what the rows were built from
 
 
 @struct.dataclass
@@ -154,12 +149,7 @@ def build_rows(geometry: ContactGeometry, response_scale, layout: PairLayout) ->
         response_b=resp_b,
         mass=mass,
         coupling=coupling,
-        separation=g.separation,
-        approach_velocity=g.approach_velocity,
-        friction=g.friction,
-        restitution=g.restitution,
-        enabled=g.enabled,
-        softness=g.softness,
+        geometry=g,
     )
 
 
@@ -217,48 +207,21 @@ def warm_start_contacts(velocity, rows: ContactRows, impulses: ContactImpulses, 
     return velocity.at[layout.colour_body_b.reshape(-1)].add(delta_b.reshape(flat))
 
 
-def _solve_colour(
-    rows: ContactRows, impulses: ContactImpulses, a, b, velocity, moved, inverse_substep, max_push_velocity, use_bias
-):
-    """Normal rows, then friction rows, of one colour's pairs (Gauss-Seidel per pair, pairs at once).
+def _sweep(velocity, rows: ContactRows, impulses: ContactImpulses, layout: PairLayout, solve_colour):
+    """Visit the colours in order (Gauss-Seidel across colours), all pairs of a colour at once.
 
-    Row speeds after earlier rows' impulses come from the pair's coupling matrix, so velocities are gathered and
-    written once per colour. `moved` (N+1, 3, *batch) is each body's displacement since the start of the step;
-    `use_bias` (bool scalar) selects the soft position-correcting solve, otherwise the relaxing solve.
+    `solve_colour(rows, impulses, a, b, vel_a, vel_b) -> (vel_a, vel_b, impulses)` handles one colour. Colours
+    are unrolled: static slices and static body indices are several times faster on CPU than a `lax.scan`.
     """
-    vel_a, vel_b = velocity[a], velocity[b]
-    moved_a, moved_b = moved[a], moved[b]
-    soft = rows.softness
-    deltas, new_impulses = [], []
-    for p in range(2):
-        separation = rows.separation[:, p] + _row_speed(rows, p, moved_a, moved_b)
-        speculative = separation > 0
-        pushing = use_bias & ~speculative
-        bias = jnp.where(
-            speculative,
-            separation * inverse_substep,
-            jnp.where(use_bias, jnp.maximum(soft.bias_rate[:, 0] * separation, -max_push_velocity), 0.0),
+    solved = []
+    for c in range(layout.num_colours):
+        a, b = layout.colour_body_a[c], layout.colour_body_b[c]
+        vel_a, vel_b, colour_impulses = solve_colour(
+            _colour(rows, c), _colour(impulses, c), a, b, velocity[a], velocity[b]
         )
-        mass_scale = jnp.where(pushing, soft.mass_scale[:, 0], 1.0)
-        impulse_scale = jnp.where(pushing, soft.impulse_scale[:, 0], 0.0)
-        speed = _speed_after(rows, p, _row_speed(rows, p, vel_a, vel_b), deltas)
-        old = impulses.impulse[:, p]
-        new = old - rows.mass[:, p] * mass_scale * (speed + bias) - impulse_scale * old
-        new = jnp.where(rows.enabled[:, p], jnp.maximum(new, 0.0), 0.0)
-        deltas.append(new - old)
-        new_impulses.append(new)
-    for p in range(2):
-        r = 2 + p
-        speed = _speed_after(rows, r, _row_speed(rows, r, vel_a, vel_b), deltas)
-        old = impulses.impulse[:, r]
-        bound = rows.friction[:, 0] * new_impulses[p]
-        new = jnp.clip(old - rows.mass[:, r] * speed, -bound, bound)
-        deltas.append(new - old)
-        new_impulses.append(new)
-    vel_a, vel_b = _apply_rows(rows, vel_a, vel_b, deltas)
-    velocity = velocity.at[a].set(vel_a).at[b].set(vel_b)
-    max_normal = jnp.maximum(impulses.max_normal, jnp.stack(new_impulses[:2], 1))
-    return velocity, ContactImpulses(jnp.stack(new_impulses, 1), max_normal)
+        velocity = velocity.at[a].set(vel_a).at[b].set(vel_b)
+        solved.append(colour_impulses)
+    return velocity, jax.tree_util.tree_map(lambda *x: jnp.stack(x), *solved)
 
 
 def _colour(tree, c: int):
@@ -275,48 +238,68 @@ def solve_contacts(
     max_push_velocity,
     use_bias,
 ):
-    """Sweep all colours in order; returns velocities and impulses.
+    """One sweep of normal rows, then friction rows, of every pair; returns velocities and impulses.
 
-    Colours are unrolled: static slices and static body indices are several times faster on CPU than a
-    `lax.scan` over colours.
+    `moved` (N+1, 3, *batch) is each body's displacement since the start of the step; `use_bias` selects the
+    soft position-correcting solve, otherwise the relaxing solve without position bias.
     """
-    solved = []
-    for c in range(layout.num_colours):
-        velocity, colour_impulses = _solve_colour(
-            _colour(rows, c),
-            _colour(impulses, c),
-            layout.colour_body_a[c],
-            layout.colour_body_b[c],
-            velocity,
-            moved,
-            inverse_substep,
-            max_push_velocity,
-            use_bias,
-        )
-        solved.append(colour_impulses)
-    return velocity, jax.tree_util.tree_map(lambda *x: jnp.stack(x), *solved)
+
+    def solve_colour(rows, impulses, a, b, vel_a, vel_b):
+        g = rows.geometry
+        moved_a, moved_b = moved[a], moved[b]
+        deltas, new_impulses = [], []
+        for p in range(2):
+            separation = g.separation[:, p] + _row_speed(rows, p, moved_a, moved_b)
+            speculative = separation > 0
+            pushing = use_bias & ~speculative
+            bias = jnp.where(
+                speculative,
+                separation * inverse_substep,
+                jnp.where(use_bias, jnp.maximum(g.softness.bias_rate[:, 0] * separation, -max_push_velocity), 0.0),
+            )
+            mass_scale = jnp.where(pushing, g.softness.mass_scale[:, 0], 1.0)
+            impulse_scale = jnp.where(pushing, g.softness.impulse_scale[:, 0], 0.0)
+            speed = _speed_after(rows, p, _row_speed(rows, p, vel_a, vel_b), deltas)
+            old = impulses.impulse[:, p]
+            new = old - rows.mass[:, p] * mass_scale * (speed + bias) - impulse_scale * old
+            new = jnp.where(g.enabled[:, p], jnp.maximum(new, 0.0), 0.0)
+            deltas.append(new - old)
+            new_impulses.append(new)
+        for p in range(2):
+            r = 2 + p
+            speed = _speed_after(rows, r, _row_speed(rows, r, vel_a, vel_b), deltas)
+            old = impulses.impulse[:, r]
+            bound = g.friction[:, 0] * new_impulses[p]
+            new = jnp.clip(old - rows.mass[:, r] * speed, -bound, bound)
+            deltas.append(new - old)
+            new_impulses.append(new)
+        vel_a, vel_b = _apply_rows(rows, vel_a, vel_b, deltas)
+        max_normal = jnp.maximum(impulses.max_normal, jnp.stack(new_impulses[:2], 1))
+        return vel_a, vel_b, ContactImpulses(jnp.stack(new_impulses, 1), max_normal)
+
+    return _sweep(velocity, rows, impulses, layout, solve_colour)
 
 
 def apply_restitution(velocity, rows: ContactRows, impulses: ContactImpulses, layout: PairLayout, threshold):
     """Bounce: drive the normal velocity of points that approached faster than `threshold` to -e times that speed."""
-    solved = []
-    for c in range(layout.num_colours):
-        r, imp = _colour(rows, c), _colour(impulses, c)
-        a, b = layout.colour_body_a[c], layout.colour_body_b[c]
-        vel_a, vel_b = velocity[a], velocity[b]
+
+    def solve_colour(rows, impulses, a, b, vel_a, vel_b):
+        g = rows.geometry
         deltas, normal = [], []
         for p in range(2):
-            approach = r.approach_velocity[:, p]
-            applies = r.enabled[:, p] & (r.restitution[:, 0] > 0) & (approach < -threshold) & (imp.max_normal[:, p] > 0)
-            old = imp.impulse[:, p]
-            speed = _speed_after(r, p, _row_speed(r, p, vel_a, vel_b), deltas)
+            approach = g.approach_velocity[:, p]
+            applies = (
+                g.enabled[:, p] & (g.restitution[:, 0] > 0) & (approach < -threshold) & (impulses.max_normal[:, p] > 0)
+            )
+            old = impulses.impulse[:, p]
+            speed = _speed_after(rows, p, _row_speed(rows, p, vel_a, vel_b), deltas)
             new = jnp.where(
-                applies, jnp.maximum(old - r.mass[:, p] * (speed + r.restitution[:, 0] * approach), 0.0), old
+                applies, jnp.maximum(old - rows.mass[:, p] * (speed + g.restitution[:, 0] * approach), 0.0), old
             )
             deltas.append(new - old)
             normal.append(new)
-        vel_a, vel_b = _apply_rows(r, vel_a, vel_b, deltas)
-        velocity = velocity.at[a].set(vel_a).at[b].set(vel_b)
-        impulse = normal + [imp.impulse[:, 2], imp.impulse[:, 3]]
-        solved.append(imp.replace(impulse=jnp.stack(impulse, 1)))
-    return velocity, jax.tree_util.tree_map(lambda *x: jnp.stack(x), *solved)
+        vel_a, vel_b = _apply_rows(rows, vel_a, vel_b, deltas)
+        impulse = jnp.stack(normal + [impulses.impulse[:, 2], impulses.impulse[:, 3]], 1)
+        return vel_a, vel_b, impulses.replace(impulse=impulse)
+
+    return _sweep(velocity, rows, impulses, layout, solve_colour)

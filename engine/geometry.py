@@ -25,6 +25,14 @@ def rotate(angle, vector):
     return jnp.stack([c * vector[..., 0] - s * vector[..., 1], s * vector[..., 0] + c * vector[..., 1]], -1)
 
 
+def rotate_host(angle, vectors) -> np.ndarray:
+    """Numpy (float64) version of `rotate`, for host-side scene building and rendering."""
+    c, s = np.cos(angle)[..., None], np.sin(angle)[..., None]
+    vectors = np.asarray(vectors, np.float64)
+    x, y = vectors[..., :1], vectors[..., 1:]
+    return np.concatenate([c * x - s * y, s * x + c * y], -1)
+
+
 def polygon_mass_properties(vertices, n_vertices, density):
     """Mass [kg], area centroid (2,) [m] and inertia about the centroid [kg m^2] of a convex polygon.
 

@@ -139,6 +139,11 @@ def warm_start_joints(velocity, pose, start_pose, rows: JointRows, impulses: Joi
     return velocity
 
 
+def _spin(vel_a, vel_b, ia, ib, delta):
+    """Velocities after an angular impulse `delta` turning b positively and a negatively."""
+    return vel_a.at[2].add(-ia * delta), vel_b.at[2].add(ib * delta)
+
+
 def _angular_row(
     axial_mass, relative_speed, error, old, softness: Softness, use_bias, inverse_substep, one_sided: bool
 ):
@@ -169,14 +174,11 @@ def solve_joints(
         mass = rows.axial_mass[j]
         angle = pose_b[2] - pose_a[2] - rows.reference_angle[j]
 
-        def spin(vel_a, vel_b, delta, ia=ia, ib=ib):
-            return vel_a.at[2].add(-ia * delta), vel_b.at[2].add(ib * delta)
-
         # Motor: velocity row with a bounded impulse.
         bound = rows.motor_max_impulse[j]
         new_motor = jnp.clip(motor[j] - mass * (vel_b[2] - vel_a[2] - rows.motor_target[j]), -bound, bound)
         new_motor = jnp.where(rows.solve_motor[j], new_motor, 0.0)
-        vel_a, vel_b = spin(vel_a, vel_b, new_motor - motor[j])
+        vel_a, vel_b = _spin(vel_a, vel_b, ia, ib, new_motor - motor[j])
         # Limits: one-sided rows.
         lower = _angular_row(
             mass,
@@ -189,7 +191,7 @@ def solve_joints(
             True,
         )
         lower = jnp.where(rows.solve_limits[j], jnp.maximum(lower, 0.0), 0.0)
-        vel_a, vel_b = spin(vel_a, vel_b, lower - limit[j, 0])
+        vel_a, vel_b = _spin(vel_a, vel_b, ia, ib, lower - limit[j, 0])
         upper = _angular_row(
             mass,
             vel_a[2] - vel_b[2],
@@ -201,13 +203,13 @@ def solve_joints(
             True,
         )
         upper = jnp.where(rows.solve_limits[j], jnp.maximum(upper, 0.0), 0.0)
-        vel_a, vel_b = spin(vel_a, vel_b, limit[j, 1] - upper)
+        vel_a, vel_b = _spin(vel_a, vel_b, ia, ib, limit[j, 1] - upper)
         # Fixed joint: relative angle held at the reference.
         new_angular = _angular_row(
             mass, vel_b[2] - vel_a[2], angle, angular[j], softness, use_bias, inverse_substep, False
         )
         new_angular = jnp.where(rows.solve_angle[j], new_angular, 0.0)
-        vel_a, vel_b = spin(vel_a, vel_b, new_angular - angular[j])
+        vel_a, vel_b = _spin(vel_a, vel_b, ia, ib, new_angular - angular[j])
         # Point constraint: anchors coincide (2x2 effective-mass solve).
         point_a = vel_a[:2] + vel_a[2] * jnp.stack([-lever_a[1], lever_a[0]])
         point_b = vel_b[:2] + vel_b[2] * jnp.stack([-lever_b[1], lever_b[0]])

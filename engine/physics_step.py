@@ -283,7 +283,7 @@ def finish_step(
     layout = pair_layout(static)
     n = static.num_bodies
     bodies, joints = state.bodies, state.joints
-    movable = bodies.active & (bodies.inverse_mass > 0)
+    movable = prepared.solver_input.movable[:n]
     velocity, pose, joint_impulses = solved.velocity, solved.pose, solved.joint_impulses
     per_pair = from_colour_layout(solved.contact_impulses, layout)
     new_bodies = bodies.replace(

@@ -10,6 +10,7 @@ import numpy as np
 from PIL import Image, ImageDraw
 
 from engine import Bodies, SimState
+from engine.geometry import rotate_host
 from engine.scene import ARENA_SIZE
 
 DEFAULT_PIXELS_PER_METRE = 100
@@ -34,13 +35,6 @@ THRUSTER_LENGTH_M = 0.15
 
 THRUSTER_HALF_WIDTH_M = 0.06
 """[m] half width of a thruster triangle's base."""
-
-
-def _rotate(angle: np.ndarray, vectors: np.ndarray) -> np.ndarray:
-    """Rotate (..., 2) vectors counter-clockwise by `angle` [rad] (broadcast over leading axes)."""
-    c, s = np.cos(angle)[..., None], np.sin(angle)[..., None]
-    x, y = vectors[..., :1], vectors[..., 1:]
-    return np.concatenate([c * x - s * y, s * x + c * y], -1)
 
 
 def _to_pixels(points: np.ndarray, pixels_per_metre: float) -> list[tuple[float, float]]:
@@ -79,7 +73,7 @@ def render_frame(state: SimState, *, colours=None, pixels_per_metre: float = DEF
 
 def _world(bodies: Bodies, body, local: np.ndarray) -> np.ndarray:
     """World position [m] of a point given in `body`'s frame relative to its centre of mass."""
-    return bodies.position[body] + _rotate(bodies.rotation[body], local)
+    return bodies.position[body] + rotate_host(bodies.rotation[body], local)
 
 
 def _disc(draw: ImageDraw.ImageDraw, centre: tuple[float, float], radius_px: float, **style) -> None:
@@ -117,7 +111,7 @@ def _draw_thrusters(draw: ImageDraw.ImageDraw, state: SimState, pixels_per_metre
     thrusters, bodies = state.thrusters, state.bodies
     for index in np.flatnonzero(thrusters.active):
         body = thrusters.body[index]
-        direction = _rotate(bodies.rotation[body] + thrusters.angle[index], np.array([1.0, 0.0]))
+        direction = rotate_host(bodies.rotation[body] + thrusters.angle[index], np.array([1.0, 0.0]))
         side = THRUSTER_HALF_WIDTH_M * np.array([-direction[1], direction[0]])
         base = _world(bodies, body, thrusters.anchor[index])
         triangle = np.stack([base + THRUSTER_LENGTH_M * direction, base + side, base - side])

@@ -9,7 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from engine.collision_filter import joint_collision_matrix
-from engine.geometry import check_convex_polygon, circle_mass_properties, polygon_mass_properties
+from engine.geometry import check_convex_polygon, circle_mass_properties, polygon_mass_properties, rotate_host
 from engine.params import MAX_POLYGON_VERTICES, StaticSimParams
 from engine.state import SimState, empty_state
 
@@ -112,7 +112,7 @@ class SceneBuilder:
         b.vertices[index] = centred
         b.n_vertices[index] = len(local)
         b.radius[index] = 0.0
-        world_centroid = np.asarray(position, np.float64) + _rotate(rotation, centroid)
+        world_centroid = np.asarray(position, np.float64) + rotate_host(rotation, centroid)
         self._set_body(index, world_centroid, rotation, velocity, angular_velocity, mass, inertia, material)
         return index
 
@@ -190,7 +190,7 @@ class SceneBuilder:
             raise ValueError(f"thruster power must be >= 0, got {power}")
         b = self._state.bodies
         t.body[index] = body
-        t.anchor[index] = _rotate(-b.rotation[body], np.asarray(anchor, np.float64) - b.position[body])
+        t.anchor[index] = rotate_host(-b.rotation[body], np.asarray(anchor, np.float64) - b.position[body])
         t.angle[index] = angle - b.rotation[body]
         t.power[index] = power
         t.active[index] = True
@@ -276,8 +276,8 @@ class SceneBuilder:
         index = _first_free(j.active, "joint", self.static.num_joints)
         b = self._state.bodies
         j.body_a[index], j.body_b[index] = body_a, body_b
-        j.anchor_a[index] = _rotate(-b.rotation[body_a], anchor - b.position[body_a])
-        j.anchor_b[index] = _rotate(-b.rotation[body_b], anchor - b.position[body_b])
+        j.anchor_a[index] = rotate_host(-b.rotation[body_a], anchor - b.position[body_a])
+        j.anchor_b[index] = rotate_host(-b.rotation[body_b], anchor - b.position[body_b])
         j.reference_angle[index] = b.rotation[body_b] - b.rotation[body_a]
         j.is_fixed[index] = is_fixed
         j.active[index] = True
@@ -289,11 +289,6 @@ def _first_free(active: np.ndarray, kind: str, capacity: int) -> int:
     if free.size == 0:
         raise ValueError(f"no free {kind} slot: all {capacity} are used (StaticSimParams too small)")
     return int(free[0])
-
-
-def _rotate(angle: float, vector: np.ndarray) -> np.ndarray:
-    c, s = np.cos(angle), np.sin(angle)
-    return np.array([c * vector[0] - s * vector[1], s * vector[0] + c * vector[1]])
 
 
 def jax_to_numpy(state: SimState) -> SimState:
