@@ -14,7 +14,7 @@ from env.actions import (
 )
 from env.episode import StepResult, advance, reset, step
 from env.params import NUM_ACTION_SLOTS, NUM_MOTOR_BINDINGS, NUM_THRUSTER_BINDINGS, EnvParams, StaticEnvParams
-from env.rewards import green_blue_distance, goal_reward
+from env.rewards import goal_reward, green_blue_distance
 from env.state import NO_DISTANCE, NUM_ROLES, EnvState, Level, Role, Task, empty_task, initial_state
 
 __all__ = [

@@ -11,7 +11,7 @@ from flax import struct
 from engine import step as physics_step
 from env.actions import ActionType, actuator_actions
 from env.params import EnvParams, StaticEnvParams
-from env.rewards import green_blue_distance, goal_reward
+from env.rewards import goal_reward, green_blue_distance
 from env.state import NO_DISTANCE, EnvState, Level, initial_state
 
 

@@ -39,7 +39,7 @@ class StaticEnvParams:
         if self.max_timesteps < 1:
             raise ValueError(f"StaticEnvParams.max_timesteps must be >= 1, got {self.max_timesteps}")
         if self.sim.num_reserved_static != 4:
-            raise ValueError("Kinetix levels reserve polygon slots 0-3 for floor, walls and ceiling (num_reserved_static=4)")
+            raise ValueError("Kinetix levels reserve polygon slots 0-3 for the boundaries (num_reserved_static=4)")
 
     @classmethod
     def for_size(cls, size: str, **overrides) -> StaticEnvParams:
