@@ -29,7 +29,9 @@ def build_level(
         _check_index("roles", body, static.num_bodies)
         role_array[body] = Role(role)
     motor_array = _bindings("motor_bindings", motor_bindings or {}, static.num_joints, NUM_MOTOR_BINDINGS)
-    thruster_array = _bindings("thruster_bindings", thruster_bindings or {}, static.num_thrusters, NUM_THRUSTER_BINDINGS)
+    thruster_array = _bindings(
+        "thruster_bindings", thruster_bindings or {}, static.num_thrusters, NUM_THRUSTER_BINDINGS
+    )
     auto = np.zeros(static.num_joints, bool)
     for joint in motor_auto:
         _check_index("motor_auto", joint, static.num_joints)
