@@ -1,6 +1,7 @@
 """Kinetix-style tasks on the engine: levels, episodes, rewards, actions, observations, sampler, level files.
 
-Public surface: parameters, level and state types, `reset` / `step`, action spaces and masks.
+Public surface: parameters, level and state types, `reset` / `step` (and the gymnax-style `Environment`),
+action spaces and masks, observations, the pixel renderer and GIF export.
 """
 
 from env.actions import (
@@ -12,8 +13,13 @@ from env.actions import (
     noop_action,
     random_action,
 )
+from env.environment import Environment
 from env.episode import StepResult, advance, reset, step
+from env.gif import write_state_gif
+from env.level_builder import build_level
+from env.observations import EntityObservation, ObservationType, observation_shape, observe
 from env.params import NUM_ACTION_SLOTS, NUM_MOTOR_BINDINGS, NUM_THRUSTER_BINDINGS, EnvParams, StaticEnvParams
+from env.pixels import PIXEL_OBSERVATION_RESOLUTION, PixelObservation, pixel_observation, render_image
 from env.rewards import goal_reward, green_blue_distance
 from env.state import NO_DISTANCE, NUM_ROLES, EnvState, Level, Role, Task, empty_task, initial_state
 
@@ -25,10 +31,15 @@ __all__ = [
     "NUM_MOTOR_BINDINGS",
     "NUM_ROLES",
     "NUM_THRUSTER_BINDINGS",
+    "PIXEL_OBSERVATION_RESOLUTION",
     "ActionType",
+    "EntityObservation",
+    "Environment",
     "EnvParams",
     "EnvState",
     "Level",
+    "ObservationType",
+    "PixelObservation",
     "Role",
     "StaticEnvParams",
     "StepResult",
@@ -36,12 +47,18 @@ __all__ = [
     "action_mask",
     "actuator_actions",
     "advance",
+    "build_level",
     "empty_task",
     "goal_reward",
     "green_blue_distance",
     "initial_state",
     "noop_action",
+    "observation_shape",
+    "observe",
+    "pixel_observation",
     "random_action",
+    "render_image",
     "reset",
     "step",
+    "write_state_gif",
 ]
