@@ -73,7 +73,7 @@ def prepare_joints(
         axial_mass=axial_mass,
         solve_point=joints.active & movable,
         solve_angle=joints.active & joints.is_fixed & rotatable,
-        solve_motor=revolute & joints.motor_on & rotatable,
+        solve_motor=revolute & joints.motor_on & rotatable & (motor_actions != 0.0),  # action 0 = motor off
         solve_limits=revolute & joints.has_limits & rotatable,
         reference_angle=joints.reference_angle,
         lower_angle=joints.lower_angle,

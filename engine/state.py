@@ -50,7 +50,7 @@ class Joints:
     reference_angle: jnp.ndarray  # (J,) f32 [rad] rotation_b - rotation_a at which the joint angle is 0
     active: jnp.ndarray  # (J,) bool
     is_fixed: jnp.ndarray  # (J,) bool: fixed (weld) joint; otherwise revolute
-    motor_on: jnp.ndarray  # (J,) bool (revolute only)
+    motor_on: jnp.ndarray  # (J,) bool (revolute only); a motor acts only while its action is non-zero
     motor_speed: jnp.ndarray  # (J,) f32 [-] target speed in units of SimParams.base_motor_speed
     motor_power: jnp.ndarray  # (J,) f32 [-] torque bound in units of SimParams.base_motor_power
     has_limits: jnp.ndarray  # (J,) bool (revolute only)

@@ -17,6 +17,7 @@ from env.environment import Environment
 from env.episode import StepResult, advance, reset, step
 from env.gif import write_state_gif
 from env.level_builder import build_level
+from env.level_files import LevelFileError, LoadedLevel, level_to_dict, load_level, save_level
 from env.observations import EntityObservation, ObservationType, observation_shape, observe
 from env.params import NUM_ACTION_SLOTS, NUM_MOTOR_BINDINGS, NUM_THRUSTER_BINDINGS, EnvParams, StaticEnvParams
 from env.pixels import PIXEL_OBSERVATION_RESOLUTION, PixelObservation, pixel_observation, render_image
@@ -38,6 +39,8 @@ __all__ = [
     "EnvParams",
     "EnvState",
     "Level",
+    "LevelFileError",
+    "LoadedLevel",
     "ObservationType",
     "PixelObservation",
     "Role",
@@ -52,6 +55,8 @@ __all__ = [
     "goal_reward",
     "green_blue_distance",
     "initial_state",
+    "level_to_dict",
+    "load_level",
     "noop_action",
     "observation_shape",
     "observe",
@@ -59,6 +64,7 @@ __all__ = [
     "random_action",
     "render_image",
     "reset",
+    "save_level",
     "step",
     "write_state_gif",
 ]

@@ -268,6 +268,17 @@ def test_motor_free_wheel_reaches_target_speed():
     assert np.all(np.abs(traj.motor_impulse[:, 0]) <= bound * (1 + 1e-5))
 
 
+def test_motor_with_zero_action_is_off_and_the_wheel_spins_freely():
+    # Kinetix/Jax2D semantics: a motor acts only while its action is non-zero; action 0 is not a brake.
+    builder = _builder_with_pivot()
+    wheel = builder.add_circle(PIVOT, 0.2, angular_velocity=3.0)
+    builder.add_revolute_joint(0, wheel, PIVOT, motor_speed=1.0, motor_power=1.0, motor_on=True)
+    state = builder.build()
+    _, traj = run(state, STATIC, 60, motor=np.zeros(STATIC.num_joints, np.float32))
+    np.testing.assert_allclose(traj.angular_velocity[:, wheel], 3.0, rtol=1e-5)
+    assert np.all(traj.motor_impulse[:, 0] == 0.0)
+
+
 def test_motor_under_heavy_load_respects_and_saturates_torque_bound():
     """A 1 m bar hinged at its end; a weak motor (power 0.02) cannot lift it, so it stays saturated."""
     builder = _builder_with_pivot()
