@@ -6,9 +6,11 @@ import argparse
 from collections.abc import Callable, Sequence
 
 import engine.demo
+import env.play
 
 COMMANDS: dict[str, tuple[str, Callable[..., None]]] = {
     "demo": ("simulate a small engine scene and write it as a GIF", engine.demo.main),
+    "render": ("play a Kinetix level file with a simple policy and write a GIF", env.play.main),
 }
 """Subcommand name -> (help line, `main(argv, prog)` that parses the remaining arguments)."""
 
