@@ -18,10 +18,13 @@ from env.episode import StepResult, advance, reset, step
 from env.gif import write_state_gif
 from env.level_builder import build_level
 from env.level_files import LevelFileError, LoadedLevel, level_to_dict, load_level, save_level
+from env.level_filter import FilterReason, FilterResult, filter_levels
 from env.observations import EntityObservation, ObservationType, observation_shape, observe
 from env.params import NUM_ACTION_SLOTS, NUM_MOTOR_BINDINGS, NUM_THRUSTER_BINDINGS, EnvParams, StaticEnvParams
 from env.pixels import PIXEL_OBSERVATION_RESOLUTION, PixelObservation, pixel_observation, render_image
 from env.rewards import goal_reward, green_blue_distance
+from env.rollout import Outcome, Policy, RolloutResult, first_episode_outcomes
+from env.sampler import sample_level, sample_levels
 from env.state import NO_DISTANCE, NUM_ROLES, EnvState, Level, Role, Task, empty_task, initial_state
 
 __all__ = [
@@ -35,15 +38,20 @@ __all__ = [
     "PIXEL_OBSERVATION_RESOLUTION",
     "ActionType",
     "EntityObservation",
-    "Environment",
     "EnvParams",
     "EnvState",
+    "Environment",
+    "FilterReason",
+    "FilterResult",
     "Level",
     "LevelFileError",
     "LoadedLevel",
     "ObservationType",
+    "Outcome",
     "PixelObservation",
+    "Policy",
     "Role",
+    "RolloutResult",
     "StaticEnvParams",
     "StepResult",
     "Task",
@@ -52,6 +60,8 @@ __all__ = [
     "advance",
     "build_level",
     "empty_task",
+    "filter_levels",
+    "first_episode_outcomes",
     "goal_reward",
     "green_blue_distance",
     "initial_state",
@@ -64,6 +74,8 @@ __all__ = [
     "random_action",
     "render_image",
     "reset",
+    "sample_level",
+    "sample_levels",
     "save_level",
     "step",
     "write_state_gif",
