@@ -1,1 +1,38 @@
-"""RL agents (PPO over batches of levels) that train on env tasks (not implemented yet)."""
+"""RL agents that train on env tasks: PPO specialists, one parameter set per level, many levels per program.
+
+Public surface: the config, training of a level batch, evaluation, and the pieces they are made of (GAE, loss, policy).
+"""
+
+from agents.config import PPOConfig
+from agents.evaluate import EvalOutput, evaluate
+from agents.networks import ActorCritic, make_network
+from agents.ppo import (
+    Batch,
+    LossTerms,
+    TrainOutput,
+    UpdateMetrics,
+    gae,
+    initial_params,
+    ppo_loss,
+    train_from,
+    train_level,
+    train_levels,
+)
+
+__all__ = [
+    "ActorCritic",
+    "Batch",
+    "EvalOutput",
+    "LossTerms",
+    "PPOConfig",
+    "TrainOutput",
+    "UpdateMetrics",
+    "evaluate",
+    "gae",
+    "initial_params",
+    "make_network",
+    "ppo_loss",
+    "train_from",
+    "train_level",
+    "train_levels",
+]

@@ -1,0 +1,113 @@
+"""Evaluation of trained specialists: K episodes per level from its start or from any stored episode state."""
+
+from __future__ import annotations
+
+import functools
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+from agents import policy
+from agents.config import PPOConfig
+from agents.networks import make_network
+from agents.ppo import ACTION_TYPE, check_level_keys, num_levels
+from env import EnvParams, EnvState, Level, StaticEnvParams, action_mask, advance, reset
+from env.observations import observe
+
+
+class EvalOutput(NamedTuple):
+    """Per-level evaluation results (leading axis L; per-episode fields (L, K))."""
+
+    success_rate: jnp.ndarray  # (L,) f32 share of the K episodes that ended in success
+    mean_return: jnp.ndarray  # (L,) f32 undiscounted return from the start state, averaged over episodes
+    mean_length: jnp.ndarray  # (L,) f32 [env steps] taken from the start state until the episode ended
+    success: jnp.ndarray  # (L, K) bool
+    returns: jnp.ndarray  # (L, K) f32
+    lengths: jnp.ndarray  # (L, K) i32
+
+
+class _Episode(NamedTuple):
+    state: EnvState
+    finished: jnp.ndarray  # () bool
+    success: jnp.ndarray  # () bool
+    episode_return: jnp.ndarray  # () f32
+    length: jnp.ndarray  # () i32
+
+
+def _run_episode(
+    params, start: EnvState, mask: jnp.ndarray, key: jax.Array, config: PPOConfig, env_params, static, greedy: bool
+) -> _Episode:
+    """One episode from `start` until it ends (at most `static.max_timesteps` steps); no reset."""
+    network = make_network(config)
+
+    def step(episode: _Episode, step_key):
+        logits, _ = network.apply(params, observe(episode.state, static, config.observation_type))
+        action = policy.mode(logits, mask) if greedy else policy.sample(step_key, logits, mask)
+        reached, result = advance(episode.state, action, env_params, static, ACTION_TYPE)
+        running = ~episode.finished
+        following = _Episode(
+            state=reached,
+            finished=result.done,
+            success=result.success,
+            episode_return=episode.episode_return + result.reward,
+            length=episode.length + 1,
+        )
+        return jax.tree.map(lambda new, old: jnp.where(running, new, old), following, episode), None
+
+    first = _Episode(
+        state=start,
+        finished=jnp.zeros((), bool),
+        success=jnp.zeros((), bool),
+        episode_return=jnp.zeros((), jnp.float32),
+        length=jnp.zeros((), jnp.int32),
+    )
+    episode, _ = jax.lax.scan(step, first, jax.random.split(key, static.max_timesteps))
+    return episode
+
+
+def evaluate(
+    params,
+    levels: Level,
+    keys: jax.Array,
+    config: PPOConfig,
+    env_params: EnvParams,
+    static: StaticEnvParams,
+    num_episodes: int,
+    start_states: EnvState | None = None,
+    greedy: bool = False,
+) -> EvalOutput:
+    """Run `num_episodes` episodes per level with that level's parameters (leading axis L on params and levels).
+
+    Episodes start from `start_states` (batched `EnvState`, e.g. mid-trajectory) or, when None, from each level's
+    start; they run until success, failure, instability or the time limit, with no reset. Actions are sampled from
+    the policy, or its most probable choice per slot when `greedy`. `keys`: one PRNG key per level.
+    """
+    check_level_keys(keys, num_levels(levels))
+    if num_episodes < 1:
+        raise ValueError(f"num_episodes must be >= 1, got {num_episodes}")
+    if start_states is None:
+        start_states = jax.vmap(reset)(levels)
+    return _evaluate(params, levels, start_states, keys, config, env_params, static, num_episodes, greedy)
+
+
+@functools.partial(jax.jit, static_argnames=("config", "static", "num_episodes", "greedy"))
+def _evaluate(
+    params, levels, start_states, keys, config, env_params, static, num_episodes: int, greedy: bool
+) -> EvalOutput:
+    def level_episodes(level_params, level, start, key):
+        mask = action_mask(level)
+        run = functools.partial(
+            _run_episode, level_params, start, mask, config=config, env_params=env_params, static=static, greedy=greedy
+        )
+        return jax.vmap(run)(jax.random.split(key, num_episodes))
+
+    episodes = jax.vmap(level_episodes)(params, levels, start_states, keys)
+    return EvalOutput(
+        success_rate=jnp.mean(episodes.success.astype(jnp.float32), axis=1),
+        mean_return=jnp.mean(episodes.episode_return, axis=1),
+        mean_length=jnp.mean(episodes.length.astype(jnp.float32), axis=1),
+        success=episodes.success,
+        returns=episodes.episode_return,
+        lengths=episodes.length,
+    )

@@ -1,0 +1,325 @@
+"""PPO specialists: one parameter set per level, many levels trained in one program (vmap over levels).
+
+`train_level` is one pure function of (level, key): nested `lax.scan`s over updates, rollout steps, epochs and
+minibatches, with no reduction across levels, so `train_levels` (its vmap over a leading level axis) trains every
+level exactly as it would be trained alone. GAE and the loss are top-level functions so they can be tested alone.
+
+Time limits: with `PPOConfig.bootstrap_truncation`, an episode cut by `StaticEnvParams.max_timesteps`
+(`StepResult.truncated`) bootstraps its last step from the value of the state it reached (observed before the
+auto-reset); otherwise (the default) the time limit is terminal like success, failure and instability. Kinetix
+observations carry no time and a level counts as solved only within the limit, so the default treats it as part of the
+task: bootstrapping made a slow approach look as valuable as reaching the goal, and policies that had learnt the test
+thruster level unlearnt it.
+"""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Callable
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import optax
+
+from agents import policy
+from agents.config import PPOConfig
+from agents.networks import make_network
+from env import ActionType, EnvParams, EnvState, Level, StaticEnvParams, StepResult, action_mask, advance, reset
+from env.observations import observation_shape, observe
+
+ACTION_TYPE = ActionType.MULTI_DISCRETE
+"""The action space the agents act in."""
+
+ADVANTAGE_NORM_EPS = 1e-8
+"""Added to the minibatch advantage standard deviation before dividing by it."""
+
+
+# --------------------------------------------------------------------------- data carried through training
+class Transition(NamedTuple):
+    """One env step of every env of a level (leading axes (num_steps, num_envs) in a rollout)."""
+
+    obs: jnp.ndarray  # (D,) f32 observation the action was chosen from
+    next_obs: jnp.ndarray  # (D,) f32 observation of the state the step reached, before any auto-reset
+    action: jnp.ndarray  # (6,) i32 multi-discrete action
+    log_prob: jnp.ndarray  # () f32 log-probability of the action under the acting policy
+    reward: jnp.ndarray  # () f32
+    done: jnp.ndarray  # () bool: the episode ended at this step
+    truncated: jnp.ndarray  # () bool: ended by the time limit only
+    success: jnp.ndarray  # () bool
+    episode_return: jnp.ndarray  # () f32 undiscounted return of the episode so far, this step included
+    episode_length: jnp.ndarray  # () i32 env steps of the episode so far, this step included
+
+
+class Batch(NamedTuple):
+    """Samples of an update, flattened over (num_steps, num_envs)."""
+
+    obs: jnp.ndarray  # (B, D) f32
+    action: jnp.ndarray  # (B, 6) i32
+    log_prob: jnp.ndarray  # (B,) f32 log-probability under the acting policy
+    value: jnp.ndarray  # (B,) f32 value under the acting parameters
+    advantage: jnp.ndarray  # (B,) f32 GAE advantage (normalised per minibatch in the loss)
+    target: jnp.ndarray  # (B,) f32 value target: advantage + value
+
+
+class LossTerms(NamedTuple):
+    """The PPO loss and its parts, averaged over a minibatch."""
+
+    total: jnp.ndarray  # actor + vf_coef * value - ent_coef * entropy
+    actor: jnp.ndarray  # clipped surrogate, negated
+    value: jnp.ndarray  # 0.5 * clipped squared value error
+    entropy: jnp.ndarray  # [nats] policy entropy over valid slots
+    approx_kl: jnp.ndarray  # estimate of KL(old || new): mean((ratio - 1) - log ratio)
+    clip_fraction: jnp.ndarray  # share of samples whose ratio left [1 - clip_eps, 1 + clip_eps]
+
+
+class UpdateMetrics(NamedTuple):
+    """What one update saw and did; episode figures cover the episodes that ended in its rollout (NaN if none)."""
+
+    episodes: jnp.ndarray  # () i32 episodes that ended during the rollout
+    mean_return: jnp.ndarray  # () f32 undiscounted return of those episodes
+    success_rate: jnp.ndarray  # () f32 share of them that ended in success
+    mean_length: jnp.ndarray  # () f32 [env steps]
+    loss: LossTerms  # averaged over epochs and minibatches
+
+
+class TrainOutput(NamedTuple):
+    """Result of training; `train_levels` adds a leading level axis to every leaf."""
+
+    params: dict  # final network parameters
+    metrics: UpdateMetrics  # leaves (num_updates,): learning curves
+
+
+class _TrainCarry(NamedTuple):
+    params: dict
+    opt_state: optax.OptState
+    env_state: EnvState  # (E, ...) current state of every env
+    obs: jnp.ndarray  # (E, D) its observation
+    episode_return: jnp.ndarray  # (E,) f32 return of the running episodes
+    key: jax.Array
+
+
+# --------------------------------------------------------------------------- GAE and loss
+def gae(
+    rewards: jnp.ndarray,
+    values: jnp.ndarray,
+    next_values: jnp.ndarray,
+    terminals: jnp.ndarray,
+    dones: jnp.ndarray,
+    gamma: float,
+    gae_lambda: float,
+) -> tuple[jnp.ndarray, jnp.ndarray]:
+    """Generalised advantage estimates and value targets, both shaped like `rewards` (time-major, (T, ...)).
+
+    `next_values[t]` is the value of the state step t reached (before any reset); it is used unless `terminals[t]`.
+    The sum over later steps stops where `dones[t]` (terminal or truncated): A_t = d_t + gamma * lambda * A_{t+1},
+    d_t = r_t + gamma * V'_t - V_t.
+    """
+    deltas = rewards + gamma * jnp.where(terminals, 0.0, next_values) - values
+
+    def backwards(next_advantage, step):
+        delta, done = step
+        advantage = delta + gamma * gae_lambda * jnp.where(done, 0.0, next_advantage)
+        return advantage, advantage
+
+    _, advantages = jax.lax.scan(backwards, jnp.zeros_like(rewards[0]), (deltas, dones), reverse=True)
+    return advantages, advantages + values
+
+
+def ppo_loss(
+    params, apply_fn: Callable, batch: Batch, mask: jnp.ndarray, config: PPOConfig
+) -> tuple[jnp.ndarray, LossTerms]:
+    """Clipped-surrogate PPO loss of a minibatch, with clipped value loss and entropy bonus.
+
+    `apply_fn(params, obs) -> (logits (B, 16), values (B,))`; `mask` (6,) is the level's action mask.
+    Advantages are normalised over the minibatch.
+    """
+    logits, values = apply_fn(params, batch.obs)
+    log_probs = policy.log_prob(logits, batch.action, mask)
+    log_ratio = log_probs - batch.log_prob
+    ratio = jnp.exp(log_ratio)
+    advantage = (batch.advantage - batch.advantage.mean()) / (batch.advantage.std() + ADVANTAGE_NORM_EPS)
+    clipped_ratio = jnp.clip(ratio, 1.0 - config.clip_eps, 1.0 + config.clip_eps)
+    actor = -jnp.mean(jnp.minimum(ratio * advantage, clipped_ratio * advantage))
+
+    clipped_values = batch.value + jnp.clip(values - batch.value, -config.clip_eps, config.clip_eps)
+    value = 0.5 * jnp.mean(jnp.maximum((values - batch.target) ** 2, (clipped_values - batch.target) ** 2))
+
+    entropy = jnp.mean(policy.entropy(logits, mask))
+    total = actor + config.vf_coef * value - config.ent_coef * entropy
+    terms = LossTerms(
+        total=total,
+        actor=actor,
+        value=value,
+        entropy=entropy,
+        approx_kl=jnp.mean((ratio - 1.0) - log_ratio),
+        clip_fraction=jnp.mean(jnp.abs(ratio - 1.0) > config.clip_eps),
+    )
+    return total, terms
+
+
+# --------------------------------------------------------------------------- env interaction
+def env_step(
+    state: EnvState, action: jnp.ndarray, level: Level, env_params: EnvParams, static: StaticEnvParams
+) -> tuple[EnvState, EnvState, StepResult]:
+    """(state to continue from, state the step reached before any reset, result); resets to `level` when done."""
+    reached, result = advance(state, action, env_params, static, ACTION_TYPE)
+    following = jax.tree.map(lambda fresh, old: jnp.where(result.done, fresh, old), reset(level), reached)
+    return following, reached, result
+
+
+def make_optimizer(config: PPOConfig) -> optax.GradientTransformation:
+    """Adam after global-norm gradient clipping."""
+    return optax.chain(
+        optax.clip_by_global_norm(config.max_grad_norm), optax.adam(config.learning_rate, eps=config.adam_eps)
+    )
+
+
+def _tile(tree, count: int):
+    return jax.tree.map(lambda x: jnp.broadcast_to(x, (count,) + x.shape), tree)
+
+
+def _mean_where(values: jnp.ndarray, where: jnp.ndarray) -> jnp.ndarray:
+    count = jnp.sum(where)
+    return jnp.where(count > 0, jnp.sum(jnp.where(where, values, 0.0)) / jnp.maximum(count, 1), jnp.nan)
+
+
+# --------------------------------------------------------------------------- training of one level
+def initial_params(key: jax.Array, config: PPOConfig, static: StaticEnvParams):
+    """Fresh network parameters for the observations of `static`'s size."""
+    obs = observation_shape(static, config.observation_type)
+    return make_network(config).init(key, jnp.zeros(obs.shape, obs.dtype))
+
+
+def train_level(
+    level: Level, key: jax.Array, config: PPOConfig, env_params: EnvParams, static: StaticEnvParams
+) -> TrainOutput:
+    """PPO on one level from fresh parameters drawn from `key`; pure and deterministic in (level, key)."""
+    init_key, run_key = jax.random.split(key)
+    return train_from(level, initial_params(init_key, config, static), run_key, config, env_params, static)
+
+
+def train_from(
+    level: Level, params, key: jax.Array, config: PPOConfig, env_params: EnvParams, static: StaticEnvParams
+) -> TrainOutput:
+    """PPO on one level starting from `params`, with the randomness of rollouts and minibatches drawn from `key`."""
+    network = make_network(config)
+    optimizer = make_optimizer(config)
+    mask = action_mask(level)
+    start = reset(level)
+    start_obs = observe(start, static, config.observation_type)
+
+    def act_and_step(carry: _TrainCarry, step_key):
+        logits, _ = network.apply(carry.params, carry.obs)
+        action = policy.sample(step_key, logits, mask)
+        log_prob = policy.log_prob(logits, action, mask)
+        following, reached, result = jax.vmap(env_step, in_axes=(0, 0, None, None, None))(
+            carry.env_state, action, level, env_params, static
+        )
+        next_obs = jax.vmap(observe, in_axes=(0, None, None))(reached, static, config.observation_type)
+        episode_return = carry.episode_return + result.reward
+        transition = Transition(
+            obs=carry.obs,
+            next_obs=next_obs,
+            action=action,
+            log_prob=log_prob,
+            reward=result.reward,
+            done=result.done,
+            truncated=result.truncated,
+            success=result.success,
+            episode_return=episode_return,
+            episode_length=reached.timestep,
+        )
+        carry = carry._replace(
+            env_state=following,
+            obs=jnp.where(result.done[:, None], start_obs, next_obs),
+            episode_return=jnp.where(result.done, 0.0, episode_return),
+        )
+        return carry, transition
+
+    def sgd_step(params_and_opt, minibatch: Batch):
+        params, opt_state = params_and_opt
+        grads, terms = jax.grad(ppo_loss, has_aux=True)(params, network.apply, minibatch, mask, config)
+        updates, opt_state = optimizer.update(grads, opt_state, params)
+        return (optax.apply_updates(params, updates), opt_state), terms
+
+    def epoch(params_and_opt, epoch_key, batch: Batch):
+        order = jax.random.permutation(epoch_key, config.steps_per_update)
+        minibatches = jax.tree.map(
+            lambda x: x[order].reshape((config.num_minibatches, config.minibatch_size) + x.shape[1:]), batch
+        )
+        return jax.lax.scan(sgd_step, params_and_opt, minibatches)
+
+    def update(carry: _TrainCarry, _):
+        key, rollout_key, epochs_key = jax.random.split(carry.key, 3)
+        carry, rollout = jax.lax.scan(
+            act_and_step, carry._replace(key=key), jax.random.split(rollout_key, config.num_steps)
+        )
+        _, values = network.apply(carry.params, rollout.obs)
+        _, next_values = network.apply(carry.params, rollout.next_obs)
+        terminals = rollout.done & ~rollout.truncated if config.bootstrap_truncation else rollout.done
+        advantages, targets = gae(
+            rollout.reward, values, next_values, terminals, rollout.done, config.gamma, config.gae_lambda
+        )
+        flat = functools.partial(jax.tree.map, lambda x: x.reshape((config.steps_per_update,) + x.shape[2:]))
+        batch = flat(Batch(rollout.obs, rollout.action, rollout.log_prob, values, advantages, targets))
+        (params, opt_state), terms = jax.lax.scan(
+            lambda state, k: epoch(state, k, batch),
+            (carry.params, carry.opt_state),
+            jax.random.split(epochs_key, config.update_epochs),
+        )
+        metrics = UpdateMetrics(
+            episodes=jnp.sum(rollout.done).astype(jnp.int32),
+            mean_return=_mean_where(rollout.episode_return, rollout.done),
+            success_rate=_mean_where(rollout.success.astype(jnp.float32), rollout.done),
+            mean_length=_mean_where(rollout.episode_length.astype(jnp.float32), rollout.done),
+            loss=jax.tree.map(jnp.mean, terms),
+        )
+        return carry._replace(params=params, opt_state=opt_state), metrics
+
+    carry = _TrainCarry(
+        params=params,
+        opt_state=optimizer.init(params),
+        env_state=_tile(start, config.num_envs),
+        obs=_tile(start_obs, config.num_envs),
+        episode_return=jnp.zeros((config.num_envs,), jnp.float32),
+        key=key,
+    )
+    carry, metrics = jax.lax.scan(update, carry, None, length=config.num_updates)
+    return TrainOutput(params=carry.params, metrics=metrics)
+
+
+def num_levels(levels: Level) -> int:
+    """The size of the leading level axis of a batched `Level`; errors when the leaves disagree."""
+    sizes = {x.shape[0] if x.ndim else None for x in jax.tree.leaves(levels)}
+    if len(sizes) != 1 or None in sizes:
+        raise ValueError(f"levels must be a batched Level with one leading level axis; leading sizes {sizes}")
+    return sizes.pop()
+
+
+def check_level_keys(keys: jax.Array, count: int) -> None:
+    """Errors unless `keys` holds one PRNG key per level."""
+    typed = jnp.issubdtype(keys.dtype, jax.dtypes.prng_key)
+    shape_ok = keys.shape == (count,) if typed else keys.shape == (count, 2)
+    if not shape_ok:
+        raise ValueError(
+            f"expected one PRNG key per level ({count} levels): shape ({count},) typed or ({count}, 2) raw uint32 "
+            f"keys, got shape {keys.shape} dtype {keys.dtype}"
+        )
+
+
+@functools.partial(jax.jit, static_argnames=("config", "static"))
+def train_levels(
+    levels: Level, keys: jax.Array, config: PPOConfig, env_params: EnvParams, static: StaticEnvParams
+) -> TrainOutput:
+    """`train_level` on every level of a batch (leading axis L) with its own key; outputs gain a leading L axis.
+
+    Initial parameters are drawn level after level (`lax.map`, not `vmap`): a batched orthogonal initialisation
+    runs LAPACK QR on XLA's CPU thread pool, which deadlocked with two such calls in flight on a 2-core machine.
+    """
+    check_level_keys(keys, num_levels(levels))
+    split = jax.vmap(jax.random.split)(keys)
+    params = jax.lax.map(lambda key: initial_params(key, config, static), split[:, 0])
+    return jax.vmap(lambda level, level_params, key: train_from(level, level_params, key, config, env_params, static))(
+        levels, params, split[:, 1]
+    )

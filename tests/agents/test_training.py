@@ -1,0 +1,42 @@
+"""Training a batch of levels: a specialist learns the thruster level; levels in a batch train independently."""
+
+import jax
+import numpy as np
+import pytest
+from agents_test_helpers import ENV_PARAMS, STATIC, TRAIN_CONFIG, keys, stack, thruster_level
+
+from agents import PPOConfig, train_levels
+
+
+def test_specialist_learns_to_fire_the_thruster(trained_mixed):
+    metrics = jax.tree.map(lambda x: np.asarray(x)[0], trained_mixed.metrics)  # the thruster level
+    assert metrics.success_rate.shape == (TRAIN_CONFIG.num_updates,)
+    # The first rollouts (policy near uniform: firing half the time) mostly reach the time limit before blue.
+    early = slice(1, 3)  # the first rollout is shorter than an episode: almost none end in it
+    assert np.all(metrics.episodes[early] >= TRAIN_CONFIG.num_envs // 2)
+    assert np.mean(metrics.success_rate[early]) <= 0.25
+    final = slice(-3, None)
+    assert np.all(metrics.episodes[final] >= TRAIN_CONFIG.num_envs // 2)
+    assert np.mean(metrics.success_rate[final]) >= 0.9
+    assert np.mean(metrics.mean_length[final]) < STATIC.max_timesteps
+    assert np.mean(metrics.mean_return[final]) > 1.0  # success (+1) plus the shaping of ~3 m of approach
+    assert np.all(np.isfinite(np.asarray(metrics.loss.total)))
+
+
+def test_a_level_trains_the_same_whatever_else_is_in_its_batch(trained_mixed, trained_replicated):
+    first = lambda tree: jax.tree.map(lambda x: np.asarray(x)[0], tree)  # noqa: E731
+    jax.tree.map(np.testing.assert_array_equal, first(trained_mixed.params), first(trained_replicated.params))
+    jax.tree.map(np.testing.assert_array_equal, first(trained_mixed.metrics), first(trained_replicated.metrics))
+    # Different seeds on the same level give different parameters: the key does reach the level's training.
+    kernels = trained_replicated.params["params"]["actor_output"]["kernel"]
+    assert not np.array_equal(np.asarray(kernels[0]), np.asarray(kernels[1]))
+
+
+def test_train_levels_rejects_a_key_count_that_does_not_match_the_levels():
+    with pytest.raises(ValueError, match="one PRNG key per level"):
+        train_levels(stack(thruster_level(), thruster_level()), keys(0), TRAIN_CONFIG, ENV_PARAMS, STATIC)
+
+
+def test_train_levels_rejects_an_unbatched_level():
+    with pytest.raises(ValueError, match="leading level axis"):
+        train_levels(thruster_level(), keys(0), PPOConfig(env_steps_per_level=2000, num_steps=125), ENV_PARAMS, STATIC)
