@@ -1,8 +1,10 @@
 """RL agents that train on env tasks: PPO specialists, one parameter set per level, many levels per program.
 
-Public surface: the config, training of a level batch, evaluation, and the pieces they are made of (GAE, loss, policy).
+Public surface: the config, training of a level batch, evaluation, expert windows for the dataset, and the pieces
+they are made of (GAE, loss, policy).
 """
 
+from agents.collect import WINDOW_STEPS, Window, collect_windows
 from agents.config import PPOConfig
 from agents.evaluate import EvalOutput, evaluate
 from agents.networks import ActorCritic, make_network
@@ -20,6 +22,7 @@ from agents.ppo import (
 )
 
 __all__ = [
+    "WINDOW_STEPS",
     "ActorCritic",
     "Batch",
     "EvalOutput",
@@ -27,6 +30,8 @@ __all__ = [
     "PPOConfig",
     "TrainOutput",
     "UpdateMetrics",
+    "Window",
+    "collect_windows",
     "evaluate",
     "gae",
     "initial_params",
