@@ -1,0 +1,62 @@
+"""A level batch is a pure function of (config, shard, batch): levels regenerate from their index alone."""
+
+import jax
+import numpy as np
+import pytest
+
+from env import FilterReason
+from pipeline.config import load_config
+from pipeline.level_batch import (
+    LevelStatus,
+    batch_level_indices,
+    batches_per_shard,
+    num_shards,
+    run_level_batch,
+    sample_batch,
+)
+
+TINY = [
+    "output_dir=unused",
+    "split.name=test/s",
+    "split.size=s",
+    "split.num_levels=10",
+    "split.expert_budget=256",
+    "work.levels_per_shard=8",
+    "work.levels_per_batch=4",
+    "ppo.num_envs=4",
+    "ppo.num_steps=16",
+    "ppo.num_minibatches=2",
+    "ppo.update_epochs=1",
+    "collect.window_steps=32",
+]
+
+
+@pytest.fixture(scope="module")
+def job():
+    return load_config(None, TINY)
+
+
+def test_work_is_cut_into_fixed_shards_and_batches(job):
+    assert num_shards(job) == 2 and batches_per_shard(job) == 2
+    np.testing.assert_array_equal(batch_level_indices(job, 1, 1), [12, 13, 14, 15])
+
+
+def test_a_level_is_the_same_whatever_batch_it_is_sampled_in(job):
+    first = sample_batch(job, np.array([5, 6, 7, 8]))
+    second = sample_batch(job, np.array([6, 0, 1, 2]))
+    jax.tree.map(lambda a, b: np.testing.assert_array_equal(np.asarray(a)[1], np.asarray(b)[0]), first, second)
+    assert not np.array_equal(np.asarray(first.sim.bodies.position[0]), np.asarray(first.sim.bodies.position[1]))
+
+
+def test_level_batch_is_deterministic_and_statuses_are_consistent(job):
+    result = run_level_batch(job, 1, 0)
+    again = run_level_batch(job, 1, 0)
+    jax.tree.map(np.testing.assert_array_equal, result.window, again.window)
+    np.testing.assert_array_equal(result.status, again.status)
+    np.testing.assert_array_equal(result.in_split, [True, True, False, False])  # levels 8, 9 of 10, then padding
+    filtered = result.status == LevelStatus.FILTERED
+    np.testing.assert_array_equal(filtered, result.filter_reason != FilterReason.KEPT)
+    kept = result.status == LevelStatus.KEPT
+    assert np.all(result.window.successful[kept])
+    assert np.all(~result.window.successful[result.status == LevelStatus.UNSOLVED])
+    assert result.learning_curve.shape == (4, 4) and result.window.actions.shape == (4, 32, 6)
