@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import functools
+
 import jax
 import jax.numpy as jnp
 from flax import struct
 
-from engine.geometry import rotate
+from engine.geometry import dot2, norm2, rotate
 from engine.pairs import PairLayout
 from engine.params import MAX_POLYGON_VERTICES
 from engine.state import NO_FEATURE, Bodies
@@ -50,7 +52,7 @@ def world_geometry(bodies: Bodies) -> WorldGeometry:
     local = jnp.where(edge_valid[..., None], bodies.vertices, bodies.vertices[:, :1])
     world = bodies.position[:, None, :] + rotate(bodies.rotation[:, None], local)
     edge = jnp.take_along_axis(world, next_vertex[..., None], axis=1) - world
-    length = jnp.sqrt(jnp.sum(edge * edge, -1, keepdims=True))
+    length = norm2(edge)[..., None]
     normals = jnp.stack([edge[..., 1], -edge[..., 0]], -1) / jnp.maximum(length, DIRECTION_EPSILON)
     return WorldGeometry(world, normals, edge_valid, next_vertex, bodies.position, bodies.radius)
 
@@ -61,16 +63,17 @@ def _take(tree, index):
 
 def _best_edge(normals, vertices, edge_valid, other_vertices):
     """Largest separation of `other` from any valid edge of this polygon, and that edge's index."""
-    projection = jnp.einsum("id,jd->ij", normals, other_vertices) - jnp.sum(normals * vertices, -1)[:, None]
-    separation = jnp.where(edge_valid, jnp.min(projection, axis=1), -jnp.inf)
+    offset = dot2(normals, vertices)
+    projection = [dot2(normals, other_vertices[j]) - offset for j in range(other_vertices.shape[0])]
+    separation = jnp.where(edge_valid, functools.reduce(jnp.minimum, projection), -jnp.inf)
     edge = jnp.argmax(separation)
     return separation[edge], edge
 
 
 def _clip(p1, p2, id1, id2, plane_normal, offset, clip_id):
     """Keep the part of segment p1-p2 with dot(plane_normal, x) <= offset; returns points, ids, ok."""
-    d1 = jnp.dot(plane_normal, p1) - offset
-    d2 = jnp.dot(plane_normal, p2) - offset
+    d1 = dot2(plane_normal, p1) - offset
+    d2 = dot2(plane_normal, p2) - offset
     crossing = p1 + (d1 / jnp.where(d1 == d2, 1.0, d1 - d2)) * (p2 - p1)
     q1 = jnp.where(d1 <= 0, p1, crossing)
     q2 = jnp.where(d2 <= 0, p2, crossing)
@@ -87,22 +90,22 @@ def polygon_polygon(a: WorldGeometry, b: WorldGeometry, margin):
     ref_edge = jnp.where(flip, edge_b, edge_a)
     normal = ref.normals[ref_edge]
     # Incident edge: the one most anti-parallel to the reference normal.
-    inc_edge = jnp.argmin(jnp.where(inc.edge_valid, inc.normals @ normal, jnp.inf))
+    inc_edge = jnp.argmin(jnp.where(inc.edge_valid, dot2(inc.normals, normal), jnp.inf))
     inc_next = inc.next_vertex[inc_edge]
     r1, r2 = ref.vertices[ref_edge], ref.vertices[ref.next_vertex[ref_edge]]
-    tangent = (r2 - r1) / jnp.maximum(jnp.linalg.norm(r2 - r1), DIRECTION_EPSILON)
+    tangent = (r2 - r1) / jnp.maximum(norm2(r2 - r1), DIRECTION_EPSILON)
     p1, p2, id1, id2, ok1 = _clip(
         inc.vertices[inc_edge],
         inc.vertices[inc_next],
         inc_edge,
         inc_next,
         -tangent,
-        -jnp.dot(tangent, r1),
+        -dot2(tangent, r1),
         MAX_POLYGON_VERTICES,
     )
-    p1, p2, id1, id2, ok2 = _clip(p1, p2, id1, id2, tangent, jnp.dot(tangent, r2), MAX_POLYGON_VERTICES + 1)
+    p1, p2, id1, id2, ok2 = _clip(p1, p2, id1, id2, tangent, dot2(tangent, r2), MAX_POLYGON_VERTICES + 1)
     points = jnp.stack([p1, p2])
-    separation = points @ normal - jnp.dot(normal, r1)
+    separation = dot2(points, normal) - dot2(normal, r1)
     valid = ok1 & ok2 & (separation < margin) & (jnp.maximum(separation_a, separation_b) < margin)
     midpoints = points - 0.5 * separation[:, None] * normal
     base_id = ((flip.astype(jnp.int32) * MAX_POLYGON_VERTICES + ref_edge) * MAX_POLYGON_VERTICES + inc_edge) * 8
@@ -113,15 +116,15 @@ def polygon_polygon(a: WorldGeometry, b: WorldGeometry, margin):
 def polygon_circle(a: WorldGeometry, b: WorldGeometry, margin):
     """Manifold of a polygon (a) and a circle (b); one point."""
     centre, radius = b.centre, b.radius
-    face_distance = jnp.where(a.edge_valid, jnp.sum(a.normals * (centre - a.vertices), -1), -jnp.inf)
+    face_distance = jnp.where(a.edge_valid, dot2(a.normals, centre - a.vertices), -jnp.inf)
     edge = jnp.argmax(face_distance)
     distance = face_distance[edge]
     v1, v2 = a.vertices[edge], a.vertices[a.next_vertex[edge]]
-    before_v1 = jnp.dot(centre - v1, v2 - v1) < 0
-    after_v2 = jnp.dot(centre - v2, v1 - v2) < 0
+    before_v1 = dot2(centre - v1, v2 - v1) < 0
+    after_v2 = dot2(centre - v2, v1 - v2) < 0
     corner = jnp.where(before_v1, v1, v2)
     to_centre = centre - corner
-    corner_distance = jnp.linalg.norm(to_centre)
+    corner_distance = norm2(to_centre)
     in_corner_region = (distance > 0) & (before_v1 | after_v2)
     corner_normal = to_centre / jnp.maximum(corner_distance, DIRECTION_EPSILON)
     normal = jnp.where(in_corner_region, corner_normal, a.normals[edge])
@@ -135,7 +138,7 @@ def polygon_circle(a: WorldGeometry, b: WorldGeometry, margin):
 def circle_circle(a: WorldGeometry, b: WorldGeometry, margin):
     """Manifold of two circles; coincident centres separate along +y."""
     offset = b.centre - a.centre
-    distance = jnp.linalg.norm(offset)
+    distance = norm2(offset)
     normal = jnp.where(
         distance > DIRECTION_EPSILON, offset / jnp.maximum(distance, DIRECTION_EPSILON), jnp.array([0.0, 1.0])
     )

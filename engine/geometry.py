@@ -19,6 +19,16 @@ def cross2(a, b):
     return a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]
 
 
+def dot2(a, b):
+    """Dot product of 2-vectors (last axis), written out so that it compiles to elementwise code."""
+    return a[..., 0] * b[..., 0] + a[..., 1] * b[..., 1]
+
+
+def norm2(vector):
+    """Euclidean length of 2-vectors (last axis)."""
+    return jnp.sqrt(dot2(vector, vector))
+
+
 def rotate(angle, vector):
     """Rotate (..., 2) vectors counter-clockwise by `angle` radians."""
     c, s = jnp.cos(angle), jnp.sin(angle)

@@ -100,7 +100,10 @@ def _one_hot(index, num_rows):
 
 def _select(array, mask):
     """Row of (R, 3, *batch) `array` chosen by a (R, *batch) one-hot mask: (3, *batch)."""
-    return jnp.sum(jnp.where(mask[:, None], array, 0.0), axis=0)
+    selected = jnp.zeros_like(array[0])
+    for row in range(array.shape[0]):
+        selected = jnp.where(mask[row][None], array[row], selected)
+    return selected
 
 
 def _replace(array, mask, row):

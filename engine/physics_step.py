@@ -22,7 +22,7 @@ from engine.contact_solver import (
     to_colour_layout,
     warm_start_contacts,
 )
-from engine.geometry import cross2, rotate
+from engine.geometry import cross2, dot2, norm2, rotate
 from engine.joint_solver import (
     JointImpulses,
     JointRows,
@@ -50,7 +50,8 @@ class StepInfo:
 
 
 def _bounding_radius(bodies):
-    polygon_radius = jnp.sqrt(jnp.max(jnp.sum(bodies.vertices**2, -1), -1))
+    squared = dot2(bodies.vertices, bodies.vertices)
+    polygon_radius = jnp.sqrt(functools.reduce(jnp.maximum, [squared[:, i] for i in range(squared.shape[1])]))
     return jnp.where(bodies.n_vertices > 0, polygon_radius, bodies.radius)
 
 
@@ -205,16 +206,18 @@ def prepare_step(
 
     # Narrowphase with a speculative margin covering this step's motion.
     a, b = layout.body_a, layout.body_b
-    reach = jnp.linalg.norm(bodies.velocity, axis=-1) + jnp.abs(bodies.angular_velocity) * _bounding_radius(bodies)
-    reach = reach + params.dt * jnp.linalg.norm(acceleration[:n, :2], axis=-1)
+    reach = norm2(bodies.velocity) + jnp.abs(bodies.angular_velocity) * _bounding_radius(bodies)
+    reach = reach + params.dt * norm2(acceleration[:n, :2])
     margin = params.speculative_distance + params.dt * (reach[a] + reach[b])
     manifold = manifolds(world_geometry(bodies), layout, margin)
     both_active = bodies.active[a] & bodies.active[b]
     modes = modes_collide(bodies.collision_mode[a], bodies.collision_mode[b])
     present = manifold.valid & both_active[:, None]
+    touch = present & (manifold.separation < params.touch_distance)
+    point_separation = jnp.where(present, manifold.separation, jnp.inf)
     info = StepInfo(
-        touching=modes & jnp.any(present & (manifold.separation < params.touch_distance), -1),
-        separation=jnp.min(jnp.where(present, manifold.separation, jnp.inf), -1),
+        touching=modes & (touch[:, 0] | touch[:, 1]),
+        separation=jnp.minimum(point_separation[:, 0], point_separation[:, 1]),
     )
 
     # Contact rows, warm-started from last step's impulses of the same features.
