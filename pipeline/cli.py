@@ -7,9 +7,13 @@ from collections.abc import Callable, Sequence
 
 import engine.demo
 import env.play
+import pipeline.run
+import pipeline.verify
 
 COMMANDS: dict[str, tuple[str, Callable[..., None]]] = {
     "demo": ("simulate a small engine scene and write it as a GIF", engine.demo.main),
+    "run": ("generate (or resume) a dataset from a job config", pipeline.run.main),
+    "verify": ("check every shard of a dataset against its manifest", pipeline.verify.main),
     "render": ("play a Kinetix level file with a simple policy and write a GIF", env.play.main),
 }
 """Subcommand name -> (help line, `main(argv, prog)` that parses the remaining arguments)."""

@@ -7,16 +7,16 @@ shape is fixed by the config (XLA may round differently for another shape), and 
 
 from __future__ import annotations
 
-import dataclasses
 import enum
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from agents import Window, collect_windows, train_levels
+from agents import collect_windows, train_levels
 from env import EnvParams, FilterReason, Level, StaticEnvParams, filter_levels, sample_levels
 from pipeline.config import JobConfig, ppo_config
+from pipeline.writer import KEPT, BatchTrajectories
 
 
 class KeyPurpose(enum.IntEnum):
@@ -27,13 +27,17 @@ class KeyPurpose(enum.IntEnum):
     COLLECT = 2
 
 
-class LevelStatus(enum.IntEnum):
-    """Outcome of one level of the split."""
+PADDING = "padding"
+"""Outcome of a slot past `split.num_levels` in the last shard."""
 
-    KEPT = 0  # its expert's window was successful and is stored
-    FILTERED = 1  # dropped by the trivial-level filter before training (see filter_reason)
-    UNSOLVED = 2  # trained, but the expert's window was not successful
-    FAILED = 3  # training or the rollout produced non-finite values (contained to this level)
+FILTERED_PREFIX = "filtered:"
+"""Outcome prefix of a level dropped by the trivial-level filter, followed by the reason's name."""
+
+UNSOLVED = "unsolved"
+"""Outcome of a trained level whose expert window was not successful."""
+
+FAILED = "failed"
+"""Outcome of a level whose training or rollout produced non-finite values (contained to that level)."""
 
 
 def level_key(split_seed: int, level_index: int, purpose: KeyPurpose) -> jax.Array:
@@ -59,19 +63,6 @@ def batches_per_shard(job: JobConfig) -> int:
     return job.work.levels_per_shard // job.work.levels_per_batch
 
 
-@dataclasses.dataclass(frozen=True)
-class LevelBatchResult:
-    """Host-side results of a level batch (leading axis = levels of the batch)."""
-
-    level_indices: np.ndarray  # (B,) i64 index of each level in the split
-    in_split: np.ndarray  # (B,) bool: False for padding past split.num_levels
-    status: np.ndarray  # (B,) i32 `LevelStatus`
-    filter_reason: np.ndarray  # (B,) i32 `env.FilterReason` (KEPT when not filtered)
-    final_success_rate: np.ndarray  # (B,) f32 success rate of the expert's last training update (NaN if none)
-    learning_curve: np.ndarray  # (B, U) f32 success rate per training update
-    window: Window  # host arrays (B, W, ...): the expert windows, stored for KEPT levels
-
-
 def environment(job: JobConfig) -> tuple[EnvParams, StaticEnvParams]:
     return EnvParams(dense_reward_scale=job.env.dense_reward_scale), StaticEnvParams.for_size(job.split.size)
 
@@ -82,16 +73,18 @@ def sample_batch(job: JobConfig, level_indices: np.ndarray) -> Level:
     return sample_levels(level_keys(job.split.seed, level_indices, KeyPurpose.SAMPLE), static)
 
 
-def run_level_batch(job: JobConfig, shard: int, batch: int) -> LevelBatchResult:
-    """Sample, filter, train and roll out one level batch; a pure function of (config, shard, batch)."""
+def run_level_batch(job: JobConfig, shard: int, batch: int) -> BatchTrajectories:
+    """Sample, filter, train and roll out one level batch; a pure function of (config, shard, batch).
+
+    Every level gets an outcome (`level_outcome`); only kept levels' windows are stored. Levels past
+    `split.num_levels` (padding of the last shard) are computed with the rest but never kept.
+    """
     params, static = environment(job)
     indices = batch_level_indices(job, shard, batch)
-    in_split = indices < job.split.num_levels
     levels = sample_batch(job, indices)
 
     filtered = jax.device_get(filter_levels(levels, params, static, noop_steps=job.filter.noop_steps))
     dropped = ~filtered.keep if job.filter.enabled else np.zeros_like(filtered.keep)
-    reason = np.where(dropped, filtered.reason, FilterReason.KEPT)
 
     config = ppo_config(job)
     trained = train_levels(levels, level_keys(job.split.seed, indices, KeyPurpose.TRAIN), config, params, static)
@@ -107,21 +100,33 @@ def run_level_batch(job: JobConfig, shard: int, batch: int) -> LevelBatchResult:
     )
     window, metrics = jax.device_get((window, trained.metrics))
     finite = _finite_per_level(trained.params) & _finite_per_level(window)
-    status = np.where(
-        dropped,
-        LevelStatus.FILTERED,
-        np.where(~finite, LevelStatus.FAILED, np.where(window.successful, LevelStatus.KEPT, LevelStatus.UNSOLVED)),
+    in_split = indices < job.split.num_levels
+    outcomes = [
+        level_outcome(bool(in_split[i]), bool(dropped[i]), int(filtered.reason[i]), bool(finite[i]), bool(ok))
+        for i, ok in enumerate(window.successful)
+    ]
+    return BatchTrajectories(
+        states=window.states,
+        action=window.actions,
+        done=window.done,
+        success=window.success,
+        kept=np.array([outcome == KEPT for outcome in outcomes]),
+        level_id=indices,
+        level_seed=np.full(indices.shape, job.split.seed),
+        expert_success_rate=np.asarray(metrics.success_rate, np.float32)[:, -1],
+        outcome=outcomes,
     )
-    curve = np.asarray(metrics.success_rate, np.float32)
-    return LevelBatchResult(
-        level_indices=indices,
-        in_split=in_split,
-        status=status.astype(np.int32),
-        filter_reason=reason.astype(np.int32),
-        final_success_rate=curve[:, -1],
-        learning_curve=curve,
-        window=window,
-    )
+
+
+def level_outcome(in_split: bool, dropped: bool, reason: int, finite: bool, successful: bool) -> str:
+    """Why a level was or was not kept: "kept", "padding", "filtered:<reason>", "failed" or "unsolved"."""
+    if not in_split:
+        return PADDING
+    if dropped:
+        return f"{FILTERED_PREFIX}{FilterReason(reason).name.lower()}"
+    if not finite:
+        return FAILED
+    return KEPT if successful else UNSOLVED
 
 
 def _finite_per_level(tree) -> np.ndarray:

@@ -4,16 +4,18 @@ import jax
 import numpy as np
 import pytest
 
-from env import FilterReason
 from pipeline.config import load_config
 from pipeline.level_batch import (
-    LevelStatus,
+    FILTERED_PREFIX,
+    PADDING,
+    UNSOLVED,
     batch_level_indices,
     batches_per_shard,
     num_shards,
     run_level_batch,
     sample_batch,
 )
+from pipeline.writer import KEPT
 
 TINY = [
     "output_dir=unused",
@@ -48,15 +50,19 @@ def test_a_level_is_the_same_whatever_batch_it_is_sampled_in(job):
     assert not np.array_equal(np.asarray(first.sim.bodies.position[0]), np.asarray(first.sim.bodies.position[1]))
 
 
-def test_level_batch_is_deterministic_and_statuses_are_consistent(job):
+def test_level_batch_is_deterministic_and_outcomes_are_consistent(job):
     result = run_level_batch(job, 1, 0)
     again = run_level_batch(job, 1, 0)
-    jax.tree.map(np.testing.assert_array_equal, result.window, again.window)
-    np.testing.assert_array_equal(result.status, again.status)
-    np.testing.assert_array_equal(result.in_split, [True, True, False, False])  # levels 8, 9 of 10, then padding
-    filtered = result.status == LevelStatus.FILTERED
-    np.testing.assert_array_equal(filtered, result.filter_reason != FilterReason.KEPT)
-    kept = result.status == LevelStatus.KEPT
-    assert np.all(result.window.successful[kept])
-    assert np.all(~result.window.successful[result.status == LevelStatus.UNSOLVED])
-    assert result.learning_curve.shape == (4, 4) and result.window.actions.shape == (4, 32, 6)
+    jax.tree.map(np.testing.assert_array_equal, result.states, again.states)
+    np.testing.assert_array_equal(result.action, again.action)
+    assert list(result.outcome) == list(again.outcome)
+    np.testing.assert_array_equal(result.level_id, [12, 13, 14, 15])
+    # The split has 10 levels: shard 1 holds levels 8..15, so batch 0 of shard 1 (levels 12..15) is all padding.
+    assert list(result.outcome) == [PADDING] * 4 and not result.kept.any()
+    first = run_level_batch(job, 0, 0)
+    for i, outcome in enumerate(first.outcome):
+        assert outcome == KEPT or outcome == UNSOLVED or outcome.startswith(FILTERED_PREFIX), outcome
+        done, success = first.done[i], first.success[i]
+        window_ok = bool(done.any()) and bool(np.all(success[done]))
+        assert (outcome == KEPT) == (window_ok and not outcome.startswith(FILTERED_PREFIX))
+    assert first.action.shape == (4, 32, 6) and first.expert_success_rate.shape == (4,)

@@ -1,0 +1,73 @@
+"""The coordinator: hands out shards, receives commit records and writes the manifest (the truth for resume).
+
+It runs as a named Ray actor, but its state is only a cache of the manifest on disk: a restarted coordinator
+(or a re-run job) rebuilds it from the records, so nothing is lost when the actor or the job dies.
+"""
+
+from __future__ import annotations
+
+import os
+
+from pipeline.manifest import committed_batches, read_record, record_path, write_record
+
+
+class Coordinator:
+    """Shard leases and commits for one dataset directory."""
+
+    def __init__(
+        self, root: str | os.PathLike, num_shards: int, batches_per_shard: int, max_batches: int | None = None
+    ):
+        """`max_batches` caps the level batches handed out in this run (None: all), e.g. for time-boxed allocations."""
+        self._root = root
+        self._batches_per_shard = batches_per_shard
+        self._committed = {shard: set(committed_batches(root, shard)) for shard in range(num_shards)}
+        self._leased: dict[int, str] = {}
+        self._claimed: set[tuple[int, int]] = set()
+        self._budget = max_batches
+
+    def next_shard(self, worker: str) -> int | None:
+        """The lowest shard with uncommitted level batches that no worker holds, leased to `worker`; None if done."""
+        if self._budget is not None and self._budget <= 0:
+            return None
+        for shard, done in self._committed.items():
+            if shard not in self._leased and len(done) < self._batches_per_shard:
+                self._leased[shard] = worker
+                return shard
+        return None
+
+    def release(self, shard: int) -> None:
+        """Give a shard back (its worker finished or failed); its uncommitted batches may be claimed again."""
+        self._leased.pop(shard, None)
+        self._claimed = {(s, b) for s, b in self._claimed if s != shard}
+
+    def claim_batch(self, shard: int) -> int | None:
+        """The next uncommitted, unclaimed level batch of a leased shard, in order; None when none is left or the
+        run's batch budget is spent."""
+        if self._budget is not None and self._budget <= 0:
+            return None
+        for batch in range(self._batches_per_shard):
+            if batch not in self._committed[shard] and (shard, batch) not in self._claimed:
+                self._claimed.add((shard, batch))
+                if self._budget is not None:
+                    self._budget -= 1
+                return batch
+        return None
+
+    def commit(self, shard: int, batch: int, record: dict) -> bool:
+        """Write the record that commits a level batch whose data files are written; False if already committed.
+
+        Idempotent: a retried commit of the same batch changes nothing.
+        """
+        if batch in self._committed[shard] and record_path(self._root, shard, batch).exists():
+            return False
+        write_record(self._root, shard, batch, record)
+        self._committed[shard].add(batch)
+        return True
+
+    def record(self, shard: int, batch: int) -> dict:
+        return read_record(self._root, shard, batch)
+
+    def progress(self) -> tuple[int, int]:
+        """(committed level batches, all level batches)."""
+        done = sum(len(batches) for batches in self._committed.values())
+        return done, len(self._committed) * self._batches_per_shard

@@ -1,0 +1,162 @@
+"""`kforge run`: generate a split's dataset with Ray workers; re-running on the same directory resumes it."""
+
+from __future__ import annotations
+
+import argparse
+import collections
+import dataclasses
+import json
+import os
+import sys
+import time
+from pathlib import Path
+
+from tqdm import tqdm
+
+from env import ActionType
+from pipeline.config import DATA_SECTIONS, ConfigError, JobConfig, data_fingerprint, load_config, to_yaml
+from pipeline.coordinator import Coordinator
+from pipeline.layout import DatasetError, make_layout
+from pipeline.level_batch import batches_per_shard, environment, num_shards
+from pipeline.manifest import iter_records
+from pipeline.shard_store import DatasetSpec, Geometry, create_dataset, open_dataset
+from pipeline.worker import Worker
+
+CONFIG_FILE = "config.yaml"
+"""The resolved config of the latest run, saved in the dataset directory."""
+
+RAY_NAMESPACE = "kforge"
+PROGRESS_POLL_SECONDS = 2.0
+RAY_QUIET_ENV = {"RAY_AUTH_MODE": "disabled", "RAY_USAGE_STATS_ENABLED": "0"}
+"""Embedded local Ray: no token auth (a private, single-user instance) and no usage reporting."""
+
+
+class ResumeRefused(ValueError):
+    """The output directory holds a dataset made with a config that would change the data."""
+
+
+def dataset_spec(job: JobConfig) -> DatasetSpec:
+    """What the dataset directory must hold for this job: layout, geometry, split, and the data-defining config."""
+    _, static = environment(job)
+    return DatasetSpec(
+        layout=make_layout(static, ActionType.MULTI_DISCRETE, num_steps=job.collect.window_steps),
+        geometry=Geometry(num_shards(job), batches_per_shard(job), job.work.levels_per_batch),
+        split=job.split.name,
+        attributes={
+            "data_fingerprint": data_fingerprint(job),
+            "data_config": {section: dataclasses.asdict(getattr(job, section)) for section in DATA_SECTIONS},
+        },
+    )
+
+
+def prepare_output(job: JobConfig) -> None:
+    """Create the dataset, or check that an existing one was made with the same data-defining config."""
+    root = Path(job.output_dir)
+    spec = dataset_spec(job)
+    if (root / "data").exists():
+        stored = open_dataset(root).spec
+        if stored.attributes.get("data_fingerprint") != spec.attributes["data_fingerprint"]:
+            changed = _changed_keys(stored.attributes.get("data_config", {}), spec.attributes["data_config"])
+            raise ResumeRefused(
+                f"{root} holds a dataset generated with a different config; these keys would change the data: "
+                f"{', '.join(changed) or '(unknown: older dataset)'}. Use another output_dir or the original values."
+            )
+    create_dataset(root, spec)
+    (root / CONFIG_FILE).write_text(to_yaml(job))
+
+
+def _changed_keys(old: dict, new: dict, prefix: str = "") -> list[str]:
+    keys = []
+    for key in sorted(set(old) | set(new)):
+        a, b = old.get(key), new.get(key)
+        if isinstance(a, dict) and isinstance(b, dict):
+            keys += _changed_keys(a, b, f"{prefix}{key}.")
+        elif a != b:
+            keys.append(f"{prefix}{key} ({a!r} -> {b!r})")
+    return keys
+
+
+def run_job(job: JobConfig, max_batches: int | None = None, show_progress: bool = True) -> dict:
+    """Generate (or resume) the job's dataset; returns the summary. `max_batches` stops after that many batches."""
+    import ray
+
+    prepare_output(job)
+    for name, value in RAY_QUIET_ENV.items():
+        os.environ.setdefault(name, value)
+    started_ray = not ray.is_initialized()
+    if started_ray:
+        if job.ray.address is None:
+            ray.init(address="local", include_dashboard=False, log_to_driver=False, namespace=RAY_NAMESPACE)
+        else:
+            ray.init(address=job.ray.address, namespace=RAY_NAMESPACE)
+    started = time.perf_counter()
+    failures = []
+    try:
+        coordinator = (
+            ray.remote(Coordinator)
+            .options(num_cpus=0)
+            .remote(job.output_dir, num_shards(job), batches_per_shard(job), max_batches)
+        )
+        worker_class = ray.remote(Worker).options(num_cpus=job.ray.cpus_per_worker, num_gpus=job.ray.gpus_per_worker)
+        workers = [worker_class.remote(job, f"worker-{i}") for i in range(job.ray.num_workers)]
+        in_flight = {}
+
+        def assign(worker, name):
+            shard = ray.get(coordinator.next_shard.remote(name))
+            if shard is not None:
+                in_flight[worker.run_shard.remote(coordinator, shard)] = (worker, name, shard)
+
+        for i, worker in enumerate(workers):
+            assign(worker, f"worker-{i}")
+        done, total = ray.get(coordinator.progress.remote())
+        with tqdm(total=total, initial=done, unit="batch", desc="level batches", disable=not show_progress) as bar:
+            while in_flight:
+                ready, _ = ray.wait(list(in_flight), timeout=PROGRESS_POLL_SECONDS)
+                for ref in ready:
+                    worker, name, shard = in_flight.pop(ref)
+                    try:
+                        ray.get(ref)
+                    except ray.exceptions.RayError as error:
+                        failures.append({"shard": shard, "worker": name, "error": str(error).splitlines()[0]})
+                        ray.get(coordinator.release.remote(shard))
+                        continue  # a failing worker takes no more shards in this run
+                    ray.get(coordinator.release.remote(shard))
+                    assign(worker, name)
+                bar.update(ray.get(coordinator.progress.remote())[0] - bar.n)
+    finally:
+        if started_ray:
+            ray.shutdown()
+    summary = summarize(job.output_dir)
+    summary["seconds"] = time.perf_counter() - started
+    summary["failed_shards"] = failures
+    return summary
+
+
+def summarize(root) -> dict:
+    """Counts over the committed level batches: levels by outcome, kept trajectories, batches."""
+    outcomes = collections.Counter()
+    batches = 0
+    for record in iter_records(root):
+        batches += 1
+        outcomes.update(level["outcome"] for level in record["levels"])
+    levels = sum(count for outcome, count in outcomes.items() if outcome != "padding")
+    return {"committed_batches": batches, "levels": levels, "outcomes": dict(sorted(outcomes.items()))}
+
+
+def main(argv=None, prog: str | None = None) -> None:
+    """Run CONFIG (a job YAML, e.g. configs/jobs/tiny.yaml) with `key=value` overrides; resumes in output_dir."""
+    parser = argparse.ArgumentParser(prog=prog, description=main.__doc__)
+    parser.add_argument("config", help="job YAML file")
+    parser.add_argument("overrides", nargs="*", help="dotlist overrides, e.g. split.num_levels=32 ray.num_workers=2")
+    parser.add_argument("--max-batches", type=int, help="stop after this many level batches (resume later)")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    args = parser.parse_args(argv)
+    try:
+        job = load_config(args.config, args.overrides)
+        summary = run_job(job, max_batches=args.max_batches, show_progress=not args.no_progress)
+    except (ConfigError, ResumeRefused, DatasetError) as error:
+        print(f"error: {error}", file=sys.stderr)
+        raise SystemExit(2) from error
+    print(json.dumps(summary, indent=1))
+    if summary["failed_shards"]:
+        raise SystemExit(1)

@@ -1,0 +1,286 @@
+"""The zarr v3 store of a dataset: one array per stored field, one shard file per level batch, written with tensorstore.
+
+Directory of a dataset:
+
+    <root>/data/                      zarr v3 group; its attributes hold the `DatasetSpec` (layout, geometry, split)
+    <root>/data/<field>/zarr.json     one array per field, shape (num_slots, [num_steps,] *field shape)
+    <root>/data/<field>/c/<g>/0/...   the shard file of global level batch g (absent when the batch kept nothing)
+    <root>/manifest/                  commit records (`pipeline.manifest`)
+
+Slot s of every array holds one level's trajectory; level batch g owns slots [g L, (g + 1) L) and is exactly one
+shard file per array, so every file has one writer, is written once per attempt, and a retry overwrites it.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import os
+import shutil
+import uuid
+from collections.abc import Iterable, Mapping, Sequence
+from pathlib import Path
+
+import numpy as np
+import tensorstore as ts
+import zarr
+from zarr.codecs import BloscCodec, Crc32cCodec, TransposeCodec
+
+from pipeline.layout import DatasetError, FieldSpec, Layout, check_layout
+
+FORMAT_VERSION = 1
+"""Version of the on-disk format written by this code; a dataset of another version is refused."""
+
+DATA_DIR = "data"
+MANIFEST_DIR = "manifest"
+SPEC_ATTRIBUTE = "kforge_dataset"
+"""Key of the `DatasetSpec` in the zarr group's attributes."""
+
+BLOSC_LEVEL = 1
+"""zstd level inside Blosc: higher levels barely compress float state better and cost 3x the CPU (reference §2)."""
+
+IO_CONCURRENCY = 4
+"""Parallel chunk encodes/decodes and file operations of one process's tensorstore context."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Geometry:
+    """How slots are grouped: `num_shards` work units of `batches_per_shard` level batches of `levels_per_batch`."""
+
+    num_shards: int
+    batches_per_shard: int
+    levels_per_batch: int
+
+    def __post_init__(self):
+        for name in ("num_shards", "batches_per_shard", "levels_per_batch"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"Geometry.{name} must be >= 1, got {getattr(self, name)}")
+
+    @property
+    def num_batches(self) -> int:
+        return self.num_shards * self.batches_per_shard
+
+    @property
+    def num_slots(self) -> int:
+        return self.num_batches * self.levels_per_batch
+
+    def global_batch(self, shard: int, batch: int) -> int:
+        """Index of level batch `batch` of `shard` among all level batches (= its shard file index)."""
+        if not 0 <= shard < self.num_shards:
+            raise ValueError(f"shard {shard} out of range [0, {self.num_shards})")
+        if not 0 <= batch < self.batches_per_shard:
+            raise ValueError(f"batch {batch} out of range [0, {self.batches_per_shard})")
+        return shard * self.batches_per_shard + batch
+
+    def slots(self, shard: int, batch: int) -> range:
+        """Global slots of a level batch; level i of the batch goes to slot start + i."""
+        start = self.global_batch(shard, batch) * self.levels_per_batch
+        return range(start, start + self.levels_per_batch)
+
+
+@dataclasses.dataclass(frozen=True)
+class DatasetSpec:
+    """Everything fixed when a dataset is created; stored in the group attributes and checked on open."""
+
+    layout: Layout
+    geometry: Geometry
+    split: str
+    attributes: Mapping = dataclasses.field(default_factory=dict)  # caller's JSON metadata (config, its hash, versions)
+
+    def to_json(self) -> dict:
+        return {
+            "format_version": FORMAT_VERSION,
+            "layout": self.layout.to_json(),
+            "geometry": dataclasses.asdict(self.geometry),
+            "split": self.split,
+            "attributes": json.loads(json.dumps(dict(self.attributes))),
+        }
+
+    @classmethod
+    def from_json(cls, data: Mapping, where: str) -> DatasetSpec:
+        version = data.get("format_version")
+        if version != FORMAT_VERSION:
+            raise DatasetError(f"{where}: format version {version!r}, this code reads version {FORMAT_VERSION}")
+        try:
+            return cls(
+                layout=Layout.from_json(data["layout"]),
+                geometry=Geometry(**data["geometry"]),
+                split=str(data["split"]),
+                attributes=data["attributes"],
+            )
+        except (KeyError, TypeError, ValueError) as error:
+            raise DatasetError(f"{where}: malformed dataset spec ({error!r})") from error
+
+
+def _array_shape(spec: FieldSpec, layout: Layout, num_slots: int) -> tuple[int, ...]:
+    return (num_slots,) + spec.full_shape(layout.num_steps)
+
+
+def _create_array(group: zarr.Group, spec: FieldSpec, layout: Layout, geometry: Geometry) -> None:
+    shape = _array_shape(spec, layout, geometry.num_slots)
+    shard = (geometry.levels_per_batch,) + shape[1:]
+    if spec.per_step:
+        chunk = (1,) + shape[1:]  # one trajectory per chunk: empty slots cost nothing, a read decodes one trajectory
+        time_last = (0,) + tuple(range(2, len(shape))) + (1,)  # each feature's time series contiguous
+        filters = [TransposeCodec(order=time_last)] if len(shape) > 2 else []
+    else:
+        chunk, filters = shard, []
+    group.create_array(
+        spec.name,
+        shape=shape,
+        chunks=chunk,
+        shards=shard,
+        dtype=spec.dtype,
+        fill_value=spec.fill_value,
+        filters=filters,
+        compressors=[BloscCodec(cname="zstd", clevel=BLOSC_LEVEL, shuffle="shuffle"), Crc32cCodec()],
+        dimension_names=("traj",) + (("t",) if spec.per_step else ()) + tuple(f"d{i}" for i in range(len(spec.shape))),
+    )
+
+
+def create_dataset(root: str | os.PathLike, spec: DatasetSpec) -> Dataset:
+    """Create the dataset's group and arrays (all slots empty), or open it if it exists with the same spec.
+
+    The metadata is built in a staging folder and moved into place in one rename, so a crash never leaves a
+    half-created dataset. Call it once (e.g. in the coordinator) before workers write.
+    """
+    root = Path(root)
+    if (root / DATA_DIR).exists():
+        return _open_matching(root, spec)
+    root.mkdir(parents=True, exist_ok=True)
+    staging = root / f".staging-{uuid.uuid4().hex}"
+    try:
+        group = zarr.create_group(str(staging / DATA_DIR), zarr_format=3, attributes={SPEC_ATTRIBUTE: spec.to_json()})
+        for field in spec.layout.fields:
+            _create_array(group, field, spec.layout, spec.geometry)
+        try:
+            os.rename(staging / DATA_DIR, root / DATA_DIR)
+        except OSError:
+            if not (root / DATA_DIR).exists():
+                raise
+            return _open_matching(root, spec)  # another process created it first
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
+    (root / MANIFEST_DIR).mkdir(exist_ok=True)
+    return Dataset(root, spec)
+
+
+def _open_matching(root: Path, spec: DatasetSpec) -> Dataset:
+    dataset = open_dataset(root)
+    if dataset.spec.to_json() != spec.to_json():
+        raise DatasetError(f"{root}: a dataset with a different spec already exists there")
+    return dataset
+
+
+def open_dataset(root: str | os.PathLike) -> Dataset:
+    """Open an existing dataset; raise `DatasetError` if it is missing, of another format, or its layout differs
+    from the one this code derives for its sizes."""
+    root = Path(root)
+    meta_path = root / DATA_DIR / "zarr.json"
+    if not meta_path.is_file():
+        raise DatasetError(f"{root}: not a dataset (no {DATA_DIR}/zarr.json)")
+    try:
+        meta = json.loads(meta_path.read_text())
+        spec_json = meta["attributes"][SPEC_ATTRIBUTE]
+    except (json.JSONDecodeError, KeyError, TypeError) as error:
+        raise DatasetError(f"{meta_path}: unreadable dataset metadata ({error!r})") from error
+    spec = DatasetSpec.from_json(spec_json, str(root))
+    check_layout(spec.layout, str(root))
+    return Dataset(root, spec)
+
+
+def file_digest(path: Path) -> str | None:
+    """sha256 hex digest of a file's bytes, or None if it does not exist."""
+    try:
+        return hashlib.sha256(path.read_bytes()).hexdigest()
+    except FileNotFoundError:
+        return None
+
+
+def array_digest(array: np.ndarray) -> str:
+    """sha256 hex digest of an array's C-order bytes (its decoded content)."""
+    return hashlib.sha256(np.ascontiguousarray(array).tobytes()).hexdigest()
+
+
+class Dataset:
+    """An open dataset: its spec and tensorstore handles of its arrays (opened on first use)."""
+
+    def __init__(self, root: Path, spec: DatasetSpec):
+        self.root = Path(root)
+        self.spec = spec
+        self._context = ts.Context(
+            {
+                "data_copy_concurrency": {"limit": IO_CONCURRENCY},
+                "file_io_concurrency": {"limit": IO_CONCURRENCY},
+            }
+        )
+        self._arrays: dict[str, ts.TensorStore] = {}
+
+    @property
+    def layout(self) -> Layout:
+        return self.spec.layout
+
+    @property
+    def geometry(self) -> Geometry:
+        return self.spec.geometry
+
+    @property
+    def manifest_dir(self) -> Path:
+        return self.root / MANIFEST_DIR
+
+    def array_dir(self, name: str) -> Path:
+        return self.root / DATA_DIR / name
+
+    def array(self, name: str) -> ts.TensorStore:
+        """The tensorstore handle of field `name` (opened once); its shape and dtype are checked against the layout."""
+        if name not in self._arrays:
+            self._arrays[name] = self._open_array(name)
+        return self._arrays[name]
+
+    def _open_array(self, name: str) -> ts.TensorStore:
+        spec = self.layout.field(name)
+        try:
+            store = ts.open(
+                {"driver": "zarr3", "kvstore": {"driver": "file", "path": str(self.array_dir(name))}},
+                context=self._context,
+                open=True,
+            ).result()
+        except ValueError as error:
+            raise DatasetError(f"{self.root}: cannot open array {name}: {error}") from error
+        expected = _array_shape(spec, self.layout, self.geometry.num_slots)
+        if tuple(store.shape) != expected or store.dtype.numpy_dtype != np.dtype(spec.dtype):
+            raise DatasetError(
+                f"{self.root}: array {name} is {store.dtype.numpy_dtype}{tuple(store.shape)}, "
+                f"the spec says {spec.dtype}{expected}"
+            )
+        return store
+
+    def batch_file(self, name: str, global_batch: int) -> Path:
+        """The shard file of `global_batch` in field `name`'s array."""
+        ndim = len(_array_shape(self.layout.field(name), self.layout, 1))
+        return self.array_dir(name).joinpath("c", str(global_batch), *(["0"] * (ndim - 1)))
+
+    def write_batch(self, global_batch: int, arrays: Mapping[str, np.ndarray]) -> None:
+        """Write whole shard files of one level batch: `arrays[name]` has shape (levels_per_batch, ...) per field."""
+        start = global_batch * self.geometry.levels_per_batch
+        stop = start + self.geometry.levels_per_batch
+        futures = [self.array(name)[start:stop].write(value) for name, value in arrays.items()]
+        for future in futures:
+            future.result()
+
+    def read(self, names: Iterable[str], slots: Sequence[int] | range) -> dict[str, np.ndarray]:
+        """Field name -> values of the given slots, in the given order, shape (len(slots), ...)."""
+        if isinstance(slots, range) and slots.step == 1:
+            index = slice(slots.start, slots.stop)
+        else:
+            index = np.asarray(slots, np.int64)
+        names = list(names)
+        futures = [self.array(name)[index].read() for name in names]
+        arrays = {}
+        for name, future in zip(names, futures, strict=True):
+            try:
+                arrays[name] = future.result()
+            except ValueError as error:  # e.g. "Stored and computed checksum do not match" (crc32c)
+                raise DatasetError(f"{self.root}: cannot read {name}: {error}") from error
+        return arrays

@@ -1,0 +1,52 @@
+"""A worker: takes a shard at a time and turns its uncommitted level batches into stored, committed data."""
+
+from __future__ import annotations
+
+import time
+
+from pipeline.config import JobConfig
+from pipeline.level_batch import run_level_batch
+from pipeline.shard_store import open_dataset
+from pipeline.writer import clean_uncommitted, stage_level_batch
+
+
+class Worker:
+    """Generates level batches for the shards the coordinator leases to it (one writer per shard)."""
+
+    def __init__(self, job: JobConfig, name: str):
+        self._job = job
+        self._name = name
+
+    def run_shard(self, coordinator, shard: int) -> list[dict]:
+        """Continue `shard` from its last committed level batch; returns a summary per batch it committed.
+
+        `coordinator` is the coordinator actor handle (or a local object with the same methods, for tests).
+        """
+        dataset = open_dataset(self._job.output_dir)
+        clean_uncommitted(dataset.root, shard)  # safe: the shard's lease makes this worker its only writer
+        summaries = []
+        while (batch := _call(coordinator.claim_batch, shard)) is not None:
+            started = time.perf_counter()
+            result = run_level_batch(self._job, shard, batch)
+            record = stage_level_batch(dataset, shard, batch, result)
+            _call(coordinator.commit, shard, batch, record)
+            summaries.append(
+                {
+                    "shard": shard,
+                    "batch": batch,
+                    "worker": self._name,
+                    "outcomes": list(result.outcome),
+                    "seconds": time.perf_counter() - started,
+                }
+            )
+        return summaries
+
+
+def _call(method, *args):
+    """Call a Ray actor method and wait for it, or a plain method directly."""
+    remote = getattr(method, "remote", None)
+    if remote is None:
+        return method(*args)
+    import ray
+
+    return ray.get(remote(*args))

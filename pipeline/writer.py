@@ -1,0 +1,227 @@
+"""Writing a level batch: checks, stored arrays, data files first and the commit record last; resume cleanup."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import os
+from collections.abc import Sequence
+from pathlib import Path
+
+import jax
+import numpy as np
+
+from env import EnvState, action_mask
+from pipeline.layout import (
+    ACTION,
+    ACTION_MASK,
+    DONE,
+    EPISODE_LENGTHS,
+    EXPERT_SUCCESS_RATE,
+    LEVEL_ID,
+    LEVEL_SEED,
+    NUM_EPISODES,
+    SUCCESS,
+    VALID,
+    DatasetError,
+    Layout,
+    flatten_state,
+    unflatten_state,
+)
+from pipeline.manifest import committed_batches, remove_record, temp_records, write_record
+from pipeline.shard_store import Dataset, array_digest, file_digest, open_dataset
+
+LOCK_SUFFIX = ".__lock"
+"""Suffix of the file tensorstore writes before renaming it over the key; left behind only by a crash."""
+
+KEPT = "kept"
+"""Outcome of a level whose trajectory is stored."""
+
+
+@dataclasses.dataclass(frozen=True)
+class BatchTrajectories:
+    """What the generator produced for one level batch of L levels, each with a T-step window.
+
+    Rows of levels that are not kept may hold anything; only kept rows are stored, and every level's outcome goes
+    to the commit record.
+    """
+
+    states: EnvState  # leaves (L, T, ...): the state before each action
+    action: np.ndarray  # (L, T, *action shape) the action taken in that state
+    done: np.ndarray  # (L, T) bool: the episode ended with that action (the next state is the level's start)
+    success: np.ndarray  # (L, T) bool: ended with success (only where done)
+    kept: np.ndarray  # (L,) bool: the trajectory is stored
+    level_id: np.ndarray  # (L,) int: the level's index in its split
+    level_seed: np.ndarray  # (L,) int: the seed the level was sampled from
+    expert_success_rate: np.ndarray  # (L,) f32 [-] success rate of the level's expert in evaluation
+    outcome: Sequence[str]  # (L,) KEPT, or why the level was not kept (e.g. "filtered:trivial", "unsolved")
+
+
+def episode_lengths(done: np.ndarray) -> np.ndarray:
+    """Lengths of the completed episodes of a (T,) done sequence that starts at an episode start."""
+    ends = np.flatnonzero(done)
+    return np.diff(np.concatenate([[-1], ends])).astype(np.int32)
+
+
+def _bits(array: np.ndarray) -> np.ndarray:
+    """An integer view of an array for exact comparison (NaN equals NaN, -0.0 differs from 0.0)."""
+    if array.dtype.kind == "f":
+        return array.view(f"u{array.dtype.itemsize}")
+    return array
+
+
+def _check_shape(name: str, value: np.ndarray, shape: tuple[int, ...], dtype) -> np.ndarray:
+    value = np.asarray(value)
+    if value.shape != shape or value.dtype != np.dtype(dtype):
+        raise DatasetError(f"{name}: expected {np.dtype(dtype)}{shape}, got {value.dtype}{value.shape}")
+    return value
+
+
+def stored_arrays(layout: Layout, levels_per_batch: int, result: BatchTrajectories) -> dict[str, np.ndarray]:
+    """Field name -> (L, ...) array to store for a level batch; empty (fill) rows for levels not kept.
+
+    Raises `DatasetError` naming the field or level if the result does not fit the layout, a kept trajectory has no
+    successful episode end or an unsuccessful one, holds non-finite values, or a per-level leaf changes over time.
+    """
+    size, steps = levels_per_batch, layout.num_steps
+    kept = _check_shape("kept", result.kept, (size,), bool)
+    if len(result.outcome) != size:
+        raise DatasetError(f"outcome: expected {size} entries, got {len(result.outcome)}")
+    for level in range(size):
+        if bool(kept[level]) != (result.outcome[level] == KEPT):
+            raise DatasetError(f"level {level}: kept={bool(kept[level])} but outcome {result.outcome[level]!r}")
+    done = _check_shape(DONE, result.done, (size, steps), bool)
+    success = _check_shape(SUCCESS, result.success, (size, steps), bool)
+    per_level = {
+        LEVEL_ID: np.asarray(result.level_id).astype(np.int64),
+        LEVEL_SEED: np.asarray(result.level_seed).astype(np.int64),
+        EXPERT_SUCCESS_RATE: np.asarray(result.expert_success_rate).astype(np.float32),
+    }
+    for name, value in per_level.items():
+        _check_shape(name, value, (size,), value.dtype)
+    given = {ACTION: np.asarray(result.action), DONE: done, SUCCESS: success, **flatten_state(result.states)}
+    for spec in layout.fields:
+        if spec.name in given:  # every given field has a time axis, per-level state leaves included
+            _check_shape(spec.name, given[spec.name], (size, steps) + spec.shape, spec.dtype)
+    for level in np.flatnonzero(kept):
+        _check_kept(level, done[level], success[level], given, layout)
+
+    start = {spec.name: given[spec.name][:, 0] for spec in layout.state_fields}
+    masks = np.asarray(jax.vmap(action_mask)(unflatten_state(layout, start)))
+    first = {spec.name: start[spec.name] for spec in layout.state_fields if not spec.per_step}
+    num_episodes = done.sum(axis=1).astype(np.int32)
+    lengths = np.zeros((size, steps), np.int32)
+    for level in range(size):
+        found = episode_lengths(done[level])
+        lengths[level, : len(found)] = found
+    values = {**given, **first, **per_level}
+    values |= {ACTION_MASK: masks, VALID: kept, NUM_EPISODES: num_episodes, EPISODE_LENGTHS: lengths}
+    arrays = {}
+    for spec in layout.fields:
+        value = values[spec.name]
+        arrays[spec.name] = np.where(kept.reshape((size,) + (1,) * (value.ndim - 1)), value, spec.fill_value).astype(
+            spec.dtype
+        )
+    return arrays
+
+
+def _check_kept(level: int, done: np.ndarray, success: np.ndarray, given: dict, layout: Layout) -> None:
+    ends = np.flatnonzero(done)
+    if len(ends) == 0:
+        raise DatasetError(f"level {level}: kept but no episode ends within the window")
+    failed = np.flatnonzero(done & ~success)
+    if len(failed):
+        raise DatasetError(f"level {level}: kept but episodes ending at steps {failed.tolist()} are not successes")
+    stray = np.flatnonzero(success & ~done)
+    if len(stray):
+        raise DatasetError(f"level {level}: success flagged without an episode end at steps {stray.tolist()}")
+    for spec in layout.fields:
+        if spec.name not in given:
+            continue
+        value = given[spec.name][level]
+        if value.dtype.kind == "f" and not np.all(np.isfinite(value)):
+            raise DatasetError(f"level {level}: {spec.name} holds non-finite values")
+        if spec.name.startswith("env_state/") and not spec.per_step:
+            changed = np.flatnonzero(np.any((_bits(value) != _bits(value[:1])).reshape(len(value), -1), axis=1))
+            if len(changed):
+                raise DatasetError(
+                    f"level {level}: per-level field {spec.name} changes within the window (first at step "
+                    f"{changed[0]}); it must be listed in layout.DYNAMIC_STATE_FIELDS"
+                )
+
+
+def _json_number(value) -> float | None:
+    value = float(value)
+    return value if math.isfinite(value) else None
+
+
+def write_level_batch(dataset: Dataset, shard: int, batch: int, result: BatchTrajectories) -> dict:
+    """Store and commit level batch `batch` of `shard`; returns its commit record."""
+    record = stage_level_batch(dataset, shard, batch, result)
+    return write_record(dataset.root, shard, batch, record)
+
+
+def stage_level_batch(dataset: Dataset, shard: int, batch: int, result: BatchTrajectories) -> dict:
+    """Write the data files of level batch `batch` of `shard` and return the record that commits them.
+
+    Order: check, uncommit any earlier attempt, write the data files (each replaced atomically by tensorstore).
+    The batch counts as committed only once the returned record is written (`manifest.write_record`, by the
+    coordinator); rerunning after any interruption overwrites the same files.
+    """
+    geometry, layout = dataset.geometry, dataset.layout
+    global_batch = geometry.global_batch(shard, batch)
+    arrays = stored_arrays(layout, geometry.levels_per_batch, result)
+    remove_record(dataset.root, shard, batch)
+    dataset.write_batch(global_batch, arrays)
+
+    files = {}
+    for name, value in arrays.items():
+        path = dataset.batch_file(name, global_batch)
+        digest = file_digest(path)
+        files[name] = {
+            "file": path.relative_to(dataset.root).as_posix() if digest else None,
+            "sha256": digest,
+            "data_sha256": array_digest(value),
+        }
+    slots = geometry.slots(shard, batch)
+    levels = [
+        {
+            "slot": slot,
+            "kept": result.outcome[i] == KEPT,
+            "outcome": str(result.outcome[i]),
+            "level_id": int(result.level_id[i]),
+            "level_seed": int(result.level_seed[i]),
+            "expert_success_rate": _json_number(result.expert_success_rate[i]),
+            "episode_lengths": episode_lengths(np.asarray(result.done[i])).tolist(),
+        }
+        for i, slot in enumerate(slots)
+    ]
+    record = {
+        "shard": shard,
+        "batch": batch,
+        "global_batch": global_batch,
+        "slots": [slots.start, slots.stop],
+        "num_kept": int(arrays[VALID].sum()),
+        "levels": levels,
+        "arrays": files,
+    }
+    return record
+
+
+def clean_uncommitted(root: str | os.PathLike, shard: int) -> list[Path]:
+    """Remove what a crash left in `shard`: data files of level batches without a record, tensorstore lock
+    files and half-written records. Returns the removed paths. Only the shard's single writer may call it."""
+    dataset = open_dataset(root)
+    committed = set(committed_batches(root, shard))
+    removed = list(temp_records(root, shard))
+    for batch in range(dataset.geometry.batches_per_shard):
+        global_batch = dataset.geometry.global_batch(shard, batch)
+        for spec in dataset.layout.fields:
+            path = dataset.batch_file(spec.name, global_batch)
+            if path.parent.is_dir():
+                removed += [p for p in path.parent.iterdir() if p.name.startswith(path.name + LOCK_SUFFIX)]
+            if batch not in committed and path.exists():
+                removed.append(path)
+    for path in removed:
+        path.unlink(missing_ok=True)
+    return removed

@@ -1,0 +1,134 @@
+"""Shared data for the storage tests: a batch of hand-built size-s levels rolled out for 256 steps with random actions.
+
+Levels (all have a motorised arm pinned to the floor and a thruster, so joint impulses and contacts vary):
+- 0, 1: a green disc dropped onto a static blue disc from two heights -> every episode ends in success (kept);
+- 2: the green disc dropped onto a static red disc -> every episode fails (not kept, "unsolved").
+The rollout runs once per test session.
+"""
+
+from __future__ import annotations
+
+import sys
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from engine import SceneBuilder
+from env import ActionType, EnvParams, Role, StaticEnvParams, build_level, random_action, reset, step
+from pipeline.layout import make_layout
+from pipeline.shard_store import DatasetSpec, Geometry, create_dataset
+from pipeline.writer import KEPT, BatchTrajectories, write_level_batch
+
+# Test modules import these helpers as `pipeline_test_helpers` (works under every pytest import mode).
+sys.modules["pipeline_test_helpers"] = sys.modules[__name__]
+
+STATIC = StaticEnvParams.for_size("s")
+PARAMS = EnvParams()
+ACTION_TYPE = ActionType.MULTI_DISCRETE
+NUM_STEPS = 256
+FLOOR_TOP = 0.4  # [m]
+RADIUS = 0.2  # [m] green and target discs
+FLOOR = 0  # body index of the static floor (a Kinetix boundary)
+DROP_HEIGHTS = (1.0, 1.6)  # [m] gap between the green disc's bottom and the target disc's top, levels 0 and 1
+
+
+def drop_level(gap: float, target: Role):
+    """A green disc `gap` above a static target disc on the floor; a motorised arm pinned to the floor, a thruster."""
+    scene = SceneBuilder(STATIC.sim)
+    target_y = FLOOR_TOP + RADIUS
+    green = scene.add_circle((1.0, target_y + 2 * RADIUS + gap), RADIUS)
+    blue = scene.add_circle((1.0, target_y), RADIUS, static=True)
+    arm = scene.add_box((3.9, FLOOR_TOP + 0.3), (0.8, 0.1))
+    scene.add_revolute_joint(FLOOR, arm, (3.5, FLOOR_TOP + 0.3), motor_speed=1.0, motor_power=1.0, motor_on=True)
+    scene.add_thruster(arm, (4.2, FLOOR_TOP + 0.3), jnp.pi / 2, power=0.5)
+    return build_level(scene, roles={green: Role.GREEN, blue: target})
+
+
+def stack(*trees):
+    return jax.tree.map(lambda *xs: jnp.stack(xs), *trees)
+
+
+def rollout(levels, seed: int = 0):
+    """(states (L, T), actions, done, success) of random-action windows from each level's start.
+
+    Steps with the jitted `env.step` one state at a time, so the only compiled program is the one the replay test
+    uses too.
+    """
+    num_levels = jax.tree.leaves(levels)[0].shape[0]
+    keys = jax.random.split(jax.random.PRNGKey(seed), (num_levels, NUM_STEPS))
+    actions = np.asarray(jax.vmap(jax.vmap(random_action, in_axes=(0, None)), in_axes=(0, None))(keys, ACTION_TYPE))
+    windows = []
+    for index in range(num_levels):
+        level = jax.tree.map(lambda x, i=index: x[i], levels)
+        state, states, done, success = reset(level), [], [], []
+        for t in range(NUM_STEPS):
+            states.append(state)
+            state, result = step(state, actions[index, t], level, PARAMS, STATIC, ACTION_TYPE)
+            done.append(result.done)
+            success.append(result.success)
+        windows.append((stack(*states), np.stack(done), np.stack(success)))
+    states = jax.tree.map(np.asarray, stack(*(w[0] for w in windows)))
+    return states, actions, np.stack([w[1] for w in windows]), np.stack([w[2] for w in windows])
+
+
+@pytest.fixture(scope="session")
+def levels():
+    return stack(
+        drop_level(DROP_HEIGHTS[0], Role.BLUE), drop_level(DROP_HEIGHTS[1], Role.BLUE), drop_level(1.0, Role.RED)
+    )
+
+
+@pytest.fixture(scope="session")
+def rolled_out(levels):
+    return rollout(levels)
+
+
+def batch_result(rolled_out, level_ids=(10, 11, 12)) -> BatchTrajectories:
+    """The rollout as a level batch: levels 0 and 1 kept, level 2 "unsolved"."""
+    states, action, done, success = rolled_out
+    kept = np.array([True, True, False])
+    return BatchTrajectories(
+        states=states,
+        action=action,
+        done=done,
+        success=success,
+        kept=kept,
+        level_id=np.asarray(level_ids),
+        level_seed=np.asarray(level_ids) * 1000 + 7,
+        expert_success_rate=np.array([1.0, 0.75, 0.0], np.float32),
+        outcome=(KEPT, KEPT, "unsolved"),
+    )
+
+
+GEOMETRY = Geometry(num_shards=2, batches_per_shard=2, levels_per_batch=3)
+"""Four level batches of three levels; each batch stores the rollout (two kept trajectories)."""
+
+
+def dataset_spec(**overrides) -> DatasetSpec:
+    values = {
+        "layout": make_layout(STATIC, ACTION_TYPE, NUM_STEPS),
+        "geometry": GEOMETRY,
+        "split": "train",
+        "attributes": {"config_hash": "test"},
+    }
+    return DatasetSpec(**(values | overrides))
+
+
+def write_all(root, rolled_out):
+    """A complete dataset: batch g holds the rollout with level ids 10 g + (0, 1, 2)."""
+    dataset = create_dataset(root, dataset_spec())
+    for shard in range(GEOMETRY.num_shards):
+        for batch in range(GEOMETRY.batches_per_shard):
+            g = GEOMETRY.global_batch(shard, batch)
+            write_level_batch(dataset, shard, batch, batch_result(rolled_out, (10 * g, 10 * g + 1, 10 * g + 2)))
+    return dataset
+
+
+@pytest.fixture(scope="session")
+def dataset_dir(tmp_path_factory, rolled_out):
+    """A complete dataset, shared read-only by the tests (copy it before changing anything)."""
+    root = tmp_path_factory.mktemp("dataset")
+    write_all(root, rolled_out)
+    return root

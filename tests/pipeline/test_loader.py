@@ -1,0 +1,106 @@
+"""The loader: Kinetix-shaped batches, determinism by seed, disjoint data-parallel readers, epochs, rendering."""
+
+from __future__ import annotations
+
+import shutil
+
+import jax
+import numpy as np
+import pytest
+from pipeline_test_helpers import STATIC
+
+from env import ObservationType, StaticEnvParams, observe
+from pipeline.layout import DatasetError
+from pipeline.loader import TrajectoryDatasetManager
+from pipeline.shard_store import open_dataset
+
+NUM_TRAJECTORIES = 8  # four batches of two kept trajectories
+KEPT_SLOTS = [0, 1, 3, 4, 6, 7, 9, 10]  # slots 3g and 3g + 1 of each level batch g
+
+
+def indices(manager, num_batches):
+    return [manager.load_next_batch().trajectory_index.tolist() for _ in range(num_batches)]
+
+
+def test_batch_shapes_and_broadcast_static_fields(dataset_dir, rolled_out):
+    batch = TrajectoryDatasetManager(dataset_dir, batch_size=3, seed=0).load_next_batch()
+    assert batch.action.shape == (3, 256, 6) and batch.action_mask.shape == (3, 256, 6)
+    assert batch.done.shape == (3, 256) and batch.mask.shape == (3, 256) and bool(batch.mask.all())
+    assert batch.env_state.sim.bodies.position.shape == (3, 256, 7, 2)
+    assert batch.env_state.sim.bodies.inverse_mass.shape == (3, 256, 7)
+    assert batch.env_state.sim.collision_matrix.shape == (3, 256, 7, 7)
+    assert batch.env_state.timestep.shape == (3, 256)
+    assert batch.obs is None
+    # slot 3g + i holds level i of the rollout
+    states, action, done, _ = rolled_out
+    for row, slot in enumerate(batch.trajectory_index):
+        level = slot % 3
+        np.testing.assert_array_equal(batch.action[row], action[level])
+        np.testing.assert_array_equal(batch.done[row], done[level])
+        np.testing.assert_array_equal(batch.env_state.sim.bodies.position[row], states.sim.bodies.position[level])
+        np.testing.assert_array_equal(batch.env_state.task.roles[row, 200], states.task.roles[level, 0])
+        np.testing.assert_array_equal(batch.action_mask[row, 17], [1, 0, 0, 0, 1, 0])
+
+
+def test_one_epoch_is_a_permutation_and_the_next_epoch_reshuffles(dataset_dir):
+    manager = TrajectoryDatasetManager(dataset_dir, batch_size=4, seed=3)
+    assert manager.length == NUM_TRAJECTORIES and manager.batches_per_epoch == 2
+    epochs = [sum(indices(manager, 2), []) for _ in range(3)]
+    assert all(sorted(epoch) == KEPT_SLOTS for epoch in epochs)
+    assert len({tuple(epoch) for epoch in epochs}) > 1
+
+
+def test_the_order_depends_only_on_the_seed(dataset_dir):
+    first = indices(TrajectoryDatasetManager(dataset_dir, batch_size=2, seed=5), 6)
+    again = indices(TrajectoryDatasetManager(dataset_dir, batch_size=2, seed=5), 6)
+    other = indices(TrajectoryDatasetManager(dataset_dir, batch_size=2, seed=6), 6)
+    assert first == again and first != other
+
+
+@pytest.mark.parametrize("readers", [2, 3])
+def test_data_parallel_readers_are_disjoint_and_cover_the_epoch(dataset_dir, readers):
+    per_reader = NUM_TRAJECTORIES // readers
+    seen = [
+        sum(indices(TrajectoryDatasetManager(dataset_dir, 1, 9, r, readers), per_reader), []) for r in range(readers)
+    ]
+    flat = sum(seen, [])
+    assert len(flat) == len(set(flat)) == per_reader * readers  # disjoint; 8 % 3 = 2 left out of this epoch
+    assert set(flat) <= set(KEPT_SLOTS)
+
+
+def test_render_fn_is_applied_to_every_step(dataset_dir, rolled_out):
+    def render(state):
+        return observe(state, STATIC, ObservationType.SYMBOLIC_FLAT)
+
+    batch = TrajectoryDatasetManager(dataset_dir, batch_size=2, seed=0, render_fn=render).load_next_batch()
+    assert batch.obs.shape == (2, 256, 140)
+    states = rolled_out[0]
+    level = int(batch.trajectory_index[0]) % 3
+    direct = observe(jax.tree.map(lambda x: x[level, 50], states), STATIC, ObservationType.SYMBOLIC_FLAT)
+    np.testing.assert_array_equal(batch.obs[0, 50], direct)
+
+
+def test_bad_requests_are_named(dataset_dir, tmp_path):
+    with pytest.raises(DatasetError, match="only 2 per epoch, fewer than batch_size 3"):
+        TrajectoryDatasetManager(dataset_dir, batch_size=3, shard_index=0, total_shard_count=4)
+    with pytest.raises(DatasetError, match="stored with .*num_polygons=5.* but .*num_polygons=6"):
+        TrajectoryDatasetManager(dataset_dir, batch_size=1, static_env_params=StaticEnvParams.for_size("m"))
+    with pytest.raises(DatasetError, match="not a dataset"):
+        TrajectoryDatasetManager(tmp_path, batch_size=1)
+    with pytest.raises(ValueError, match=r"shard_index 2 out of range \[0, 2\)"):
+        TrajectoryDatasetManager(dataset_dir, batch_size=1, shard_index=2, total_shard_count=2)
+
+
+def test_a_missing_or_corrupt_data_file_is_a_named_error(dataset_dir, tmp_path):
+    root = tmp_path / "ds"
+    shutil.copytree(dataset_dir, root)
+    dataset = open_dataset(root)
+    dataset.batch_file("meta/valid", 0).unlink()
+    with pytest.raises(DatasetError, match=r"committed slots \[0\] read as empty .*kforge verify"):
+        TrajectoryDatasetManager(root, batch_size=1).load_slots(np.array([0]))
+    path = dataset.batch_file("action", 1)
+    data = bytearray(path.read_bytes())
+    data[50] ^= 0xFF
+    path.write_bytes(bytes(data))
+    with pytest.raises(DatasetError, match="cannot read action: .*[Dd]igest mismatch"):
+        TrajectoryDatasetManager(root, batch_size=1).load_slots(np.array([3]))

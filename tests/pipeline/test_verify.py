@@ -1,0 +1,72 @@
+"""`kforge verify`: a clean dataset passes; corruption, missing files and uncommitted batches name their shard."""
+
+from __future__ import annotations
+
+import shutil
+
+import pytest
+from pipeline_test_helpers import GEOMETRY
+
+from pipeline.shard_store import open_dataset
+from pipeline.verify import main, verify_dataset
+
+
+@pytest.fixture
+def copy(dataset_dir, tmp_path):
+    target = tmp_path / "ds"
+    shutil.copytree(dataset_dir, target)
+    return target
+
+
+def test_a_clean_dataset_passes(dataset_dir, capsys):
+    reports = verify_dataset(dataset_dir)
+    assert [r.ok for r in reports] == [True, True]
+    assert [r.num_kept for r in reports] == [4, 4]  # two batches of two kept trajectories per shard
+    main([str(dataset_dir)], prog="kforge verify")
+    out = capsys.readouterr().out
+    assert "shard-000000: ok" in out and "shard-000001: ok" in out and "bad shards: none" in out
+
+
+def test_a_flipped_byte_in_a_chunk_fails_its_shard(copy, capsys):
+    dataset = open_dataset(copy)
+    path = dataset.batch_file("env_state/sim/bodies/position", GEOMETRY.global_batch(1, 1))
+    data = bytearray(path.read_bytes())
+    data[100] ^= 0xFF
+    path.write_bytes(bytes(data))
+    with pytest.raises(SystemExit) as exit_info:
+        main([str(copy)], prog="kforge verify")
+    assert exit_info.value.code == 1
+    captured = capsys.readouterr()
+    assert "shard-000000: ok" in captured.out
+    assert "shard-000001: BAD" in captured.out
+    assert (
+        "batch 1: env_state/sim/bodies/position: file data/env_state/sim/bodies/position/c/3/0/0/0 sha256 mismatch"
+        in (captured.out)
+    )
+    assert "cannot decode" in captured.out  # crc32c of the chunk
+    assert "bad shards shard-000001" in captured.err
+
+
+def test_a_missing_file_fails_its_shard(copy):
+    dataset = open_dataset(copy)
+    dataset.batch_file("done", GEOMETRY.global_batch(0, 1)).unlink()
+    reports = verify_dataset(copy)
+    assert [r.ok for r in reports] == [False, True]
+    assert "batch 1: done: file data/done/c/1/0 missing" in reports[0].problems
+    assert "batch 1: done: decoded content differs from the record" in reports[0].problems
+
+
+def test_a_missing_record_makes_the_shard_incomplete(copy):
+    (copy / "manifest" / "shard-000001" / "batch-000.json").unlink()
+    reports = verify_dataset(copy)
+    assert reports[1].problems == ["level batches [0] not committed"]
+    assert any("uncommitted data file" in note for note in reports[1].notes)
+    lenient = verify_dataset(copy, allow_incomplete=True)
+    assert [r.ok for r in lenient] == [True, True] and lenient[1].num_kept == 2
+
+
+def test_an_unreadable_dataset_exits_with_the_reason(tmp_path, capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        main([str(tmp_path)], prog="kforge verify")
+    assert exit_info.value.code == 1
+    assert "not a dataset" in capsys.readouterr().err
