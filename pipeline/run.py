@@ -9,6 +9,7 @@ import json
 import os
 import sys
 import time
+import warnings
 from pathlib import Path
 
 from tqdm import tqdm
@@ -85,10 +86,13 @@ def run_job(job: JobConfig, max_batches: int | None = None, show_progress: bool 
         os.environ.setdefault(name, value)
     started_ray = not ray.is_initialized()
     if started_ray:
-        if job.ray.address is None:
-            ray.init(address="local", include_dashboard=False, log_to_driver=False, namespace=RAY_NAMESPACE)
-        else:
-            ray.init(address=job.ray.address, namespace=RAY_NAMESPACE)
+        with warnings.catch_warnings():
+            # Ray starts its processes with fork + exec, which JAX's fork warning cannot tell from a bare fork.
+            warnings.filterwarnings("ignore", message="os.fork\\(\\) was called", category=RuntimeWarning)
+            if job.ray.address is None:
+                ray.init(address="local", include_dashboard=False, log_to_driver=False, namespace=RAY_NAMESPACE)
+            else:
+                ray.init(address=job.ray.address, namespace=RAY_NAMESPACE)
     started = time.perf_counter()
     failures = []
     try:

@@ -17,6 +17,7 @@ import pytest
 
 from engine import SceneBuilder
 from env import ActionType, EnvParams, Role, StaticEnvParams, build_level, random_action, reset, step
+from pipeline.config import load_config
 from pipeline.layout import make_layout
 from pipeline.shard_store import DatasetSpec, Geometry, create_dataset
 from pipeline.writer import KEPT, BatchTrajectories, write_level_batch
@@ -132,3 +133,25 @@ def dataset_dir(tmp_path_factory, rolled_out):
     root = tmp_path_factory.mktemp("dataset")
     write_all(root, rolled_out)
     return root
+
+
+TINY_JOB = [
+    "split.name=test/s",
+    "split.size=s",
+    "split.num_levels=6",
+    "split.expert_budget=256",
+    "work.levels_per_shard=4",
+    "work.levels_per_batch=2",
+    "ppo.num_envs=4",
+    "ppo.num_steps=16",
+    "ppo.num_minibatches=2",
+    "ppo.update_epochs=1",
+    "collect.window_steps=24",
+    "filter.noop_steps=24",
+]
+"""A job small enough for tests: 6 levels in 2 shards of 2 level batches; every test uses these shapes, so the
+training and rollout programs compile once per test session."""
+
+
+def tiny_job(output_dir, *extra):
+    return load_config(None, [f"output_dir={output_dir}", *TINY_JOB, *extra])

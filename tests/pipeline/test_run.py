@@ -9,8 +9,8 @@ import json
 import numpy as np
 import pytest
 import zarr
+from pipeline_test_helpers import tiny_job
 
-from pipeline.config import load_config
 from pipeline.coordinator import Coordinator
 from pipeline.level_batch import batches_per_shard, num_shards, run_level_batch
 from pipeline.manifest import committed_batches, iter_records
@@ -19,25 +19,6 @@ from pipeline.shard_store import open_dataset
 from pipeline.verify import verify_dataset
 from pipeline.worker import Worker
 from pipeline.writer import stage_level_batch
-
-TINY_JOB = [
-    "split.name=test/s",
-    "split.size=s",
-    "split.num_levels=6",
-    "split.expert_budget=256",
-    "work.levels_per_shard=4",
-    "work.levels_per_batch=2",
-    "ppo.num_envs=4",
-    "ppo.num_steps=16",
-    "ppo.num_minibatches=2",
-    "ppo.update_epochs=1",
-    "collect.window_steps=24",
-    "filter.noop_steps=24",
-]
-
-
-def tiny_job(output_dir, *extra):
-    return load_config(None, [f"output_dir={output_dir}", *TINY_JOB, *extra])
 
 
 def run_in_process(job, max_batches=None):
