@@ -23,6 +23,7 @@ class Coordinator:
         self._committed = {shard: set(committed_batches(root, shard)) for shard in range(num_shards)}
         self._leased: dict[int, str] = {}
         self._claimed: set[tuple[int, int]] = set()
+        self._abandoned: set[int] = set()
         self._budget = max_batches
 
     def next_shard(self, worker: str) -> int | None:
@@ -30,7 +31,7 @@ class Coordinator:
         if self._budget is not None and self._budget <= 0:
             return None
         for shard, done in self._committed.items():
-            if shard not in self._leased and len(done) < self._batches_per_shard:
+            if shard not in self._leased and shard not in self._abandoned and len(done) < self._batches_per_shard:
                 self._leased[shard] = worker
                 return shard
         return None
@@ -39,6 +40,10 @@ class Coordinator:
         """Give a shard back (its worker finished or failed); its uncommitted batches may be claimed again."""
         self._leased.pop(shard, None)
         self._claimed = {(s, b) for s, b in self._claimed if s != shard}
+
+    def abandon(self, shard: int) -> None:
+        """Hand `shard` out no more in this run (its workers keep failing); a later run retries it."""
+        self._abandoned.add(shard)
 
     def claim_batch(self, shard: int) -> int | None:
         """The next uncommitted, unclaimed level batch of a leased shard, in order; None when none is left or the

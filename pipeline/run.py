@@ -28,6 +28,8 @@ CONFIG_FILE = "config.yaml"
 
 RAY_NAMESPACE = "kforge"
 PROGRESS_POLL_SECONDS = 2.0
+MAX_SHARD_ATTEMPTS = 3
+"""A shard whose worker fails this many times in one run is abandoned for the run (committed batches stay)."""
 RAY_QUIET_ENV = {"RAY_AUTH_MODE": "disabled", "RAY_USAGE_STATS_ENABLED": "0"}
 """Embedded local Ray: no token auth (a private, single-user instance) and no usage reporting."""
 
@@ -95,6 +97,7 @@ def run_job(job: JobConfig, max_batches: int | None = None, show_progress: bool 
                 ray.init(address=job.ray.address, namespace=RAY_NAMESPACE)
     started = time.perf_counter()
     failures = []
+    attempts = collections.Counter()
     try:
         coordinator = (
             ray.remote(Coordinator)
@@ -102,7 +105,6 @@ def run_job(job: JobConfig, max_batches: int | None = None, show_progress: bool 
             .remote(job.output_dir, num_shards(job), batches_per_shard(job), max_batches)
         )
         worker_class = ray.remote(Worker).options(num_cpus=job.ray.cpus_per_worker, num_gpus=job.ray.gpus_per_worker)
-        workers = [worker_class.remote(job, f"worker-{i}") for i in range(job.ray.num_workers)]
         in_flight = {}
 
         def assign(worker, name):
@@ -110,8 +112,8 @@ def run_job(job: JobConfig, max_batches: int | None = None, show_progress: bool 
             if shard is not None:
                 in_flight[worker.run_shard.remote(coordinator, shard)] = (worker, name, shard)
 
-        for i, worker in enumerate(workers):
-            assign(worker, f"worker-{i}")
+        for i in range(job.ray.num_workers):
+            assign(worker_class.remote(job, f"worker-{i}"), f"worker-{i}")
         done, total = ray.get(coordinator.progress.remote())
         with tqdm(total=total, initial=done, unit="batch", desc="level batches", disable=not show_progress) as bar:
             while in_flight:
@@ -121,9 +123,13 @@ def run_job(job: JobConfig, max_batches: int | None = None, show_progress: bool 
                     try:
                         ray.get(ref)
                     except ray.exceptions.RayError as error:
+                        attempts[shard] += 1
                         failures.append({"shard": shard, "worker": name, "error": str(error).splitlines()[0]})
-                        ray.get(coordinator.release.remote(shard))
-                        continue  # a failing worker takes no more shards in this run
+                        if attempts[shard] >= MAX_SHARD_ATTEMPTS:
+                            ray.get(coordinator.abandon.remote(shard))  # a poison shard: left for a later run
+                        if isinstance(error, ray.exceptions.RayActorError):  # the worker process died: replace it
+                            name = f"{name}-restart{attempts.total()}"
+                            worker = worker_class.remote(job, name)
                     ray.get(coordinator.release.remote(shard))
                     assign(worker, name)
                 bar.update(ray.get(coordinator.progress.remote())[0] - bar.n)
@@ -132,7 +138,8 @@ def run_job(job: JobConfig, max_batches: int | None = None, show_progress: bool 
             ray.shutdown()
     summary = summarize(job.output_dir)
     summary["seconds"] = time.perf_counter() - started
-    summary["failed_shards"] = failures
+    summary["worker_failures"] = failures
+    summary["abandoned_shards"] = sorted(shard for shard, count in attempts.items() if count >= MAX_SHARD_ATTEMPTS)
     return summary
 
 
@@ -162,5 +169,5 @@ def main(argv=None, prog: str | None = None) -> None:
         print(f"error: {error}", file=sys.stderr)
         raise SystemExit(2) from error
     print(json.dumps(summary, indent=1))
-    if summary["failed_shards"]:
+    if summary["abandoned_shards"]:
         raise SystemExit(1)

@@ -2,12 +2,31 @@
 
 from __future__ import annotations
 
+import os
 import time
+from pathlib import Path
 
 from pipeline.config import JobConfig
 from pipeline.level_batch import run_level_batch
 from pipeline.shard_store import open_dataset
 from pipeline.writer import clean_uncommitted, stage_level_batch
+
+FAULT_INJECTION_ENV = "KFORGE_WORKER_FAULT"
+"""Fault drill: "N:PATH" makes the first worker that finds no file at PATH create it and kill its own process
+right after writing the data files of its N-th level batch, before the commit (the worst moment to die)."""
+
+
+def _maybe_inject_fault(staged: int) -> None:
+    plan = os.environ.get(FAULT_INJECTION_ENV)
+    if not plan:
+        return
+    count, marker = plan.split(":", 1)
+    if staged == int(count):
+        try:
+            Path(marker).touch(exist_ok=False)
+        except FileExistsError:
+            return
+        os._exit(1)
 
 
 class Worker:
@@ -16,6 +35,7 @@ class Worker:
     def __init__(self, job: JobConfig, name: str):
         self._job = job
         self._name = name
+        self._staged = 0
 
     def run_shard(self, coordinator, shard: int) -> list[dict]:
         """Continue `shard` from its last committed level batch; returns a summary per batch it committed.
@@ -29,6 +49,8 @@ class Worker:
             started = time.perf_counter()
             result = run_level_batch(self._job, shard, batch)
             record = stage_level_batch(dataset, shard, batch, result)
+            self._staged += 1
+            _maybe_inject_fault(self._staged)
             _call(coordinator.commit, shard, batch, record)
             summaries.append(
                 {

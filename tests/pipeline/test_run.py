@@ -17,7 +17,7 @@ from pipeline.manifest import committed_batches, iter_records
 from pipeline.run import ResumeRefused, prepare_output, run_job
 from pipeline.shard_store import open_dataset
 from pipeline.verify import verify_dataset
-from pipeline.worker import Worker
+from pipeline.worker import FAULT_INJECTION_ENV, Worker
 from pipeline.writer import stage_level_batch
 
 
@@ -94,5 +94,18 @@ def test_a_config_that_changes_the_data_is_refused(tmp_path):
 def test_ray_job_with_two_workers_matches_the_in_process_run(uninterrupted, tmp_path, monkeypatch):
     monkeypatch.setenv("RAY_AUTH_MODE", "disabled")
     summary = run_job(tiny_job(tmp_path, "ray.num_workers=2"), show_progress=False)
-    assert summary["failed_shards"] == [] and summary["committed_batches"] == 4
+    assert summary["worker_failures"] == [] and summary["committed_batches"] == 4
     assert_same_dataset(uninterrupted, tmp_path)
+
+
+@pytest.mark.slow
+def test_a_worker_killed_mid_shard_is_replaced_and_nothing_is_lost_or_duplicated(uninterrupted, tmp_path, monkeypatch):
+    monkeypatch.setenv("RAY_AUTH_MODE", "disabled")
+    marker = tmp_path / "fault-fired"
+    # The first worker to write its 1st level batch dies before the commit, leaving uncommitted data files.
+    monkeypatch.setenv(FAULT_INJECTION_ENV, f"1:{marker}")
+    output = tmp_path / "dataset"
+    summary = run_job(tiny_job(output, "ray.num_workers=2"), show_progress=False)
+    assert marker.exists() and len(summary["worker_failures"]) == 1
+    assert summary["abandoned_shards"] == [] and summary["committed_batches"] == 4
+    assert_same_dataset(uninterrupted, output)
