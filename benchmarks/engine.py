@@ -34,7 +34,8 @@ JAX2D_PUBLISHED_PEAK_STEPS_PER_SECOND = {"s": 2e7, "m": 9e6, "l": 1.7e6}
 """Jax2D README plots (hardware not stated), for comparison when a GPU is present."""
 
 
-def _best_time(function, argument, repeats: int) -> float:
+def best_time(function, argument, repeats: int) -> float:
+    """Fastest of `repeats` timed calls [s], after one untimed warm-up call."""
     jax.block_until_ready(function(argument))
     best = float("inf")
     for _ in range(repeats):
@@ -63,7 +64,7 @@ def measure_ours(size: str, batch: int, n_steps: int, repeats: int) -> dict:
         return jax.lax.scan(lambda s, _: (batched(s), None), states, None, length=n_steps)[0]
 
     compiled = jax.jit(rollout).lower(states).compile()
-    seconds = _best_time(compiled, states, repeats)
+    seconds = best_time(compiled, states, repeats)
     return {"engine": "ours", "size": size, "batch": batch, "steps_per_second": batch * n_steps / seconds}
 
 

@@ -26,6 +26,7 @@ import jax.numpy as jnp
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
+from benchmarks.engine import best_time  # noqa: E402
 from env import EnvParams, StaticEnvParams, reset, step  # noqa: E402
 from env.actions import MULTI_DISCRETE_SIZES  # noqa: E402
 from env.observations import ObservationType, observe  # noqa: E402
@@ -41,15 +42,6 @@ KINETIX_SAMPLER_BATCH = {"s": 512, "m": 256, "l": 32}
 """Levels per timed Kinetix sampler call: its sampler is slow for m and l (about 22 levels/s for l on 2 cores)."""
 
 
-def _best_time(function, argument, repeats: int) -> float:
-    best = float("inf")
-    for _ in range(repeats):
-        start = time.perf_counter()
-        jax.block_until_ready(function(argument))
-        best = min(best, time.perf_counter() - start)
-    return best
-
-
 def measure_sampler(size: str, batch: int, repeats: int) -> dict:
     static = StaticEnvParams.for_size(size)
     sample = jax.jit(lambda keys: sample_levels(keys, static))
@@ -57,7 +49,7 @@ def measure_sampler(size: str, batch: int, repeats: int) -> dict:
     start = time.perf_counter()
     compiled = sample.lower(keys).compile()
     compile_seconds = time.perf_counter() - start
-    seconds = _best_time(compiled, keys, repeats)
+    seconds = best_time(compiled, keys, repeats)
     return {"size": size, "batch": batch, "levels_per_second": batch / seconds, "compile_seconds": compile_seconds}
 
 
@@ -89,7 +81,7 @@ def measure_steps(size: str, batch: int, n_steps: int, repeats: int) -> dict:
     start = time.perf_counter()
     compiled = jax.jit(rollout).lower(key).compile()
     compile_seconds = time.perf_counter() - start
-    seconds = _best_time(compiled, key, repeats)
+    seconds = best_time(compiled, key, repeats)
     return {
         "size": size,
         "batch": batch,
