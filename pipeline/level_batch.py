@@ -8,6 +8,7 @@ shape is fixed by the config (XLA may round differently for another shape), and 
 from __future__ import annotations
 
 import enum
+import time
 
 import jax
 import jax.numpy as jnp
@@ -16,7 +17,7 @@ import numpy as np
 from agents import collect_windows, train_levels
 from env import EnvParams, FilterReason, Level, StaticEnvParams, filter_levels, sample_levels
 from pipeline.config import JobConfig, ppo_config
-from pipeline.writer import KEPT, BatchTrajectories
+from pipeline.writer import KEPT, BatchTrajectories, learning_curves
 
 
 class KeyPurpose(enum.IntEnum):
@@ -79,15 +80,19 @@ def run_level_batch(job: JobConfig, shard: int, batch: int) -> BatchTrajectories
     Every level gets an outcome (`level_outcome`); only kept levels' windows are stored. Levels past
     `split.num_levels` (padding of the last shard) are computed with the rest but never kept.
     """
+    clock = PhaseClock()
     params, static = environment(job)
     indices = batch_level_indices(job, shard, batch)
     levels = sample_batch(job, indices)
 
     filtered = jax.device_get(filter_levels(levels, params, static, noop_steps=job.filter.noop_steps))
     dropped = ~filtered.keep if job.filter.enabled else np.zeros_like(filtered.keep)
+    clock.lap("sample_and_filter")
 
     config = ppo_config(job)
     trained = train_levels(levels, level_keys(job.split.seed, indices, KeyPurpose.TRAIN), config, params, static)
+    jax.block_until_ready(trained)
+    clock.lap("train")
     window = collect_windows(
         trained.params,
         levels,
@@ -99,6 +104,7 @@ def run_level_batch(job: JobConfig, shard: int, batch: int) -> BatchTrajectories
         greedy=job.collect.greedy,
     )
     window, metrics = jax.device_get((window, trained.metrics))
+    clock.lap("collect")
     finite = _finite_per_level(trained.params) & _finite_per_level(window)
     in_split = indices < job.split.num_levels
     outcomes = [
@@ -115,7 +121,24 @@ def run_level_batch(job: JobConfig, shard: int, batch: int) -> BatchTrajectories
         level_seed=np.full(indices.shape, job.split.seed),
         expert_success_rate=np.asarray(metrics.success_rate, np.float32)[:, -1],
         outcome=outcomes,
+        curves=learning_curves(
+            np.asarray(metrics.success_rate), np.asarray(metrics.mean_return), config.steps_per_update
+        ),
+        seconds=clock.seconds,
     )
+
+
+class PhaseClock:
+    """Wall time of consecutive phases, in seconds by phase name."""
+
+    def __init__(self):
+        self.seconds: dict[str, float] = {}
+        self._last = time.perf_counter()
+
+    def lap(self, phase: str) -> None:
+        now = time.perf_counter()
+        self.seconds[phase] = now - self._last
+        self._last = now
 
 
 def level_outcome(in_split: bool, dropped: bool, reason: int, finite: bool, successful: bool) -> str:

@@ -9,7 +9,7 @@ from pathlib import Path
 from pipeline.config import JobConfig
 from pipeline.level_batch import run_level_batch
 from pipeline.shard_store import open_dataset
-from pipeline.writer import clean_uncommitted, stage_level_batch
+from pipeline.writer import PROVENANCE, clean_uncommitted, stage_level_batch
 
 FAULT_INJECTION_ENV = "KFORGE_WORKER_FAULT"
 """Fault drill: "N:PATH" makes the first worker that finds no file at PATH create it and kill its own process
@@ -48,7 +48,12 @@ class Worker:
         while (batch := _call(coordinator.claim_batch, shard)) is not None:
             started = time.perf_counter()
             result = run_level_batch(self._job, shard, batch)
+            written = time.perf_counter()
             record = stage_level_batch(dataset, shard, batch, result)
+            provenance = record.setdefault(PROVENANCE, {"seconds": {}})
+            provenance["seconds"]["write"] = time.perf_counter() - written
+            provenance["seconds"]["total"] = time.perf_counter() - started
+            provenance["worker"] = self._name
             self._staged += 1
             _maybe_inject_fault(self._staged)
             _call(coordinator.commit, shard, batch, record)

@@ -55,6 +55,39 @@ class BatchTrajectories:
     level_seed: np.ndarray  # (L,) int: the seed the level was sampled from
     expert_success_rate: np.ndarray  # (L,) f32 [-] success rate of the level's expert in evaluation
     outcome: Sequence[str]  # (L,) KEPT, or why the level was not kept (e.g. "filtered:trivial", "unsolved")
+    curves: LearningCurves | None = None  # the experts' training curves, for dataset cards
+    seconds: dict[str, float] = dataclasses.field(default_factory=dict)  # wall time per phase (not data)
+
+
+@dataclasses.dataclass(frozen=True)
+class LearningCurves:
+    """Training curves of a level batch's experts, averaged over consecutive updates into at most a few points."""
+
+    env_steps: np.ndarray  # (C,) int: env steps per level trained at the end of each point's updates
+    success_rate: np.ndarray  # (L, C) f32 [-] share of episodes ending in success (NaN where none ended)
+    mean_return: np.ndarray  # (L, C) f32 undiscounted episode return (NaN where no episode ended)
+
+
+MAX_CURVE_POINTS = 32
+"""Points per learning curve in a commit record (the release trains up to 5,000 updates per level)."""
+
+
+def learning_curves(success_rate: np.ndarray, mean_return: np.ndarray, steps_per_update: int) -> LearningCurves:
+    """Per-update (L, U) curves averaged over at most `MAX_CURVE_POINTS` runs of consecutive updates."""
+    num_updates = success_rate.shape[1]
+    groups = np.array_split(np.arange(num_updates), min(num_updates, MAX_CURVE_POINTS))
+
+    def averaged(values: np.ndarray) -> np.ndarray:
+        columns = []
+        for group in groups:
+            chunk = values[:, group]
+            seen = np.isfinite(chunk)
+            total = np.where(seen, chunk, 0.0).sum(axis=1)
+            columns.append(np.where(seen.any(axis=1), total / np.maximum(seen.sum(axis=1), 1), np.nan))
+        return np.stack(columns, axis=1).astype(np.float32)
+
+    env_steps = np.array([(group[-1] + 1) * steps_per_update for group in groups], np.int64)
+    return LearningCurves(env_steps, averaged(success_rate), averaged(mean_return))
 
 
 def episode_lengths(done: np.ndarray) -> np.ndarray:
@@ -194,6 +227,7 @@ def stage_level_batch(dataset: Dataset, shard: int, batch: int, result: BatchTra
             "expert_success_rate": _json_number(result.expert_success_rate[i]),
             "episode_lengths": episode_lengths(np.asarray(result.done[i])).tolist(),
         }
+        | _curve_entry(result.curves, i)
         for i, slot in enumerate(slots)
     ]
     record = {
@@ -205,7 +239,26 @@ def stage_level_batch(dataset: Dataset, shard: int, batch: int, result: BatchTra
         "levels": levels,
         "arrays": files,
     }
+    if result.curves is not None:
+        record["curve_env_steps"] = result.curves.env_steps.tolist()
+    if result.seconds:
+        record[PROVENANCE] = {"seconds": dict(result.seconds)}
     return record
+
+
+PROVENANCE = "provenance"
+"""Record key of how a batch was made (wall times, worker); it varies between runs and is not part of the data."""
+
+
+def _curve_entry(curves: LearningCurves | None, level: int) -> dict:
+    if curves is None:
+        return {}
+    return {
+        "learning_curve": {
+            "success_rate": [_json_number(v) for v in curves.success_rate[level]],
+            "mean_return": [_json_number(v) for v in curves.mean_return[level]],
+        }
+    }
 
 
 def clean_uncommitted(root: str | os.PathLike, shard: int) -> list[Path]:

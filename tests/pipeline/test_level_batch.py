@@ -15,7 +15,7 @@ from pipeline.level_batch import (
     run_level_batch,
     sample_batch,
 )
-from pipeline.writer import KEPT
+from pipeline.writer import KEPT, MAX_CURVE_POINTS, learning_curves
 
 
 @pytest.fixture(scope="module")
@@ -51,3 +51,20 @@ def test_level_batch_is_deterministic_and_outcomes_are_consistent(job):
         window_ok = bool(done.any()) and bool(np.all(success[done]))
         assert (outcome == KEPT) == (window_ok and not outcome.startswith(FILTERED_PREFIX))
     assert first.action.shape == (2, 24, 6) and first.expert_success_rate.shape == (2,)
+    np.testing.assert_array_equal(first.curves.success_rate, first.curves.success_rate.astype(np.float32))
+    assert first.curves.success_rate.shape == first.curves.mean_return.shape == (2, len(first.curves.env_steps))
+    assert first.curves.env_steps[-1] == job.split.expert_budget
+    assert set(first.seconds) == {"sample_and_filter", "train", "collect"} and min(first.seconds.values()) > 0
+
+
+def test_learning_curves_average_runs_of_updates_skipping_updates_without_episodes():
+    updates = MAX_CURVE_POINTS * 2 + 1  # 65 updates: the first group has 3, the others 2
+    success = np.full((1, updates), np.nan)
+    success[0, 0], success[0, 2] = 0.0, 1.0  # group 0 = updates 0..2 (update 1 saw no episode end)
+    success[0, 3:] = np.arange(3, updates) % 2  # every later group is one 1 and one 0 (in some order)
+    curves = learning_curves(success, -success, steps_per_update=10)
+    assert curves.env_steps[0] == 30 and curves.env_steps[-1] == updates * 10 and len(curves.env_steps) == 32
+    np.testing.assert_allclose(curves.success_rate[0], 0.5)
+    np.testing.assert_allclose(curves.mean_return[0], -0.5)
+    empty = learning_curves(np.full((2, 3), np.nan), np.full((2, 3), np.nan), steps_per_update=4)
+    assert np.isnan(empty.success_rate).all() and empty.env_steps.tolist() == [4, 8, 12]

@@ -18,7 +18,7 @@ from pipeline.run import ResumeRefused, prepare_output, run_job
 from pipeline.shard_store import open_dataset
 from pipeline.verify import verify_dataset
 from pipeline.worker import FAULT_INJECTION_ENV, Worker
-from pipeline.writer import stage_level_batch
+from pipeline.writer import PROVENANCE, stage_level_batch
 
 
 def run_in_process(job, max_batches=None):
@@ -37,7 +37,10 @@ def dataset_contents(root):
     arrays = {name: np.asarray(array[...]) for name, array in group.arrays()}
     for name, array in group.groups():
         arrays.update({f"{name}/{k}": np.asarray(v[...]) for k, v in array.arrays()})
-    records = sorted(json.dumps(record, sort_keys=True) for record in iter_records(root))
+    records = sorted(
+        json.dumps({key: value for key, value in record.items() if key != PROVENANCE}, sort_keys=True)
+        for record in iter_records(root)
+    )
     return arrays, records
 
 
