@@ -18,8 +18,12 @@ import pytest
 from engine import SceneBuilder
 from env import ActionType, EnvParams, Role, StaticEnvParams, build_level, random_action, reset, step
 from pipeline.config import load_config
+from pipeline.coordinator import Coordinator
 from pipeline.layout import make_layout
+from pipeline.level_batch import batches_per_shard, num_shards
+from pipeline.run import prepare_output
 from pipeline.shard_store import DatasetSpec, Geometry, create_dataset
+from pipeline.worker import Worker
 from pipeline.writer import KEPT, BatchTrajectories, write_level_batch
 
 # Test modules import these helpers as `pipeline_test_helpers` (works under every pytest import mode).
@@ -155,3 +159,13 @@ training and rollout programs compile once per test session."""
 
 def tiny_job(output_dir, *extra):
     return load_config(None, [f"output_dir={output_dir}", *TINY_JOB, *extra])
+
+
+def run_in_process(job, max_batches=None):
+    """The job's work loop without Ray: one worker takes shards from the coordinator until none is left."""
+    prepare_output(job)
+    coordinator = Coordinator(job.output_dir, num_shards(job), batches_per_shard(job), max_batches)
+    worker = Worker(job, "local")
+    while (shard := coordinator.next_shard("local")) is not None:
+        worker.run_shard(coordinator, shard)
+        coordinator.release(shard)

@@ -1,34 +1,32 @@
 """Jobs: resume after an interruption or a crash gives the same dataset, array for array; changed configs are refused.
 
-The fast tests drive the coordinator and a worker in-process (the same classes Ray runs as actors); the slow test
-runs the real Ray job with two workers and compares it with the in-process result.
+The fast tests drive the coordinator and a worker in-process (the same classes Ray runs as actors); the slow tests
+run the real Ray job (two workers, a worker killed, the whole job killed at several points) and compare the result
+with the in-process one.
 """
 
+import contextlib
 import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
 
 import numpy as np
 import pytest
 import zarr
-from pipeline_test_helpers import tiny_job
+from pipeline_test_helpers import run_in_process, tiny_job
 
-from pipeline.coordinator import Coordinator
-from pipeline.level_batch import batches_per_shard, num_shards, run_level_batch
+from pipeline.config import to_yaml
+from pipeline.level_batch import run_level_batch
 from pipeline.manifest import committed_batches, iter_records
 from pipeline.run import ResumeRefused, prepare_output, run_job
 from pipeline.shard_store import open_dataset
 from pipeline.verify import verify_dataset
-from pipeline.worker import FAULT_INJECTION_ENV, Worker
+from pipeline.worker import FAULT_INJECTION_ENV
 from pipeline.writer import PROVENANCE, stage_level_batch
-
-
-def run_in_process(job, max_batches=None):
-    """The job's work loop without Ray: one worker takes shards from the coordinator until none is left."""
-    prepare_output(job)
-    coordinator = Coordinator(job.output_dir, num_shards(job), batches_per_shard(job), max_batches)
-    worker = Worker(job, "local")
-    while (shard := coordinator.next_shard("local")) is not None:
-        worker.run_shard(coordinator, shard)
-        coordinator.release(shard)
 
 
 def dataset_contents(root):
@@ -112,3 +110,81 @@ def test_a_worker_killed_mid_shard_is_replaced_and_nothing_is_lost_or_duplicated
     assert marker.exists() and len(summary["worker_failures"]) == 1
     assert summary["abandoned_shards"] == [] and summary["committed_batches"] == 4
     assert_same_dataset(uninterrupted, output)
+
+
+def _session_processes(session: int) -> list[int]:
+    """Pids of the live processes of a Unix session (the job's driver and everything Ray started under it)."""
+    pids = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except (FileNotFoundError, ProcessLookupError, IndexError):
+            continue
+        if int(fields[3]) == session and fields[0] != "Z":  # fields after ")": state, ppid, pgrp, session
+            pids.append(int(stat.parent.name))
+    return pids
+
+
+def _kill_session(session: int) -> None:
+    """SIGKILL every process of the session (a job killed without warning), and wait until they are gone."""
+    deadline = time.monotonic() + KILL_WAIT_SECONDS
+    while (pids := _session_processes(session)) and time.monotonic() < deadline:
+        for pid in pids:
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(pid, signal.SIGKILL)
+        time.sleep(0.1)
+    assert not _session_processes(session), "processes of the killed job survived"
+
+
+KILL_WAIT_SECONDS = 30.0
+POLL_SECONDS = 0.05
+JOB_TIMEOUT_SECONDS = 900.0
+
+
+def _run_job_process(config_file: Path, until=None) -> None:
+    """Run `python -m pipeline run` in a session of its own; with `until`, SIGKILL the whole session as soon as
+    `until()` holds (the job dies mid-work), else wait for it to finish and check it succeeded."""
+    process = subprocess.Popen(
+        [sys.executable, "-m", "pipeline", "run", str(config_file), "--no-progress"],
+        start_new_session=True,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        env={**os.environ, "RAY_AUTH_MODE": "disabled"},
+    )
+    deadline = time.monotonic() + JOB_TIMEOUT_SECONDS
+    try:
+        while process.poll() is None and time.monotonic() < deadline:
+            if until is not None and until():
+                _kill_session(process.pid)
+                process.wait()
+                return
+            time.sleep(POLL_SECONDS)
+        output = process.communicate(timeout=KILL_WAIT_SECONDS)[0].decode(errors="replace")
+        assert until is None, f"the job ended before the kill point:\n{output[-3000:]}"
+        assert process.returncode == 0, output[-3000:]
+    finally:
+        _kill_session(process.pid)
+
+
+def _committed(root: Path) -> int:
+    return sum(len(committed_batches(root, shard)) for shard in range(2)) if (root / "manifest").is_dir() else 0
+
+
+@pytest.mark.slow
+def test_a_job_killed_at_several_points_and_resumed_equals_an_uninterrupted_run(uninterrupted, tmp_path):
+    output = tmp_path / "dataset"
+    config_file = tmp_path / "job.yaml"
+    config_file.write_text(to_yaml(tiny_job(output)))
+    kill_points = {
+        "dataset created, nothing committed": lambda: (output / "data" / "zarr.json").exists(),
+        "first level batch committed": lambda: _committed(output) >= 1,
+        "shard 0 done, shard 1 started": lambda: _committed(output) >= 3,
+    }
+    for where, reached in kill_points.items():
+        assert not reached(), f"already past the kill point '{where}' before the run"
+        _run_job_process(config_file, until=reached)
+        assert reached(), where
+    assert _committed(output) < 4  # the last kill came before the end
+    _run_job_process(config_file)
+    assert_same_dataset(uninterrupted, output)
+    assert all(report.ok for report in verify_dataset(output))

@@ -1,0 +1,160 @@
+"""End-to-end generation throughput, time outside expert training and rollout, and bytes on disk per transition.
+
+For each size it runs the same small job (embedded local Ray, a fresh output directory) once per worker count and
+prints: stored transitions per second, expert env steps per second, the share of worker time spent outside
+training and rollout (sampling, filtering, writing, coordination, start-up), bytes on disk per stored transition
+next to Kinetix-Offline's (release figures, reference §11), and whether every worker count wrote the same data.
+`--json` prints one JSON document instead.
+
+    python benchmarks/pipeline.py
+    python benchmarks/pipeline.py --sizes s --levels 32 --workers 1 2 --json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import sys
+import tempfile
+from pathlib import Path
+
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+
+from pipeline.config import load_config  # noqa: E402
+from pipeline.manifest import iter_records  # noqa: E402
+from pipeline.run import run_job  # noqa: E402
+from pipeline.shard_store import DATA_DIR  # noqa: E402
+from pipeline.writer import PROVENANCE  # noqa: E402
+
+KINETIX_OFFLINE_BYTES_PER_TRANSITION = {"s": 80.4, "m": 110.9, "l": 306.0}
+"""Kinetix-Offline 1M splits: bytes on disk per transition (GB = 1e9), reference kinetix-semantics.md §11."""
+
+TARGET_SHARE_OF_KINETIX_BYTES = 0.5
+TARGET_OUTSIDE_SHARE = 0.05
+TRAINING_PHASES = ("train", "collect")
+"""Provenance phases that are expert training and rollout; every other second of a worker counts as outside."""
+
+
+def bytes_on_disk(root: Path) -> int:
+    return sum(path.stat().st_size for path in (root / DATA_DIR).rglob("*") if path.is_file())
+
+
+def measure(size: str, workers: int, args, scratch: Path) -> dict:
+    output = scratch / f"{size}-{workers}w"
+    overrides = [
+        f"output_dir={output}",
+        f"split.name=bench/{size}",
+        f"split.size={size}",
+        f"split.num_levels={args.levels}",
+        f"split.expert_budget={args.budget}",
+        f"work.levels_per_batch={args.levels_per_batch}",
+        f"work.levels_per_shard={args.levels_per_batch * args.batches_per_shard}",
+        f"ppo.num_envs={args.num_envs}",
+        f"ppo.num_steps={args.num_steps}",
+        f"ray.num_workers={workers}",
+    ]
+    job = load_config(None, overrides)
+    summary = run_job(job, show_progress=False)
+    records = list(iter_records(output))
+    phases: dict[str, float] = {}
+    for record in records:
+        for phase, seconds in record.get(PROVENANCE, {}).get("seconds", {}).items():
+            phases[phase] = phases.get(phase, 0.0) + seconds
+    kept = sum(record["num_kept"] for record in records)
+    transitions = kept * job.collect.window_steps
+    trained = sum(1 for record in records for level in record["levels"] if level["outcome"] in ("kept", "unsolved"))
+    wall = summary["seconds"]
+    in_training = sum(phases.get(phase, 0.0) for phase in TRAINING_PHASES)
+    disk = bytes_on_disk(output)
+    return {
+        "size": size,
+        "workers": workers,
+        "wall_seconds": wall,
+        "levels": summary["levels"],
+        "outcomes": summary["outcomes"],
+        "kept_trajectories": kept,
+        "transitions_per_second": transitions / wall,
+        "expert_env_steps_per_second": trained * args.budget / wall,
+        "phase_seconds": phases,
+        "outside_training_share": 1.0 - in_training / (wall * workers),
+        "bytes_on_disk": disk,
+        "bytes_per_transition": disk / transitions if transitions else None,
+        "data_digests": sorted(
+            (record["global_batch"], name, entry["data_sha256"])
+            for record in records
+            for name, entry in record["arrays"].items()
+        ),
+    }
+
+
+def run(args, log=print) -> dict:
+    results = []
+    with tempfile.TemporaryDirectory(prefix="kforge-bench-") as scratch:
+        for size in args.sizes:
+            for workers in args.workers:
+                result = measure(size, workers, args, Path(scratch))
+                results.append(result)
+                log(_line(result))
+    report = {
+        "machine": {"platform": platform.platform(), "cpus": os.cpu_count()},
+        "settings": {k: getattr(args, k) for k in ("levels", "budget", "levels_per_batch", "batches_per_shard")},
+        "runs": [{k: v for k, v in result.items() if k != "data_digests"} for result in results],
+        "same_data_across_worker_counts": {
+            size: len({json.dumps(r["data_digests"]) for r in results if r["size"] == size}) == 1 for size in args.sizes
+        },
+        "bytes_vs_kinetix_offline": {
+            r["size"]: r["bytes_per_transition"] / KINETIX_OFFLINE_BYTES_PER_TRANSITION[r["size"]]
+            for r in results
+            if r["bytes_per_transition"] is not None
+        },
+    }
+    scaling = {}
+    for size in args.sizes:
+        by_workers = {r["workers"]: r["transitions_per_second"] for r in results if r["size"] == size}
+        if 1 in by_workers and by_workers[1] > 0:
+            scaling[size] = {workers: rate / by_workers[1] for workers, rate in by_workers.items()}
+    report["throughput_vs_one_worker"] = scaling
+    return report
+
+
+def _line(result: dict) -> str:
+    per_transition = result["bytes_per_transition"]
+    size = result["size"]
+    storage = (
+        f"{per_transition:6.1f} B/transition ({per_transition / KINETIX_OFFLINE_BYTES_PER_TRANSITION[size]:.2f}x "
+        f"Kinetix-Offline's {KINETIX_OFFLINE_BYTES_PER_TRANSITION[size]}, target <= {TARGET_SHARE_OF_KINETIX_BYTES}x)"
+        if per_transition is not None
+        else "no kept trajectory"
+    )
+    return (
+        f"{size} {result['workers']} worker(s): {result['wall_seconds']:6.1f} s, {result['kept_trajectories']} kept of "
+        f"{result['levels']} levels, {result['transitions_per_second']:8.1f} transitions/s, "
+        f"{result['expert_env_steps_per_second']:8.0f} expert env steps/s, outside training "
+        f"{100 * result['outside_training_share']:4.1f} % (target <= {100 * TARGET_OUTSIDE_SHARE:.0f} %), {storage}"
+    )
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--sizes", nargs="+", default=["s", "m", "l"], choices=["s", "m", "l"])
+    parser.add_argument("--workers", nargs="+", type=int, default=[1, 2], help="worker counts to compare")
+    parser.add_argument("--levels", type=int, default=32, help="levels per job")
+    parser.add_argument("--budget", type=int, default=131072, help="expert env steps per level")
+    parser.add_argument("--levels-per-batch", type=int, default=8)
+    parser.add_argument("--batches-per-shard", type=int, default=2)
+    parser.add_argument("--num-envs", type=int, default=16)
+    parser.add_argument("--num-steps", type=int, default=64)
+    parser.add_argument("--json", action="store_true", help="print one JSON document")
+    args = parser.parse_args(argv)
+    report = run(args, log=(lambda _: None) if args.json else print)
+    if args.json:
+        print(json.dumps(report, indent=1))
+        return
+    print("same data for every worker count:", report["same_data_across_worker_counts"])
+    print("throughput relative to one worker:", report["throughput_vs_one_worker"])
+
+
+if __name__ == "__main__":
+    main()
