@@ -1,4 +1,5 @@
-"""Field mapping between a decoded Kinetix level (Jax2D field names, per-kind numpy arrays) and our env types.
+"""Field mapping between a decoded Kinetix level (Jax2D field names, per-kind numpy arrays) and our env types;
+the level functions also map batches of levels (arrays with leading batch axes).
 
 Conventions (Jax2D 1.0.2 `sim_state.py`, `joint.py`, `engine.py`, checked against our engine):
 - Global shape index: polygon i -> i, circle i -> P + i, in both; joint and thruster indices copy over unchanged.
@@ -19,7 +20,9 @@ Conventions (Jax2D 1.0.2 `sim_state.py`, `joint.py`, `engine.py`, checked agains
 from __future__ import annotations
 
 import dataclasses
+import functools
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -124,35 +127,88 @@ KINETIX_MAX_TIMESTEPS = 256
 """Kinetix's loader forces every level's episode length to this many env steps."""
 
 
+BODY_FIELDS = (
+    "position",
+    "rotation",
+    "velocity",
+    "angular_velocity",
+    "inverse_mass",
+    "inverse_inertia",
+    "friction",
+    "restitution",
+    "collision_mode",
+    "active",
+    "n_vertices",
+    "vertices",
+    "radius",
+)
+"""Jax2D `RigidBody` fields; our `Bodies` fields of the same names have the same meaning and unit (vertex order and
+the per-kind fields differ, see above)."""
+
+JOINT_FIELDS: dict[str, str] = {
+    "a_index": "body_a",
+    "b_index": "body_b",
+    "a_relative_pos": "anchor_a",
+    "b_relative_pos": "anchor_b",
+    "active": "active",
+    "motor_speed": "motor_speed",
+    "motor_power": "motor_power",
+    "motor_on": "motor_on",
+    "motor_has_joint_limits": "has_limits",
+    "min_rotation": "lower_angle",
+    "max_rotation": "upper_angle",
+    "is_fixed_joint": "is_fixed",
+    "rotation": "reference_angle",
+}
+"""Jax2D `Joint` field -> our `Joints` field with the same meaning (`global_position`, `acc_impulse` and
+`acc_r_impulse` have none)."""
+
+THRUSTER_FIELDS: dict[str, str] = {
+    "object_index": "body",
+    "relative_position": "anchor",
+    "rotation": "angle",
+    "power": "power",
+    "active": "active",
+}
+"""Jax2D `Thruster` field -> our `Thrusters` field with the same meaning (`global_position` has none)."""
+
+
 @dataclasses.dataclass(frozen=True)
 class KinetixLevel:
-    """A Kinetix level decoded into numpy arrays, named as in Kinetix; one array per field, slots on axis 0.
+    """A Kinetix level (or a batch of levels) decoded into numpy arrays, named as in Kinetix; one array per field.
 
     `polygon` / `circle` hold the 13 Jax2D `RigidBody` fields plus `role`, `density` and `highlighted`; `joint` the
-    16 `Joint` fields plus `motor_binding`; `thruster` the 6 `Thruster` fields plus `thruster_binding`.
+    16 `Joint` fields plus `motor_binding`; `thruster` the 6 `Thruster` fields plus `thruster_binding`. Slots are on
+    the axis after any leading batch axes (axis 0 for one level).
     """
 
     polygon: dict[str, np.ndarray]
     circle: dict[str, np.ndarray]
     joint: dict[str, np.ndarray]
     thruster: dict[str, np.ndarray]
-    collision_matrix: np.ndarray  # (N, N) bool
-    gravity: np.ndarray  # (2,) [m/s^2]
-    env_params: dict[str, float]  # numeric Kinetix env_params, at least SIM_PARAM_FIELDS and dense_reward_scale
+    collision_matrix: np.ndarray  # (..., N, N) bool
+    gravity: np.ndarray  # (..., 2) [m/s^2]
+    env_params: dict[str, float]  # numeric Kinetix env_params (SIM_PARAM_FIELDS, dense_reward_scale); {} if unknown
     static_env_params: dict[str, int]  # num_polygons, num_circles, num_joints, num_thrusters, frame_skip
 
 
-def _kinetix_order_to_ours(vertices: np.ndarray, n_vertices: np.ndarray) -> np.ndarray:
-    """Reverse the first n_vertices points of each (4, 2) block (clockwise <-> counter-clockwise; an involution)."""
-    out = vertices.copy()
-    for slot, n in enumerate(n_vertices):
-        out[slot, :n] = vertices[slot, :n][::-1]
-    return out
+def reverse_vertex_order(vertices: np.ndarray, n_vertices: np.ndarray) -> np.ndarray:
+    """Reverse the first n_vertices points of each (4, 2) block, any leading axes (clockwise <-> counter-clockwise;
+    an involution)."""
+    count = np.clip(np.asarray(n_vertices), 0, MAX_VERTICES)[..., None]
+    point = np.arange(MAX_VERTICES)
+    order = np.where(point < count, count - 1 - point, point)
+    return np.take_along_axis(np.asarray(vertices), order[..., None], axis=-2)
 
 
 def static_from_kinetix(kinetix: KinetixLevel) -> StaticEnvParams:
     """Our static params for the level's slot counts and frame skip, with Kinetix's 256-step episodes."""
-    counts = kinetix.static_env_params
+    return static_from_counts(kinetix.static_env_params)
+
+
+def static_from_counts(counts: dict[str, int]) -> StaticEnvParams:
+    """Our static params for Kinetix slot counts and frame skip (`KinetixLevel.static_env_params` keys), with
+    Kinetix's boundary polygons and 256-step episodes."""
     sim = StaticSimParams(
         num_polygons=counts["num_polygons"],
         num_circles=counts["num_circles"],
@@ -169,145 +225,118 @@ def params_from_kinetix(kinetix: KinetixLevel) -> EnvParams:
     return EnvParams(sim=sim, dense_reward_scale=float(kinetix.env_params["dense_reward_scale"]))
 
 
+def _cast_like(template, values: dict[str, np.ndarray]) -> dict[str, jnp.ndarray]:
+    """`values` as device arrays of the dtypes of `template`'s fields of the same names."""
+    return {name: jnp.asarray(value, getattr(template, name).dtype) for name, value in values.items()}
+
+
+@functools.partial(jax.jit, static_argnames=("num_bodies", "batch_ndim"))
+def _collision_matrix(joints, num_bodies: int, batch_ndim: int) -> jnp.ndarray:
+    """`joint_collision_matrix` over `batch_ndim` leading axes, compiled once per size (not op by op)."""
+    matrix = functools.partial(joint_collision_matrix, num_bodies=num_bodies)
+    for _ in range(batch_ndim):
+        matrix = jax.vmap(matrix)
+    return matrix(joints)
+
+
 def level_from_kinetix(kinetix: KinetixLevel, static: StaticEnvParams) -> Level:
-    """The `Level` of a decoded Kinetix level: empty contact cache, collision matrix recomputed from the joints."""
+    """The `Level` of a decoded Kinetix level, or the batch of levels of a batch (same leading axes): empty contact
+    cache, zero joint impulses, no auto motors, collision matrix recomputed from the joints."""
     poly, circ, joint, thr = kinetix.polygon, kinetix.circle, kinetix.joint, kinetix.thruster
+    batch = np.shape(poly["active"])[:-1]
+    slot_axis = len(batch)
 
     def both(name):
-        return np.concatenate([poly[name], circ[name]])
+        return np.concatenate([poly[name], circ[name]], axis=slot_axis)
 
-    num_circles = len(circ["active"])
-    vertices = np.concatenate(
-        [_kinetix_order_to_ours(poly["vertices"], poly["n_vertices"]), np.zeros((num_circles, MAX_VERTICES, 2))]
-    )
-    empty = empty_state(static.sim)
-    f32 = jnp.float32
-    bodies = empty.bodies.replace(
-        position=jnp.asarray(both("position"), f32),
-        rotation=jnp.asarray(both("rotation"), f32),
-        velocity=jnp.asarray(both("velocity"), f32),
-        angular_velocity=jnp.asarray(both("angular_velocity"), f32),
-        inverse_mass=jnp.asarray(both("inverse_mass"), f32),
-        inverse_inertia=jnp.asarray(both("inverse_inertia"), f32),
-        friction=jnp.asarray(both("friction"), f32),
-        restitution=jnp.asarray(both("restitution"), f32),
-        collision_mode=jnp.asarray(both("collision_mode"), jnp.int32),
-        active=jnp.asarray(both("active"), bool),
-        n_vertices=jnp.asarray(np.concatenate([poly["n_vertices"], np.zeros(num_circles, int)]), jnp.int32),
-        vertices=jnp.asarray(vertices, f32),
-        radius=jnp.asarray(np.concatenate([np.zeros(len(poly["active"])), circ["radius"]]), f32),
-    )
+    circle_slots, polygon_slots = np.shape(circ["active"]), np.shape(poly["active"])
+    empty = jax.tree.map(lambda leaf: jnp.asarray(np.broadcast_to(leaf, batch + leaf.shape)), empty_state(static.sim))
+    body_values = {name: both(name) for name in BODY_FIELDS} | {
+        "vertices": np.concatenate(
+            [reverse_vertex_order(poly["vertices"], poly["n_vertices"]), np.zeros(circle_slots + (MAX_VERTICES, 2))],
+            axis=slot_axis,
+        ),
+        "n_vertices": np.concatenate([poly["n_vertices"], np.zeros(circle_slots, int)], axis=slot_axis),
+        "radius": np.concatenate([np.zeros(polygon_slots), circ["radius"]], axis=slot_axis),
+    }
+    bodies = empty.bodies.replace(**_cast_like(empty.bodies, body_values))
     joints = empty.joints.replace(
-        body_a=jnp.asarray(joint["a_index"], jnp.int32),
-        body_b=jnp.asarray(joint["b_index"], jnp.int32),
-        anchor_a=jnp.asarray(joint["a_relative_pos"], f32),
-        anchor_b=jnp.asarray(joint["b_relative_pos"], f32),
-        reference_angle=jnp.asarray(joint["rotation"], f32),
-        active=jnp.asarray(joint["active"], bool),
-        is_fixed=jnp.asarray(joint["is_fixed_joint"], bool),
-        motor_on=jnp.asarray(joint["motor_on"], bool),
-        motor_speed=jnp.asarray(joint["motor_speed"], f32),
-        motor_power=jnp.asarray(joint["motor_power"], f32),
-        has_limits=jnp.asarray(joint["motor_has_joint_limits"], bool),
-        lower_angle=jnp.asarray(joint["min_rotation"], f32),
-        upper_angle=jnp.asarray(joint["max_rotation"], f32),
+        **_cast_like(empty.joints, {ours: joint[theirs] for theirs, ours in JOINT_FIELDS.items()})
     )
     thrusters = empty.thrusters.replace(
-        body=jnp.asarray(thr["object_index"], jnp.int32),
-        anchor=jnp.asarray(thr["relative_position"], f32),
-        angle=jnp.asarray(thr["rotation"], f32),
-        power=jnp.asarray(thr["power"], f32),
-        active=jnp.asarray(thr["active"], bool),
+        **_cast_like(empty.thrusters, {ours: thr[theirs] for theirs, ours in THRUSTER_FIELDS.items()})
     )
     sim = SimState(
         bodies=bodies,
         joints=joints,
         thrusters=thrusters,
         contacts=empty.contacts,
-        collision_matrix=joint_collision_matrix(joints, static.num_bodies),
-        gravity=jnp.asarray(kinetix.gravity, f32),
+        collision_matrix=_collision_matrix(joints, num_bodies=static.num_bodies, batch_ndim=len(batch)),
+        gravity=jnp.asarray(kinetix.gravity, jnp.float32),
     )
     task = Task(
         roles=jnp.asarray(both("role"), jnp.int32),
-        densities=jnp.asarray(both("density"), f32),
+        densities=jnp.asarray(both("density"), jnp.float32),
         motor_bindings=jnp.asarray(joint["motor_binding"], jnp.int32),
         thruster_bindings=jnp.asarray(thr["thruster_binding"], jnp.int32),
-        motor_auto=jnp.zeros(static.sim.num_joints, bool),
+        motor_auto=jnp.asarray(np.zeros(batch + (static.sim.num_joints,), bool)),
     )
     return Level(sim=sim, task=task)
 
 
 def _anchor_world_position(bodies, body_index: np.ndarray, anchor: np.ndarray) -> np.ndarray:
-    """(K, 2) world position of body-frame points (Jax2D's `global_position` caches)."""
-    position = np.asarray(bodies.position, np.float64)[body_index]
-    rotation = np.asarray(bodies.rotation, np.float64)[body_index]
+    """(..., K, 2) world position of body-frame points (Jax2D's `global_position` caches), any leading axes."""
+    index = np.asarray(body_index)
+    position = np.take_along_axis(np.asarray(bodies.position, np.float64), index[..., None], axis=-2)
+    rotation = np.take_along_axis(np.asarray(bodies.rotation, np.float64), index, axis=-1)
     return position + rotate_host(rotation, np.asarray(anchor, np.float64))
 
 
-def level_to_kinetix(level: Level, static: StaticEnvParams, params: EnvParams) -> KinetixLevel:
-    """The decoded Kinetix form of a level; unmodelled fields get Kinetix's defaults."""
+def entities_to_kinetix(level: Level, static: StaticEnvParams) -> dict[str, object]:
+    """The `KinetixLevel` fields `polygon`, `circle`, `joint`, `thruster`, `collision_matrix` and `gravity` of a
+    level or of a batch of levels (leading axes kept); unmodelled fields get Kinetix's defaults."""
     b, j, t, task = level.sim.bodies, level.sim.joints, level.sim.thrusters, level.task
-    p = static.sim.num_polygons
+    slot_axis = np.ndim(b.active) - 1
 
     def host(x):
         return np.asarray(x)
 
     def split(x):
-        x = host(x)
-        return x[:p], x[p:]
+        return np.split(host(x), [static.sim.num_polygons], axis=slot_axis)
 
-    fields = {
-        "position": b.position,
-        "rotation": b.rotation,
-        "velocity": b.velocity,
-        "angular_velocity": b.angular_velocity,
-        "inverse_mass": b.inverse_mass,
-        "inverse_inertia": b.inverse_inertia,
-        "friction": b.friction,
-        "restitution": b.restitution,
-        "collision_mode": b.collision_mode,
-        "active": b.active,
-        "n_vertices": b.n_vertices,
-        "vertices": b.vertices,
-        "radius": b.radius,
+    fields = {name: getattr(b, name) for name in BODY_FIELDS} | {
         "role": task.roles,
         "density": task.densities,
-        "highlighted": np.zeros(static.num_bodies, bool),
+        "highlighted": np.zeros(np.shape(b.active), bool),
     }
     polygon = {name: split(value)[0] for name, value in fields.items()}
     circle = {name: split(value)[1] for name, value in fields.items()}
-    polygon["vertices"] = _kinetix_order_to_ours(polygon["vertices"], polygon["n_vertices"])
+    polygon["vertices"] = reverse_vertex_order(polygon["vertices"], polygon["n_vertices"])
     polygon["radius"] = np.zeros_like(polygon["radius"])
     circle["vertices"] = np.zeros_like(circle["vertices"])
     circle["n_vertices"] = np.zeros_like(circle["n_vertices"])
-    joint = {
-        "a_index": host(j.body_a),
-        "b_index": host(j.body_b),
-        "a_relative_pos": host(j.anchor_a),
-        "b_relative_pos": host(j.anchor_b),
+    joint = {theirs: host(getattr(j, ours)) for theirs, ours in JOINT_FIELDS.items()} | {
         "global_position": _anchor_world_position(b, host(j.body_a), j.anchor_a),
-        "active": host(j.active),
-        "acc_impulse": np.zeros((static.sim.num_joints, 2)),
-        "acc_r_impulse": np.zeros(static.sim.num_joints),
-        "motor_speed": host(j.motor_speed),
-        "motor_power": host(j.motor_power),
-        "motor_on": host(j.motor_on),
-        "motor_has_joint_limits": host(j.has_limits),
-        "min_rotation": host(j.lower_angle),
-        "max_rotation": host(j.upper_angle),
-        "is_fixed_joint": host(j.is_fixed),
-        "rotation": host(j.reference_angle),
+        "acc_impulse": np.zeros(np.shape(j.anchor_a)),
+        "acc_r_impulse": np.zeros(np.shape(j.reference_angle)),
         "motor_binding": host(task.motor_bindings),
     }
-    thruster = {
-        "object_index": host(t.body),
-        "relative_position": host(t.anchor),
-        "rotation": host(t.angle),
-        "power": host(t.power),
+    thruster = {theirs: host(getattr(t, ours)) for theirs, ours in THRUSTER_FIELDS.items()} | {
         "global_position": _anchor_world_position(b, host(t.body), t.anchor),
-        "active": host(t.active),
         "thruster_binding": host(task.thruster_bindings),
     }
+    return {
+        "polygon": polygon,
+        "circle": circle,
+        "joint": joint,
+        "thruster": thruster,
+        "collision_matrix": host(level.sim.collision_matrix),
+        "gravity": host(level.sim.gravity),
+    }
+
+
+def level_to_kinetix(level: Level, static: StaticEnvParams, params: EnvParams) -> KinetixLevel:
+    """The decoded Kinetix form of a level; unmodelled fields get Kinetix's defaults."""
     env_params = {theirs: float(getattr(params.sim, ours)) for theirs, ours in SIM_PARAM_FIELDS.items()}
     env_params["dense_reward_scale"] = float(params.dense_reward_scale)
     env_params["max_timesteps"] = static.max_timesteps
@@ -318,13 +347,4 @@ def level_to_kinetix(level: Level, static: StaticEnvParams, params: EnvParams) -
         "num_thrusters": static.sim.num_thrusters,
         "frame_skip": static.frame_skip,
     }
-    return KinetixLevel(
-        polygon=polygon,
-        circle=circle,
-        joint=joint,
-        thruster=thruster,
-        collision_matrix=host(level.sim.collision_matrix),
-        gravity=host(level.sim.gravity),
-        env_params=env_params,
-        static_env_params=counts,
-    )
+    return KinetixLevel(**entities_to_kinetix(level, static), env_params=env_params, static_env_params=counts)

@@ -313,7 +313,7 @@ def _check_actuators(joint: dict[str, np.ndarray], thruster: dict[str, np.ndarra
             _check(thruster["power"][i] >= 0, f"{path}.power", f"must be >= 0, got {thruster['power'][i]}")
 
 
-def _manifold_counts(num_polygons: int, num_circles: int) -> dict[str, int]:
+def manifold_counts(num_polygons: int, num_circles: int) -> dict[str, int]:
     """Records per manifold list: two per polygon pair (pairs of boundary polygons excluded), one otherwise."""
     boundary_pairs = NUM_BOUNDARY_POLYGONS * (NUM_BOUNDARY_POLYGONS - 1) // 2
     polygon_pairs = num_polygons * (num_polygons - 1) // 2 - boundary_pairs
@@ -348,7 +348,7 @@ def decode_level(raw: Any) -> KinetixLevel:
     matrix = _decode(
         _field(state, "collision_matrix", "env_state"), "bool", (num_bodies, num_bodies), "env_state.collision_matrix"
     )
-    for name, count in _manifold_counts(p, c).items():
+    for name, count in manifold_counts(p, c).items():
         _items(_field(state, name, "env_state"), count, f"env_state.{name}", "records")
     gravity = _decode(_field(state, "gravity", "env_state"), "float", (2,), "env_state.gravity")
     _check_bodies(polygon, "polygon", 0)
@@ -427,7 +427,7 @@ def level_to_dict(level: Level, static: StaticEnvParams, params: EnvParams) -> d
         "thruster": _encode_records(kinetix.thruster, THRUSTER_SCHEMA),
         "collision_matrix": _encode(kinetix.collision_matrix, "bool"),
     }
-    for name, count in _manifold_counts(counts["num_polygons"], counts["num_circles"]).items():
+    for name, count in manifold_counts(counts["num_polygons"], counts["num_circles"]).items():
         env_state[name] = _empty_manifolds(count)
     env_state["gravity"] = _encode(kinetix.gravity, "float")
     env_params = {**KINETIX_UNMODELLED_ENV_PARAMS, **kinetix.env_params}

@@ -7,6 +7,7 @@ from collections.abc import Callable, Sequence
 
 import engine.demo
 import env.play
+import pipeline.export
 import pipeline.run
 import pipeline.verify
 
@@ -15,6 +16,7 @@ COMMANDS: dict[str, tuple[str, Callable[..., None]]] = {
     "run": ("generate (or resume) a dataset from a job config", pipeline.run.main),
     "verify": ("check every shard of a dataset against its manifest", pipeline.verify.main),
     "render": ("play a Kinetix level file with a simple policy and write a GIF", env.play.main),
+    "export": ("write a dataset as Kinetix-Offline zarr v2 shards (--format kinetix)", pipeline.export.main),
 }
 """Subcommand name -> (help line, `main(argv, prog)` that parses the remaining arguments)."""
 
