@@ -8,7 +8,9 @@ from collections.abc import Callable, Sequence
 import engine.demo
 import env.play
 import pipeline.export
+import pipeline.levels_cli
 import pipeline.run
+import pipeline.stats
 import pipeline.verify
 
 COMMANDS: dict[str, tuple[str, Callable[..., None]]] = {
@@ -17,6 +19,8 @@ COMMANDS: dict[str, tuple[str, Callable[..., None]]] = {
     "verify": ("check every shard of a dataset against its manifest", pipeline.verify.main),
     "render": ("play a Kinetix level file with a simple policy and write a GIF", env.play.main),
     "export": ("write a dataset as Kinetix-Offline zarr v2 shards (--format kinetix)", pipeline.export.main),
+    "stats": ("write a dataset card: counts, bytes, timings, config and plots", pipeline.stats.main),
+    "levels": ("sample, preview, import and export Kinetix level files", pipeline.levels_cli.main),
 }
 """Subcommand name -> (help line, `main(argv, prog)` that parses the remaining arguments)."""
 

@@ -1,14 +1,28 @@
-"""Job configuration: an OmegaConf structured schema, loading with dotlist overrides, and the data-defining hash."""
+"""Job configuration: an OmegaConf structured schema, loading with dotlist overrides, and the data-defining hash.
+
+A job composes, later layers winning: the schema defaults, a config file (e.g. a release split,
+configs/splits/1M/s.yaml), a scale preset (configs/scales/{tiny,local,full}.yaml) and `key=value` overrides. Every
+key is documented by the comment on its line in the schema below; `to_yaml` writes the resolved config with each
+key's type and comment.
+"""
 
 from __future__ import annotations
 
+import ast
 import dataclasses
+import difflib
 import hashlib
+import inspect
+import io
 import json
+import textwrap
+import tokenize
+import typing
 from pathlib import Path
 
-from omegaconf import MISSING, OmegaConf
-from omegaconf.errors import OmegaConfBaseException
+import yaml
+from omegaconf import MISSING, DictConfig, OmegaConf
+from omegaconf.errors import ConfigKeyError, MissingMandatoryValue, OmegaConfBaseException, ValidationError
 
 from agents import PPOConfig
 from engine import KINETIX_SIZES
@@ -45,21 +59,21 @@ class FilterConfig:
 class PPOSection:
     """Specialist PPO settings (see configs/ppo_specialist.yaml for the evidence behind the defaults)."""
 
-    num_envs: int = 16
-    num_steps: int = 125
-    update_epochs: int = 4
-    num_minibatches: int = 4
-    learning_rate: float = 3e-4
-    adam_eps: float = 1e-5
-    max_grad_norm: float = 1.0
-    gamma: float = 0.995
-    gae_lambda: float = 0.9
-    clip_eps: float = 0.2
-    ent_coef: float = 0.01
-    vf_coef: float = 0.5
-    hidden_size: int = 64
-    num_hidden_layers: int = 2
-    bootstrap_truncation: bool = False
+    num_envs: int = 16  # parallel episodes per level
+    num_steps: int = 125  # env steps per env between two updates; split.expert_budget / (num_envs num_steps) updates
+    update_epochs: int = 4  # passes over each rollout
+    num_minibatches: int = 4  # minibatches per epoch; they split the num_envs * num_steps samples (must divide them)
+    learning_rate: float = 3e-4  # Adam step size, constant
+    adam_eps: float = 1e-5  # Adam epsilon (Kinetix)
+    max_grad_norm: float = 1.0  # global-norm gradient clipping before Adam (Kinetix)
+    gamma: float = 0.995  # discount per env step (Kinetix)
+    gae_lambda: float = 0.9  # GAE lambda (Kinetix)
+    clip_eps: float = 0.2  # PPO ratio clip, also the value-clipping range (Kinetix)
+    ent_coef: float = 0.01  # entropy bonus weight (Kinetix)
+    vf_coef: float = 0.5  # value loss weight (Kinetix)
+    hidden_size: int = 64  # units per hidden layer of the actor and of the critic (Kinetix: 128)
+    num_hidden_layers: int = 2  # tanh hidden layers of each MLP (Kinetix: 5)
+    bootstrap_truncation: bool = False  # time-limit ends bootstrap from the final state's value (false: terminal)
 
 
 @dataclasses.dataclass
@@ -72,6 +86,8 @@ class CollectConfig:
 
 @dataclasses.dataclass
 class EnvSection:
+    """Environment parameters of the experts' training episodes."""
+
     dense_reward_scale: float = 0.2  # shaping scale used for training (Kinetix's repository configs use 0.2)
 
 
@@ -81,15 +97,30 @@ class RayConfig:
 
     address: str | None = None  # None: embedded local Ray; "auto" or host:port: a running cluster
     num_workers: int = 1  # worker actors
-    cpus_per_worker: float = 1.0
-    gpus_per_worker: float = 0.0
+    cpus_per_worker: float = 1.0  # CPUs Ray reserves per worker actor
+    gpus_per_worker: float = 0.0  # GPUs Ray reserves per worker actor (1.0: one GPU each; JAX then runs on it)
+
+
+TRACKING_MODES = ("offline", "online", "disabled")
+"""Values of `tracking.wandb`."""
+
+
+@dataclasses.dataclass
+class TrackingConfig:
+    """Experiment tracking of a run (pipeline/tracking.py); none of these change the data."""
+
+    wandb: str = "offline"  # offline: local run files (`wandb sync` uploads them); online: needs a login; disabled
+    project: str = "kforge"  # wandb project
+    name: str | None = None  # wandb run name; None: wandb picks one
+    dir: str | None = None  # directory that receives wandb/<run>; None: output_dir (survives a Ray job's temp cwd)
 
 
 @dataclasses.dataclass
 class JobConfig:
     """A generation job: the split, how it is cut and trained, and where it runs and writes."""
 
-    output_dir: str = MISSING  # dataset directory (created; re-running on it resumes)
+    output_dir: str = MISSING  # dataset directory (created; re-running resumes); unset: outputs/<split name>-<scale>
+    scale: str | None = None  # scale preset applied over the config file (kforge run --scale); recorded, not re-applied
     split: SplitConfig = dataclasses.field(default_factory=SplitConfig)
     work: WorkConfig = dataclasses.field(default_factory=WorkConfig)
     filter: FilterConfig = dataclasses.field(default_factory=FilterConfig)
@@ -97,6 +128,7 @@ class JobConfig:
     ppo: PPOSection = dataclasses.field(default_factory=PPOSection)
     collect: CollectConfig = dataclasses.field(default_factory=CollectConfig)
     ray: RayConfig = dataclasses.field(default_factory=RayConfig)
+    tracking: TrackingConfig = dataclasses.field(default_factory=TrackingConfig)
 
 
 DATA_SECTIONS = ("split", "work", "filter", "env", "ppo", "collect")
@@ -107,25 +139,151 @@ class ConfigError(ValueError):
     """A job config that cannot be used; the message names the key."""
 
 
-def load_config(path: str | Path | None = None, overrides: list[str] = ()) -> JobConfig:
-    """The job config from the schema defaults, a YAML file and `key=value` overrides, validated."""
+CONFIGS_DIR = Path(__file__).resolve().parents[1] / "configs"
+"""The repository's config folder: release splits in splits/, scale presets in scales/."""
+
+SCALES_DIR = CONFIGS_DIR / "scales"
+"""Scale presets: `--scale NAME` reads SCALES_DIR/NAME.yaml."""
+
+DEFAULT_OUTPUT_ROOT = "outputs"
+"""Folder of the default output_dir, `outputs/<split name, '/' as '-'>-<scale>` (e.g. outputs/1M-s-tiny)."""
+
+OVERRIDES = "overrides"
+"""How errors name the `key=value` layer."""
+
+
+def load_config(path: str | Path | None = None, overrides: list[str] = (), scale: str | None = None) -> JobConfig:
+    """The job config: schema defaults, then the YAML file `path`, then the scale preset, then `key=value` overrides
+    (later layers win), validated. `scale` is a preset name in configs/scales or a YAML path; it is recorded in the
+    config's `scale` key. Without an output_dir it is derived from split.name and the scale (`default_output_dir`).
+
+    Raises `ConfigError` naming the layer and the key (and for a wrong type, the expected type).
+    """
+    layers = []
+    if path is not None:
+        layers.append((str(path), _load_yaml(path)))
+    if scale is not None:
+        layers.append((str(scale_path(scale)), _load_yaml(scale_path(scale))))
+    layers.append((OVERRIDES, _parse_overrides(overrides)))
+    config = OmegaConf.structured(JobConfig)
+    for index, (where, layer) in enumerate(layers):
+        if "scale" in layer and not (index == 0 and path is not None):
+            raise ConfigError(f"{where}: scale: a scale preset is applied with --scale NAME, not set as a key")
+        _check_sections(OmegaConf.to_container(layer), JobConfig, where)
+        try:
+            config = OmegaConf.merge(config, layer)
+        except OmegaConfBaseException as error:
+            raise _config_error(error, where) from error
     try:
-        config = OmegaConf.structured(JobConfig)
-        if path is not None:
-            config = OmegaConf.merge(config, OmegaConf.load(path))
-        config = OmegaConf.merge(config, OmegaConf.from_dotlist(list(overrides)))
+        if scale is not None:
+            config.scale = scale
+        if OmegaConf.is_missing(config, "output_dir") and not OmegaConf.is_missing(config.split, "name"):
+            config.output_dir = default_output_dir(config.split.name, config.scale)
         job: JobConfig = OmegaConf.to_object(config)
-    except FileNotFoundError as error:
-        raise ConfigError(f"config file not found: {path}") from error
     except OmegaConfBaseException as error:
-        raise ConfigError(str(error).splitlines()[0] + _key_suffix(error)) from error
+        raise _config_error(error, "config") from error
     check_config(job)
     return job
 
 
-def _key_suffix(error: OmegaConfBaseException) -> str:
-    key = getattr(error, "full_key", None)
-    return f" (key: {key})" if key else ""
+def scale_names() -> list[str]:
+    """Names of the scale presets in configs/scales."""
+    return sorted(path.stem for path in SCALES_DIR.glob("*.yaml"))
+
+
+def scale_path(scale: str) -> Path:
+    """The YAML file of a scale: a preset name (see `scale_names`) or a path ending in .yaml."""
+    path = Path(scale) if scale.endswith((".yaml", ".yml")) else SCALES_DIR / f"{scale}.yaml"
+    if not path.is_file():
+        raise ConfigError(f"scale {scale!r}: expected one of {', '.join(scale_names())} or a path to a YAML file")
+    return path
+
+
+def default_output_dir(split_name: str, scale: str | None) -> str:
+    """`outputs/<split name with '/' as '-'>[-<scale name>]`, e.g. outputs/1M-s-tiny."""
+    name = split_name.replace("/", "-") + (f"-{Path(scale).stem}" if scale else "")
+    return f"{DEFAULT_OUTPUT_ROOT}/{name}"
+
+
+def _load_yaml(path: str | Path) -> DictConfig:
+    try:
+        layer = OmegaConf.load(path)
+    except FileNotFoundError as error:
+        raise ConfigError(f"config file not found: {path}") from error
+    except yaml.YAMLError as error:
+        raise ConfigError(f"{path}: not valid YAML ({str(error).splitlines()[0]})") from error
+    if not isinstance(layer, DictConfig):
+        raise ConfigError(f"{path}: expected a mapping of keys at the top level, got a list")
+    return layer
+
+
+def _parse_overrides(overrides: list[str]) -> DictConfig:
+    for override in overrides:
+        if "=" not in override:
+            raise ConfigError(f"{OVERRIDES}: {override!r} is not of the form key=value")
+    try:
+        return OmegaConf.from_dotlist(list(overrides))
+    except yaml.YAMLError as error:
+        raise ConfigError(f"{OVERRIDES}: a value is not valid YAML ({str(error).splitlines()[0]})") from error
+
+
+def _schema_type(key: str):
+    """The annotated type of a dotted key in `JobConfig` (`JobConfig` itself for ""); None if there is no such key."""
+    hint = JobConfig
+    for part in key.split(".") if key else ():
+        if not dataclasses.is_dataclass(hint):
+            return None
+        hint = typing.get_type_hints(hint).get(part)
+    return hint
+
+
+def type_name(hint) -> str:
+    """A schema type as users write it: int, float, bool, str, "str or null", "section"."""
+    if dataclasses.is_dataclass(hint):
+        return "section"
+    args = typing.get_args(hint)
+    if args:
+        return " or ".join("null" if arg is type(None) else type_name(arg) for arg in args)
+    return hint.__name__
+
+
+def _check_sections(values: dict, schema: type, where: str, prefix: str = "") -> None:
+    """A section of the schema must be given as a mapping (OmegaConf's own message does not name it)."""
+    hints = typing.get_type_hints(schema)
+    for key, value in values.items():
+        hint = hints.get(key)
+        if not dataclasses.is_dataclass(hint):
+            continue
+        if not isinstance(value, dict):
+            keys = ", ".join(field.name for field in dataclasses.fields(hint))
+            raise ConfigError(f"{where}: {prefix}{key}: expected a section with keys {keys}; got {value!r}")
+        _check_sections(value, hint, where, f"{prefix}{key}.")
+
+
+def _config_error(error: OmegaConfBaseException, where: str) -> ConfigError:
+    key = getattr(error, "full_key", None) or ""
+    if isinstance(error, ConfigKeyError) and key:
+        return ConfigError(f"{where}: {_unknown_key_message(key)}")
+    if isinstance(error, MissingMandatoryValue) and key:
+        return ConfigError(f"{key}: missing; set it in the config file or as an override {key}=...")
+    hint = _schema_type(key) if key else None
+    if isinstance(error, ValidationError) and hint is not None:
+        value = getattr(error, "value", None)
+        return ConfigError(f"{where}: {key}: expected {type_name(hint)}, got {value!r} ({type(value).__name__})")
+    first_line = str(error).splitlines()[0]
+    return ConfigError(f"{where}: {key}: {first_line}" if key else f"{where}: {first_line}")
+
+
+def _unknown_key_message(key: str) -> str:
+    parent, _, name = key.rpartition(".")
+    schema = _schema_type(parent)
+    if not dataclasses.is_dataclass(schema):
+        return f"unknown key {key}"
+    names = [field.name for field in dataclasses.fields(schema)]
+    prefix = f"{parent}." if parent else ""
+    close = difflib.get_close_matches(name, names, n=1)
+    suggestion = f" (did you mean {prefix}{close[0]}?)" if close else ""
+    return f"unknown key {key}{suggestion}; {parent or 'the top level'} has: {', '.join(names)}"
 
 
 def check_config(job: JobConfig) -> None:
@@ -145,6 +303,8 @@ def check_config(job: JobConfig) -> None:
         raise ConfigError(f"filter.noop_steps must be in [1, 256], got {job.filter.noop_steps}")
     if job.ray.num_workers < 1:
         raise ConfigError(f"ray.num_workers must be >= 1, got {job.ray.num_workers}")
+    if job.tracking.wandb not in TRACKING_MODES:
+        raise ConfigError(f"tracking.wandb must be one of {', '.join(TRACKING_MODES)}, got {job.tracking.wandb!r}")
     try:
         ppo_config(job)
     except ValueError as error:
@@ -162,6 +322,30 @@ def data_fingerprint(job: JobConfig) -> str:
     return hashlib.sha256(json.dumps(data, sort_keys=True).encode()).hexdigest()[:16]
 
 
+def field_docs(section: type) -> dict[str, str]:
+    """Field name -> the comment on its line in the schema source (`name: type = default  # comment`)."""
+    source = textwrap.dedent(inspect.getsource(section))
+    tokens = tokenize.generate_tokens(io.StringIO(source).readline)
+    comments = {token.start[0]: token.string.lstrip("#").strip() for token in tokens if token.type == tokenize.COMMENT}
+    body = ast.parse(source).body[0].body
+    return {node.target.id: comments.get(node.lineno, "") for node in body if isinstance(node, ast.AnnAssign)}
+
+
 def to_yaml(job: JobConfig) -> str:
-    """The resolved config as YAML (saved with the dataset)."""
-    return OmegaConf.to_yaml(OmegaConf.structured(job))
+    """The resolved config as YAML, each key commented with its type and meaning (saved with the dataset as
+    config.yaml; `kforge run --print-config` prints it). Loading it gives the same config."""
+    return "\n".join(_yaml_lines(job, "")) + "\n"
+
+
+def _yaml_lines(section, indent: str) -> list[str]:
+    hints = typing.get_type_hints(type(section))
+    docs = field_docs(type(section))
+    lines = []
+    for field in dataclasses.fields(section):
+        value, hint = getattr(section, field.name), hints[field.name]
+        if dataclasses.is_dataclass(hint):
+            lines += [f"{indent}{field.name}:  # {hint.__doc__.splitlines()[0]}", *_yaml_lines(value, indent + "  ")]
+        else:
+            entry = OmegaConf.to_yaml({field.name: value}).strip()
+            lines.append(f"{indent}{entry}  # {type_name(hint)}: {docs[field.name]}")
+    return lines

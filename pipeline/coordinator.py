@@ -6,9 +6,18 @@ It runs as a named Ray actor, but its state is only a cache of the manifest on d
 
 from __future__ import annotations
 
+import dataclasses
 import os
 
 from pipeline.manifest import committed_batches, read_record, record_path, write_record
+
+
+@dataclasses.dataclass(frozen=True)
+class Commit:
+    """A level batch the coordinator committed, as reported to the driver (for progress and tracking)."""
+
+    record: dict  # the commit record as stored in the manifest
+    shard_complete: bool  # with it, every level batch of the record's shard is committed
 
 
 class Coordinator:
@@ -25,6 +34,7 @@ class Coordinator:
         self._claimed: set[tuple[int, int]] = set()
         self._abandoned: set[int] = set()
         self._budget = max_batches
+        self._unreported: list[Commit] = []
 
     def next_shard(self, worker: str) -> int | None:
         """The lowest shard with uncommitted level batches that no worker holds, leased to `worker`; None if done."""
@@ -65,9 +75,16 @@ class Coordinator:
         """
         if batch in self._committed[shard] and record_path(self._root, shard, batch).exists():
             return False
-        write_record(self._root, shard, batch, record)
+        stored = write_record(self._root, shard, batch, record)
         self._committed[shard].add(batch)
+        self._unreported.append(Commit(stored, len(self._committed[shard]) == self._batches_per_shard))
         return True
+
+    def take_commits(self) -> list[Commit]:
+        """The commits since the last call, in commit order (a restarted coordinator forgets unreported ones; the
+        manifest stays the truth)."""
+        commits, self._unreported = self._unreported, []
+        return commits
 
     def record(self, shard: int, batch: int) -> dict:
         return read_record(self._root, shard, batch)

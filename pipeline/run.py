@@ -15,12 +15,13 @@ from pathlib import Path
 from tqdm import tqdm
 
 from env import ActionType
-from pipeline.config import DATA_SECTIONS, ConfigError, JobConfig, data_fingerprint, load_config, to_yaml
+from pipeline.config import DATA_SECTIONS, ConfigError, JobConfig, data_fingerprint, load_config, scale_names, to_yaml
 from pipeline.coordinator import Coordinator
 from pipeline.layout import DatasetError, make_layout
 from pipeline.level_batch import batches_per_shard, environment, num_shards
 from pipeline.manifest import iter_records
 from pipeline.shard_store import DatasetSpec, Geometry, create_dataset, open_dataset
+from pipeline.tracking import start_tracking
 from pipeline.worker import Worker
 
 CONFIG_FILE = "config.yaml"
@@ -84,6 +85,7 @@ def run_job(job: JobConfig, max_batches: int | None = None, show_progress: bool 
     import ray
 
     prepare_output(job)
+    tracker = start_tracking(job)
     for name, value in RAY_QUIET_ENV.items():
         os.environ.setdefault(name, value)
     started_ray = not ray.is_initialized()
@@ -132,7 +134,11 @@ def run_job(job: JobConfig, max_batches: int | None = None, show_progress: bool 
                             worker = worker_class.remote(job, name)
                     ray.get(coordinator.release.remote(shard))
                     assign(worker, name)
+                tracker.log_commits(ray.get(coordinator.take_commits.remote()))
                 bar.update(ray.get(coordinator.progress.remote())[0] - bar.n)
+    except BaseException:
+        tracker.finish()  # marks the tracked run failed
+        raise
     finally:
         if started_ray:
             ray.shutdown()
@@ -140,6 +146,7 @@ def run_job(job: JobConfig, max_batches: int | None = None, show_progress: bool 
     summary["seconds"] = time.perf_counter() - started
     summary["worker_failures"] = failures
     summary["abandoned_shards"] = sorted(shard for shard, count in attempts.items() if count >= MAX_SHARD_ATTEMPTS)
+    tracker.finish(summary)
     return summary
 
 
@@ -155,15 +162,23 @@ def summarize(root) -> dict:
 
 
 def main(argv=None, prog: str | None = None) -> None:
-    """Run CONFIG (a job YAML, e.g. configs/jobs/tiny.yaml) with `key=value` overrides; resumes in output_dir."""
+    """Run CONFIG (a job YAML, e.g. configs/splits/1M/s.yaml) at a --scale with `key=value` overrides; resumes in
+    output_dir."""
     parser = argparse.ArgumentParser(prog=prog, description=main.__doc__)
-    parser.add_argument("config", help="job YAML file")
+    parser.add_argument("config", help="job YAML file, e.g. a release split: configs/splits/1M/s.yaml")
     parser.add_argument("overrides", nargs="*", help="dotlist overrides, e.g. split.num_levels=32 ray.num_workers=2")
+    parser.add_argument("--scale", help=f"scale preset applied over CONFIG: {', '.join(scale_names())}, or a YAML path")
+    parser.add_argument(
+        "--print-config", action="store_true", help="print the resolved config (each key's type and meaning) and exit"
+    )
     parser.add_argument("--max-batches", type=int, help="stop after this many level batches (resume later)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
-    args = parser.parse_args(argv)
+    args = parser.parse_intermixed_args(argv)  # overrides may follow the options
     try:
-        job = load_config(args.config, args.overrides)
+        job = load_config(args.config, args.overrides, scale=args.scale)
+        if args.print_config:
+            print(to_yaml(job), end="")
+            return
         summary = run_job(job, max_batches=args.max_batches, show_progress=not args.no_progress)
     except (ConfigError, ResumeRefused, DatasetError) as error:
         print(f"error: {error}", file=sys.stderr)
