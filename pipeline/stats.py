@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import collections
+import csv
 import dataclasses
 import os
 import sys
@@ -117,6 +118,7 @@ class DatasetStats:
     workers: list[str]
     data_bytes: int  # files under data/ (the arrays)
     manifest_bytes: int  # files under manifest/ (the commit records)
+    shards: dict[int, collections.Counter]  # shard -> its counts (SHARD_COLUMNS keys) and seconds per phase
 
     @property
     def sampled(self) -> int:
@@ -199,14 +201,22 @@ def collect_stats(root: str | os.PathLike, show_progress: bool = True) -> Datase
     lengths = {outcome: collections.Counter() for outcome in WINDOW_OUTCOMES}
     curve_stride = -(-dataset.geometry.num_slots // MAX_CURVE_LEVELS)
     seconds, timed = collections.Counter(), 0
+    shards: dict[int, collections.Counter] = collections.defaultdict(collections.Counter)
     progress = show_progress and len(batches) >= PROGRESS_MIN_RECORDS
     for shard, batch in tqdm(batches, desc="commit records", unit="record", disable=not progress):
         record = read_record(root, shard, batch)
+        shard_counts = shards[shard]
+        shard_counts["batches"] += 1
         for level in record["levels"]:
             outcome = level["outcome"]
             if outcome == PADDING:
                 continue
             outcomes[outcome] += 1
+            shard_counts["sampled"] += 1
+            shard_counts[outcome] += 1
+            trained = outcome in TRAINED_OUTCOMES
+            shard_counts["trained"] += trained
+            shard_counts["solved"] += trained and _float(level["expert_success_rate"]) > SOLVED_ABOVE
             if outcome in WINDOW_OUTCOMES:
                 lengths[outcome].update(level["episode_lengths"])
             if outcome in TRAINED_OUTCOMES:
@@ -222,6 +232,7 @@ def collect_stats(root: str | os.PathLike, show_progress: bool = True) -> Datase
         if provenance and "total" in provenance.get("seconds", {}):
             timed += 1
             seconds.update(provenance["seconds"])
+            shard_counts.update({f"seconds/{phase}": value for phase, value in provenance["seconds"].items()})
             workers.add(provenance.get("worker", "?"))
     return DatasetStats(
         root=root,
@@ -243,7 +254,34 @@ def collect_stats(root: str | os.PathLike, show_progress: bool = True) -> Datase
         workers=sorted(workers),
         data_bytes=directory_bytes(root / DATA_DIR),
         manifest_bytes=directory_bytes(root / MANIFEST_DIR),
+        shards=dict(shards),
     )
+
+
+SHARDS_FILE = "shards.csv"
+"""Per-shard table next to the plots: one row per shard with committed level batches."""
+
+
+def shard_columns(stats: DatasetStats) -> list[str]:
+    """Columns of the per-shard table: counts by outcome, then summed wall seconds per phase."""
+    present = set().union(*stats.shards.values()) if stats.shards else set()
+    filtered = sorted(key for key in present if key.startswith(FILTERED_PREFIX))
+    timings = [f"seconds/{phase}" for phase in (*PHASES, "total") if f"seconds/{phase}" in present]
+    return ["batches", "sampled", *filtered, "trained", "solved", KEPT, UNSOLVED, FAILED, *timings]
+
+
+def write_shard_table(stats: DatasetStats, path: Path) -> None:
+    """The per-shard counts and timings as CSV (seconds with millisecond resolution)."""
+    columns = shard_columns(stats)
+    with open(path, "w", newline="") as file:
+        writer = csv.writer(file)
+        writer.writerow(["shard", *columns])
+        for shard, counts in sorted(stats.shards.items()):
+            writer.writerow([shard, *(_csv_value(counts[column]) for column in columns)])
+
+
+def _csv_value(value: float) -> str:
+    return str(value) if float(value).is_integer() else f"{value:.3f}"
 
 
 # ------------------------------------------------------------------------------------------------------ card
@@ -323,6 +361,7 @@ def card_markdown(stats: DatasetStats, figures: dict[str, str]) -> str:
         "",
     ]
     lines += _time_lines(stats)
+    lines += ["", f"Counts and timings per shard: `{FIGURES_DIR}/{SHARDS_FILE}`."]
     lines += ["", "## Config", "", "| key | value |", "|---|---|"]
     lines += [
         f"| {key} | {_yaml_scalar(_config_value(stats.config, key, NOT_RECORDED))} |" for key in KEY_CONFIG_VALUES
@@ -467,6 +506,7 @@ def write_card(stats: DatasetStats, out_dir: str | os.PathLike) -> Path:
     """Write the plots into `out_dir`/card/ and the card into `out_dir`/card.md; returns the card's path."""
     out_dir = Path(out_dir)
     (out_dir / FIGURES_DIR).mkdir(parents=True, exist_ok=True)
+    write_shard_table(stats, out_dir / FIGURES_DIR / SHARDS_FILE)
     figures = {}
     for stem, (title, plot) in PLOTS.items():
         relative = f"{FIGURES_DIR}/{stem}.png"

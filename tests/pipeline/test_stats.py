@@ -8,6 +8,7 @@ kept: the card then has a filtered, a kept and unsolved levels to count.
 
 from __future__ import annotations
 
+import csv
 import json
 import re
 import shutil
@@ -20,7 +21,7 @@ from pipeline_test_helpers import run_in_process, tiny_job
 from pipeline.layout import VALID
 from pipeline.manifest import iter_records
 from pipeline.shard_store import open_dataset
-from pipeline.stats import CARD_FILE, FIGURES_DIR, PLOTS, collect_stats, main, write_card
+from pipeline.stats import CARD_FILE, FIGURES_DIR, PLOTS, SHARDS_FILE, collect_stats, main, write_card
 
 DATASET_OVERRIDES = ("split.seed=0", "filter.noop_steps=1")
 WINDOW_STEPS = 24  # [env steps] collect.window_steps of the test job
@@ -113,6 +114,21 @@ def test_card_names_the_fingerprint_config_and_timings(dataset, card):
     assert _number(timings["train"][0]) == pytest.approx(sum(s["train"] for s in seconds), abs=0.05)
     share = 100 * sum(s["train"] + s["collect"] for s in seconds) / total
     assert f"Train + collect: {share:.1f} % of the total." in _section(text, "Time")
+
+
+def test_shard_table_counts_and_times_each_shard_from_its_records(dataset, card):
+    with open(card[1] / FIGURES_DIR / SHARDS_FILE, newline="") as file:
+        rows = {int(row["shard"]): row for row in csv.DictReader(file)}
+    assert sorted(rows) == [0, 1]
+    for shard, row in rows.items():
+        records = [record for record in iter_records(dataset) if record["shard"] == shard]
+        levels = [level for record in records for level in record["levels"] if level["outcome"] != "padding"]
+        assert int(row["batches"]) == len(records) and int(row["sampled"]) == len(levels)
+        assert int(row["kept"]) == sum(level["outcome"] == "kept" for level in levels)
+        assert int(row["trained"]) == sum(not level["outcome"].startswith("filtered:") for level in levels)
+        seconds = sum(record["provenance"]["seconds"]["train"] for record in records)
+        assert float(row["seconds/train"]) == pytest.approx(seconds, abs=1e-3)
+    assert sum(int(row["sampled"]) for row in rows.values()) == expected_counts(dataset)["sampled"]
 
 
 def test_plots_are_pngs_with_content(card):
