@@ -1,0 +1,307 @@
+"""Expert quality: how often a PPO specialist solves its level at a given budget, on random and hand-designed s levels.
+
+Two level sets: the first `--levels` levels of split 1M/s (the pipeline's level keys, so level i here is level i of
+that split) and the 10 hand-designed s levels in ../shared/levels/kinetix/s/*.json (beside the checkout). Each level
+gets one expert per budget in `--budgets`, trained and rolled out exactly as pipeline/level_batch.py does (its env,
+PPO and collection settings and per-level keys). Per set and budget it prints:
+
+- window success: the share of levels whose expert window is successful (the pipeline's definition: a 256-step
+  window from the level's start with auto-reset in which at least one episode ends and every ending is a success,
+  `agents.collect_windows`), over all levels and over those the trivial-level filter keeps
+  (`env.level_filter.filter_levels` with the pipeline's no-op steps). Kinetix-Offline's card: about 50 % of generated
+  levels were solvable at its budgets;
+- evaluation success: `agents.evaluate` over `--episodes` episodes per level, averaged over levels;
+- wall time per level (training, window and evaluation of a vmapped batch divided by its levels; compiling excluded
+  and printed apart);
+- with several budgets, whether each larger budget solves strictly more levels than the one before, and which levels
+  only the smaller one solved.
+
+Budgets must be multiples of the PPO update (num_envs x num_steps; 2,000 env steps by default); `--scale tiny` or
+`--set ppo.num_envs=8 ppo.num_steps=32` allows powers of two. `--json` prints one JSON document with per-level
+results instead. The default run (64 random levels at 1M) trains 64M env steps plus the hand-designed set, over an
+hour on a 2-core CPU; 10M as well is about 8 x 10^8 env steps, most of a day. A quick check:
+
+    python benchmarks/experts.py --levels 8 --budgets 65536 131072 --scale tiny
+    python benchmarks/experts.py --budgets 1000000 10000000 --json
+"""
+
+from __future__ import annotations
+
+import argparse
+import functools
+import json
+import os
+import platform
+import sys
+import time
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+
+from agents import collect_windows, evaluate, train_levels  # noqa: E402
+from benchmarks.env import REPO_ROOT  # noqa: E402
+from env import FilterReason, Level, StaticEnvParams, filter_levels, load_level  # noqa: E402
+from pipeline.config import JobConfig, load_config, ppo_config  # noqa: E402
+from pipeline.level_batch import KeyPurpose, environment, level_key, level_keys, sample_batch  # noqa: E402
+
+SPLIT_CONFIG = REPO_ROOT / "configs" / "splits" / "1M" / "s.yaml"
+"""The split whose levels, env, filter, PPO and collection settings are used (its budget is replaced)."""
+
+HAND_LEVELS_DIR = REPO_ROOT.parent / "shared" / "levels" / "kinetix" / "s"
+HAND_LEVELS_SEED = 1_000_003
+"""Split seed of the hand-designed levels' training keys: a stream no release split uses."""
+
+EVALUATE_PURPOSE = max(KeyPurpose) + 1
+"""Key purpose of evaluation episodes, after the pipeline's own purposes (sample, train, collect)."""
+
+DEFAULT_BUDGETS = (1_000_000,)
+DEFAULT_RANDOM_LEVELS = 64
+DEFAULT_EPISODES = 16
+KINETIX_OFFLINE_SOLVED_SHARE = 0.5
+"""Share of generated levels Kinetix-Offline's card calls solvable (its experts' rollouts succeeded)."""
+
+
+def load_hand_levels(directory: Path, static: StaticEnvParams) -> tuple[list[str], Level]:
+    """The level files of `directory` (sorted by name) as one batched Level; they must have the split's size."""
+    paths = sorted(directory.glob("*.json"))
+    if not paths:
+        raise SystemExit(f"no level files in {directory}")
+    loaded = [load_level(path) for path in paths]
+    for path, level in zip(paths, loaded, strict=True):
+        if level.static != static:
+            raise SystemExit(f"{path}: static parameters {level.static} differ from the split's {static}")
+    return [path.stem for path in paths], jax.tree.map(lambda *x: jnp.stack(x), *(level.level for level in loaded))
+
+
+def sample_split_levels(job: JobConfig, count: int) -> Level:
+    """The split's first `count` levels, sampled in the pipeline's batches (`work.levels_per_batch` levels per call,
+    the same shape as pipeline/level_batch.py, since XLA may round differently for another shape)."""
+    batch = job.work.levels_per_batch
+    chunks = [sample_batch(job, np.arange(start, start + batch)) for start in range(0, count, batch)]
+    return jax.tree.map(lambda *x: jnp.concatenate(x)[:count], *chunks)
+
+
+class _BatchExperts:
+    """One vmapped batch's experts: rolls out their windows and evaluates them with per-level keys."""
+
+    def __init__(self, job: JobConfig, params, levels: Level, seed: int, indices: np.ndarray):
+        self.job, self.params, self.levels, self.seed, self.indices = job, params, levels, seed, indices
+        self.config = ppo_config(job)
+        self.env_params, self.static = environment(job)
+
+    def window(self):
+        return collect_windows(
+            self.params,
+            self.levels,
+            level_keys(self.seed, self.indices, KeyPurpose.COLLECT),
+            self.config,
+            self.env_params,
+            self.static,
+            num_steps=self.job.collect.window_steps,
+            greedy=self.job.collect.greedy,
+        )
+
+    def evaluate(self, episodes: int):
+        indices = jnp.asarray(self.indices, jnp.uint32)
+        keys = jax.vmap(lambda index: level_key(self.seed, index, EVALUATE_PURPOSE))(indices)
+        return evaluate(
+            self.params,
+            self.levels,
+            keys,
+            self.config,
+            self.env_params,
+            self.static,
+            num_episodes=episodes,
+            greedy=self.job.collect.greedy,
+        )
+
+
+def _timed(function, warm_up: bool) -> tuple[object, float]:
+    """(host copy of function(), seconds of that call); `warm_up` first makes one untimed call (compiling)."""
+    if warm_up:
+        jax.block_until_ready(function())
+    clock = time.perf_counter()
+    output = jax.device_get(function())
+    return output, time.perf_counter() - clock
+
+
+def run_experts(job: JobConfig, levels: Level, seed: int, batch: int, episodes: int, programs: dict, log) -> dict:
+    """Train, roll out and evaluate one expert per level in vmapped batches of `batch` levels (the last padded).
+
+    `programs` holds compiled training programs by (PPO config, static params, batch size), shared between calls.
+    Returns per-level arrays (window success, episodes ended in the window, evaluation success rate, last update's
+    training success rate) and seconds: compiling the training (0 when reused), and training / window / evaluation
+    summed over batches.
+    """
+    env_params, static = environment(job)
+    config = ppo_config(job)
+    count = len(jax.tree.leaves(levels)[0])
+    padded = -(-count // batch) * batch
+    results = {name: [] for name in ("successful", "episodes_ended", "eval_success_rate", "train_success_rate")}
+    seconds = {"compile": 0.0, "train": 0.0, "window": 0.0, "evaluate": 0.0}
+    for start in range(0, padded, batch):
+        indices = np.minimum(np.arange(start, start + batch), count - 1)
+        batch_levels = jax.tree.map(lambda x, indices=indices: x[indices], levels)
+        train_keys = level_keys(seed, indices, KeyPurpose.TRAIN)
+        if (config, static, batch) not in programs:
+            clock = time.perf_counter()
+            programs[config, static, batch] = train_levels.lower(
+                batch_levels, train_keys, config, env_params, static
+            ).compile()
+            seconds["compile"] = time.perf_counter() - clock
+        compiled = programs[config, static, batch]
+        trained, elapsed = _timed(functools.partial(compiled, batch_levels, train_keys, env_params), warm_up=False)
+        seconds["train"] += elapsed
+        expert = _BatchExperts(job, trained.params, batch_levels, seed, indices)
+        window, elapsed = _timed(expert.window, warm_up=start == 0)
+        seconds["window"] += elapsed
+        evaluation, elapsed = _timed(functools.partial(expert.evaluate, episodes), warm_up=start == 0)
+        seconds["evaluate"] += elapsed
+        results["successful"].append(window.successful)
+        results["episodes_ended"].append(window.episodes_ended)
+        results["eval_success_rate"].append(evaluation.success_rate)
+        results["train_success_rate"].append(trained.metrics.success_rate[:, -1])
+        log(f"  levels {start}-{min(start + batch, count) - 1} of {count} done ({seconds['train']:.0f} s training)")
+    per_level = {name: np.concatenate(values)[:count] for name, values in results.items()}
+    return {"per_level": per_level, "seconds": seconds, "padded_levels": padded}
+
+
+def _share(part: np.ndarray) -> float | None:
+    """Mean of a boolean or rate array; None when it is empty."""
+    return float(np.mean(part)) if part.size else None
+
+
+def _percent(share: float | None) -> str:
+    return "n/a" if share is None else f"{share:.0%}"
+
+
+def summarise(per_level: dict, keep: np.ndarray, seconds: dict, count: int, padded: int) -> dict:
+    """Shares of solved levels (all / kept by the filter), evaluation success and wall time per level."""
+    successful = per_level["successful"].astype(bool)
+    kept = int(keep.sum())
+    work_seconds = seconds["train"] + seconds["window"] + seconds["evaluate"]
+    return {
+        "levels": count,
+        "kept_by_filter": kept,
+        "solved": int(successful.sum()),
+        "solved_share": _share(successful),
+        "solved_kept": int(successful[keep].sum()),
+        "solved_share_kept": _share(successful[keep]),
+        "eval_success_rate": _share(per_level["eval_success_rate"]),
+        "eval_success_rate_kept": _share(per_level["eval_success_rate"][keep]),
+        "seconds_per_level": work_seconds / padded,
+        "train_seconds_per_level": seconds["train"] / padded,
+        "compile_seconds": seconds["compile"],
+    }
+
+
+def measure_set(name: str, ids: list, levels: Level, seed: int, args, programs: dict, log, random: bool) -> dict:
+    """Every budget on one level set: the filter's verdicts, then per budget the experts' results and summary.
+
+    `random`: the set is sampled from the level distribution, so Kinetix-Offline's solved share is its reference.
+    """
+    base = load_config(SPLIT_CONFIG, args.set, args.scale)
+    env_params, static = environment(base)
+    verdicts = jax.device_get(filter_levels(levels, env_params, static, noop_steps=base.filter.noop_steps))
+    keep = np.asarray(verdicts.keep)
+    count = len(ids)
+    log(f"{name}: {count} levels, {int(keep.sum())} kept by the trivial-level filter")
+    report = {
+        "levels": ids,
+        "filter_reason": [FilterReason(int(reason)).name.lower() for reason in verdicts.reason],
+        "budgets": {},
+    }
+    reference = f" (Kinetix-Offline ~{KINETIX_OFFLINE_SOLVED_SHARE:.0%})" if random else ""
+    for budget in args.budgets:
+        job = load_config(SPLIT_CONFIG, [*args.set, f"split.expert_budget={budget}"], args.scale)
+        config = ppo_config(job)
+        log(f"{name} budget {budget:,}: {config.num_updates} updates of {config.num_envs} x {config.num_steps} steps")
+        batch = args.batch or job.work.levels_per_batch
+        run = run_experts(job, levels, seed, batch, args.episodes, programs, log)
+        summary = summarise(run["per_level"], keep, run["seconds"], count, run["padded_levels"])
+        log(
+            f"{name} budget {budget:,}: window success {summary['solved']}/{count} = "
+            f"{_percent(summary['solved_share'])}{reference}; among the {summary['kept_by_filter']} kept "
+            f"{summary['solved_kept']} = {_percent(summary['solved_share_kept'])}; evaluation success "
+            f"{_percent(summary['eval_success_rate'])} (kept {_percent(summary['eval_success_rate_kept'])}); "
+            f"{summary['seconds_per_level']:.1f} s per level, compile {summary['compile_seconds']:.0f} s"
+        )
+        report["budgets"][str(budget)] = {
+            "summary": summary,
+            "per_level": {key: value.tolist() for key, value in run["per_level"].items()},
+        }
+    report["budget_comparisons"] = compare_budgets(name, ids, report["budgets"], log)
+    return report
+
+
+def compare_budgets(name: str, ids: list, budgets: dict, log) -> list:
+    """For each budget after the first: does it solve strictly more levels, and which levels lost their solve."""
+    comparisons = []
+    ordered = sorted(budgets, key=int)
+    for smaller, larger in zip(ordered, ordered[1:], strict=False):
+        before = np.asarray(budgets[smaller]["per_level"]["successful"], bool)
+        after = np.asarray(budgets[larger]["per_level"]["successful"], bool)
+        lost = [ids[i] for i in np.flatnonzero(before & ~after)]
+        comparison = {
+            "smaller": int(smaller),
+            "larger": int(larger),
+            "solved": [int(before.sum()), int(after.sum())],
+            "strictly_more": bool(after.sum() > before.sum()),
+            "solved_only_by_smaller": lost,
+        }
+        comparisons.append(comparison)
+        log(
+            f"{name}: {int(larger):,} solves {after.sum()} vs {before.sum()} at {int(smaller):,} "
+            f"(strictly more: {'yes' if comparison['strictly_more'] else 'no'}); solved only at the smaller budget: "
+            f"{lost or 'none'}"
+        )
+    return comparisons
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--levels", type=int, default=DEFAULT_RANDOM_LEVELS, help="random levels: split 1M/s's first")
+    parser.add_argument("--budgets", nargs="+", type=int, default=list(DEFAULT_BUDGETS), help="env steps per expert")
+    parser.add_argument(
+        "--batch", type=int, help="levels per vmapped program (default: the job's work.levels_per_batch)"
+    )
+    parser.add_argument("--episodes", type=int, default=DEFAULT_EPISODES, help="evaluation episodes per level")
+    parser.add_argument("--scale", help="pipeline scale preset applied to the split (e.g. tiny: 8 x 32 PPO updates)")
+    parser.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE", help="pipeline config overrides")
+    parser.add_argument("--sets", nargs="+", default=["random", "hand"], choices=["random", "hand"])
+    parser.add_argument("--hand-levels", type=Path, default=HAND_LEVELS_DIR, help="directory of hand-designed levels")
+    parser.add_argument("--json", action="store_true", help="print one JSON document with per-level results")
+    args = parser.parse_args(argv)
+
+    def log(line: str) -> None:
+        print(line, file=sys.stderr if args.json else sys.stdout, flush=True)
+
+    report = {
+        "machine": {"backend": jax.default_backend(), "cpu_count": os.cpu_count(), "platform": platform.platform()},
+        "split_config": str(SPLIT_CONFIG),
+        "scale": args.scale,
+        "overrides": args.set,
+        "sets": {},
+    }
+    job = load_config(SPLIT_CONFIG, args.set, args.scale)
+    programs = {}  # compiled training programs, shared by the level sets
+    if "random" in args.sets:
+        levels = sample_split_levels(job, args.levels)
+        report["sets"]["random"] = measure_set(
+            "random s", list(range(args.levels)), levels, job.split.seed, args, programs, log, random=True
+        )
+    if "hand" in args.sets:
+        names, levels = load_hand_levels(args.hand_levels, environment(job)[1])
+        report["sets"]["hand"] = measure_set(
+            "hand-designed s", names, levels, HAND_LEVELS_SEED, args, programs, log, random=False
+        )
+    if args.json:
+        print(json.dumps(report, indent=2))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,200 @@
+"""PPO training throughput of our specialists, and with `--vs kinetix` of Kinetix's own PPO in the same run.
+
+For each size, L random levels are trained together by `agents.train_levels` (one parameter set per level), N envs
+each, with configs/ppo_specialist.yaml's settings unless overridden (`--set key=value`). The rate counts every env
+step of every level over whole PPO updates (rollout, GAE, epochs of minibatch SGD), timed on an already compiled
+program; compile time is printed on its own. Measuring several level counts (`--levels 1 16`) shows what training
+levels together (vmapped) gains over training one. `--vs kinetix` runs benchmarks/kinetix_ppo_baseline.py (Kinetix's
+PPO loop with its 5 x 128 network, one of its random levels) in the kinetix-env virtualenv that benchmarks/env.py
+builds, with our envs, rollout length, epochs and minibatches, so both sides collect and learn from the same number
+of samples per update; it prints the ratios. Wall time is the figure; process CPU seconds are printed beside it
+because a shared machine makes wall times noisy. `--json` prints one JSON document instead.
+
+    python benchmarks/ppo.py --vs kinetix
+    python benchmarks/ppo.py --sizes s --levels 1 8 --updates 2 --json
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import os
+import platform
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import jax
+import yaml
+
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+
+from agents import PPOConfig, initial_params, train_levels  # noqa: E402
+from benchmarks.env import DEFAULT_KINETIX_VENV, REPO_ROOT, kinetix_python  # noqa: E402
+from env import EnvParams, StaticEnvParams, sample_levels  # noqa: E402
+
+DEFAULT_CONFIG = REPO_ROOT / "configs" / "ppo_specialist.yaml"
+LEVEL_SEED = 0
+"""Seed of the random levels: L levels are sampled from `jax.random.split(jax.random.key(LEVEL_SEED), L)`; Kinetix's
+side samples its level from `jax.random.key(LEVEL_SEED)` with its own sampler."""
+
+TRAIN_SEED = 1
+"""Seed of the per-level training keys."""
+
+TARGET_RATIO = 5.0
+"""Issue #4: our training throughput should be at least this many times Kinetix's."""
+
+
+def load_ppo_config(path: Path, overrides: list[str], updates: int) -> PPOConfig:
+    """The YAML config with `key=value` overrides, its budget cut to `updates` updates per level."""
+    values = yaml.safe_load(Path(path).read_text())
+    for item in overrides:
+        key, separator, value = item.partition("=")
+        if not separator:
+            raise SystemExit(f"--set expects key=value, got {item!r}")
+        values[key] = yaml.safe_load(value)
+    values["env_steps_per_level"] = updates * values["num_envs"] * values["num_steps"]
+    return PPOConfig.from_mapping(values)
+
+
+def _timed(function, repeats: int) -> tuple[float, float]:
+    """(wall, process CPU) seconds of the fastest of `repeats` calls, after one untimed warm-up call."""
+    jax.block_until_ready(function())
+    best = (float("inf"), float("inf"))
+    for _ in range(repeats):
+        wall, cpu = time.perf_counter(), time.process_time()
+        jax.block_until_ready(function())
+        best = min(best, (time.perf_counter() - wall, time.process_time() - cpu))
+    return best
+
+
+def measure_ours(size: str, num_levels: int, config: PPOConfig, repeats: int) -> dict:
+    """Env steps per second of `train_levels` on `num_levels` random levels of `size` (compile excluded)."""
+    static, env_params = StaticEnvParams.for_size(size), EnvParams()
+    level_keys = jax.random.split(jax.random.key(LEVEL_SEED), num_levels)
+    levels = jax.jit(lambda keys: sample_levels(keys, static))(level_keys)
+    keys = jax.random.split(jax.random.key(TRAIN_SEED), num_levels)
+    start = time.perf_counter()
+    compiled = train_levels.lower(levels, keys, config, env_params, static).compile()
+    compile_seconds = time.perf_counter() - start
+    seconds, cpu_seconds = _timed(lambda: compiled(levels, keys, env_params), repeats)
+    env_steps = num_levels * config.env_steps_per_level
+    return {
+        "levels": num_levels,
+        "env_steps_per_call": env_steps,
+        "compile_seconds": compile_seconds,
+        "seconds": seconds,
+        "cpu_seconds": cpu_seconds,
+        "steps_per_second": env_steps / seconds,
+        "steps_per_cpu_second": env_steps / cpu_seconds,
+    }
+
+
+def network_parameters(config: PPOConfig, static: StaticEnvParams) -> int:
+    shapes = jax.eval_shape(lambda key: initial_params(key, config, static), jax.random.key(0))
+    return sum(x.size for x in jax.tree.leaves(shapes))
+
+
+def measure_kinetix(python: Path, size: str, config: PPOConfig, args) -> dict:
+    """Kinetix's PPO on one of its random levels of `size`, with our envs, rollout, epochs and minibatches."""
+    command = [
+        str(python),
+        str(REPO_ROOT / "benchmarks" / "kinetix_ppo_baseline.py"),
+        f"--size={size}",
+        f"--num-envs={config.num_envs}",
+        f"--num-steps={config.num_steps}",
+        f"--num-minibatches={config.num_minibatches}",
+        f"--update-epochs={config.update_epochs}",
+        f"--updates={args.updates}",
+        f"--repeats={args.repeats}",
+        f"--level-seed={LEVEL_SEED}",
+    ]
+    if args.kinetix_network == "ours":
+        command += [f"--width={config.hidden_size}", f"--depth={config.num_hidden_layers}"]
+    output = subprocess.run(command, check=True, capture_output=True, text=True).stdout
+    return json.loads(output.strip().splitlines()[-1])
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--sizes", nargs="+", default=["s", "m", "l"], choices=["s", "m", "l"])
+    parser.add_argument("--levels", nargs="+", type=int, default=[1, 16], help="level counts L trained together")
+    parser.add_argument("--config", type=Path, default=DEFAULT_CONFIG, help="PPO settings (YAML of PPOConfig)")
+    parser.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE", help="PPOConfig overrides")
+    parser.add_argument("--updates", type=int, default=4, help="PPO updates per level per timed call")
+    parser.add_argument("--repeats", type=int, default=1, help="timed calls after a warm-up; the fastest is kept")
+    parser.add_argument("--vs", choices=["kinetix"], help="also measure Kinetix's PPO (separate virtualenv)")
+    parser.add_argument("--kinetix-venv", type=Path, default=DEFAULT_KINETIX_VENV, help="where that virtualenv lives")
+    parser.add_argument(
+        "--kinetix-network",
+        choices=["kinetix", "ours"],
+        default="kinetix",
+        help="Kinetix's side: its default 5 x 128 network, or its network at our width and depth",
+    )
+    parser.add_argument("--json", action="store_true", help="print one JSON document with every figure")
+    args = parser.parse_args(argv)
+    config = load_ppo_config(args.config, args.set, args.updates)
+
+    def log(line: str) -> None:
+        print(line, file=sys.stderr if args.json else sys.stdout, flush=True)
+
+    python = kinetix_python(args.kinetix_venv, log) if args.vs == "kinetix" else None
+    log(
+        f"PPO: {config.num_envs} envs x {config.num_steps} steps per update, {config.update_epochs} epochs x "
+        f"{config.num_minibatches} minibatches, {config.num_hidden_layers} x {config.hidden_size} MLP; "
+        f"{args.updates} updates per timed call"
+    )
+    report = {
+        "machine": {"backend": jax.default_backend(), "cpu_count": os.cpu_count(), "platform": platform.platform()},
+        "config": dataclasses.asdict(config),
+        "updates_per_call": args.updates,
+        "sizes": {},
+    }
+    for size in args.sizes:
+        entry = {"network_parameters": network_parameters(config, StaticEnvParams.for_size(size)), "ours": []}
+        for num_levels in args.levels:
+            ours = measure_ours(size, num_levels, config, args.repeats)
+            entry["ours"].append(ours)
+            log(
+                f"ours    size={size} L={num_levels:>3} x N={config.num_envs}: {ours['steps_per_second']:>9,.0f} env "
+                f"steps/s ({ours['steps_per_cpu_second']:,.0f} per CPU-s); compile {ours['compile_seconds']:.0f} s"
+            )
+        single = next((ours for ours in entry["ours"] if ours["levels"] == 1), None)
+        if single is not None:
+            entry["speedup_over_one_level"] = {
+                str(ours["levels"]): ours["steps_per_second"] / single["steps_per_second"] for ours in entry["ours"]
+            }
+            for levels, speedup in entry["speedup_over_one_level"].items():
+                log(f"ours    size={size} L={levels:>3}: {speedup:.1f}x the throughput of one level")
+        if python is not None:
+            log(f"kinetix size={size}: running its PPO in {args.kinetix_venv} (compiling takes minutes)")
+            theirs = measure_kinetix(python, size, config, args)
+            entry["kinetix"] = theirs
+            log(
+                f"kinetix size={size} L=  1 x N={theirs['num_envs']}: {theirs['steps_per_second']:>9,.0f} env steps/s "
+                f"({theirs['steps_per_cpu_second']:,.0f} per CPU-s; {theirs['depth']} x {theirs['width']} MLP, "
+                f"{theirs['network_parameters']:,} parameters vs our {entry['network_parameters']:,}); "
+                f"compile {theirs['compile_seconds']:.0f} s"
+            )
+            entry["ratio_ours_over_kinetix"] = {
+                str(ours["levels"]): ours["steps_per_second"] / theirs["steps_per_second"] for ours in entry["ours"]
+            }
+            entry["ratio_ours_over_kinetix_per_cpu_second"] = {
+                str(ours["levels"]): ours["steps_per_cpu_second"] / theirs["steps_per_cpu_second"]
+                for ours in entry["ours"]
+            }
+            for levels, ratio in entry["ratio_ours_over_kinetix"].items():
+                verdict = "meets" if ratio >= TARGET_RATIO else "misses"
+                log(
+                    f"size={size} ours L={levels:>3} / kinetix: {ratio:.1f}x ({verdict} the {TARGET_RATIO:.0f}x "
+                    f"target); per CPU-s {entry['ratio_ours_over_kinetix_per_cpu_second'][levels]:.1f}x"
+                )
+        report["sizes"][size] = entry
+    if args.json:
+        print(json.dumps(report, indent=2, default=str))  # default: the observation type enum
+
+
+if __name__ == "__main__":
+    main()
