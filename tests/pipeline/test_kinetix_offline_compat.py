@@ -4,7 +4,7 @@ and writes a shard our importer reads back.
 The virtualenv is the one `benchmarks/env.py --vs kinetix` builds (`.venv-kinetix`, built on first use: a few minutes
 and network access to PyPI); set KFORGE_KINETIX_VENV to an existing one to skip that, e.g.
 
-    KFORGE_KINETIX_VENV=/tmp/kvenv/v python -m pytest tests/pipeline/test_kinetix_offline_compat.py -m slow -q
+    KFORGE_KINETIX_VENV=path/to/kinetix-venv python -m pytest tests/pipeline/test_kinetix_offline_compat.py -m slow -q
 
 The checks themselves run in `kinetix_offline_check.py` (see its docstring); our dataset's values reach it as an npz
 file in our field names.
