@@ -3,12 +3,18 @@
 On CPU, XLA vectorises across the minor (last) axis. A function written so that every array keeps its
 per-scene axes first and carries any number of trailing batch axes can therefore be vmapped much faster
 by moving the vmapped axis to the end than by JAX's default (batch axis first).
+
+`vmap_in_chunks` makes a function run large batches in chunks, one after another, so that a chunk's working
+set stays in cache.
 """
 
 from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
+
+BATCH_CHUNK = 256
+"""Most scenes per call under `vmap_in_chunks`: larger batches are split into equal chunks of at most this many."""
 
 
 def vmap_batch_last(function):
@@ -30,6 +36,43 @@ def vmap_batch_last(function):
         moved = jax.tree_util.tree_map(to_last, args, tuple(in_batched))
         out = wrapped(*moved)
         out = jax.tree_util.tree_map(lambda x: jnp.moveaxis(x, -1, 0), out)
+        return out, jax.tree_util.tree_map(lambda _: True, out)
+
+    return wrapped
+
+
+def vmap_in_chunks(function, chunk_limit: int = BATCH_CHUNK):
+    """`function` with a vmap rule that runs batches larger than `chunk_limit` as a loop over equal chunks.
+
+    Each chunk is an ordinary `jax.vmap` of `function`; the last scene is repeated to fill the last chunk.
+    """
+    wrapped = jax.custom_batching.custom_vmap(function)
+
+    @wrapped.def_vmap
+    def rule(axis_size, in_batched, *args):
+        num_chunks = -(-axis_size // chunk_limit)
+        chunk = -(-axis_size // num_chunks)
+        padded = num_chunks * chunk
+        leaves, tree = jax.tree_util.tree_flatten(args)
+        batched = jax.tree_util.tree_leaves(tuple(in_batched))
+        axes = jax.tree_util.tree_unflatten(tree, [0 if b else None for b in batched])
+        if num_chunks == 1:
+            out = jax.vmap(function, in_axes=axes)(*args)
+            return out, jax.tree_util.tree_map(lambda _: True, out)
+
+        def split(x):
+            """(B, ...) -> (chunks, chunk, ...), padded by repeating the last scene."""
+            if padded > axis_size:
+                x = jnp.concatenate([x, jnp.repeat(x[-1:], padded - axis_size, axis=0)])
+            return x.reshape((num_chunks, chunk) + x.shape[1:])
+
+        def call(chunk_leaves):
+            chunk_leaves = iter(chunk_leaves)
+            full = [next(chunk_leaves) if b else x for x, b in zip(leaves, batched, strict=True)]
+            return jax.vmap(function, in_axes=axes)(*jax.tree_util.tree_unflatten(tree, full))
+
+        out = jax.lax.map(call, [split(jnp.asarray(x)) for x, b in zip(leaves, batched, strict=True) if b])
+        out = jax.tree_util.tree_map(lambda x: x.reshape((padded,) + x.shape[2:])[:axis_size], out)
         return out, jax.tree_util.tree_map(lambda _: True, out)
 
     return wrapped

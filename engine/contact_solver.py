@@ -1,10 +1,13 @@
 """Contact constraints: prepared once per step from the manifolds, then solved colour by colour each substep.
 
 Each pair has four rows: the normal rows of its two points, then their friction rows, solved in that order.
-Pairs of one colour share no movable body and are solved at once; colours are swept in order (Gauss-Seidel).
+Pairs of one colour share no movable body and are solved at once; colours are swept in order (Gauss-Seidel) by
+one `engine.sweep.pipelined_sweep`, whose body is compiled once however many colours there are.
 
 Preparation works on one scene. The solve functions are rank-polymorphic: per-scene axes first, any number of
-trailing batch axes (see `engine.batch_last`), with body velocities and poses shaped (N+1, 3, *batch).
+trailing batch axes (see `engine.batch_last`). They work on structures of arrays, which XLA compiles to plain
+element-wise loops: body velocities and poses are `Motion` triples of (N+1, *batch) arrays, and every row
+quantity is its own (C, W, *batch) array.
 """
 
 from __future__ import annotations
@@ -18,9 +21,13 @@ from engine.collision import Manifolds
 from engine.geometry import dot2
 from engine.pairs import PairLayout
 from engine.softness import Softness
+from engine.sweep import Motion, pipelined_sweep
 
 NUM_ROWS = 4
 """Rows per pair: normal point 0, normal point 1, friction point 0, friction point 1."""
+
+NUM_POINTS = 2
+"""Contact points per pair; row r acts at point r % 2."""
 
 
 @struct.dataclass
@@ -42,27 +49,11 @@ class ContactGeometry:
 
 
 @struct.dataclass
-class ContactRows:
-    """Per-row constants of the contact constraints in colour layout (C colours, W pairs, 4 rows).
-
-    Body indices of each slot are static: `PairLayout.colour_body_a` / `colour_body_b`.
-    """
-
-    jacobian_a: jnp.ndarray  # (C, W, 4, 3) d(row velocity)/d(vx, vy, w) of body a
-    jacobian_b: jnp.ndarray  # (C, W, 4, 3)
-    response_a: jnp.ndarray  # (C, W, 4, 3) velocity change of body a per unit row impulse
-    response_b: jnp.ndarray  # (C, W, 4, 3)
-    mass: jnp.ndarray  # (C, W, 4) [kg] effective mass of each row (0 when disabled)
-    coupling: jnp.ndarray  # (C, W, 4, 4) speed change of row r per unit impulse on row s (Delassus matrix)
-    geometry: ContactGeometry  # what the rows were built from
-
-
-@struct.dataclass
 class ContactImpulses:
-    """Accumulated per-substep impulses in colour layout."""
+    """Accumulated per-substep impulses in colour layout, one (C, W, *batch) array per row."""
 
-    impulse: jnp.ndarray  # (C, W, 4) [N s] normal 0, normal 1, tangent 0, tangent 1
-    max_normal: jnp.ndarray  # (C, W, 2) [N s] largest normal impulse of the step (restitution needs contact)
+    impulse: tuple  # (4,) of arrays [N s]: normal 0, normal 1, tangent 0, tangent 1
+    max_normal: tuple  # (2,) of arrays [N s] largest normal impulse of the step (restitution needs contact)
 
 
 def prepare_contacts(
@@ -117,41 +108,98 @@ def prepare_contacts(
     return to_colour_layout(per_pair, layout)
 
 
+@struct.dataclass
+class ContactRows:
+    """Per-row constants of the contact constraints in colour layout: every field is (C, W, *batch) or a tuple of such.
+
+    Row r pushes along d_r, the normal (n_x, n_y) for r = 0, 1 and the tangent (-n_y, n_x) for r = 2, 3, at point
+    r % 2. Its speed is (v_b - v_a) . d_r + w_b * arm_b[r] - w_a * arm_a[r]. Body indices of each slot are static:
+    `PairLayout.colour_body_a` / `colour_body_b`.
+    """
+
+    normal_x: jnp.ndarray  # unit normal from body a to body b
+    normal_y: jnp.ndarray
+    arm_a: tuple  # (4,) of arrays [m] lever of the row's point about a's centre, crossed with d_r (0 if disabled)
+    arm_b: tuple  # (4,) of arrays [m]
+    inverse_mass_a: jnp.ndarray  # [1/kg] 0 if a cannot move
+    inverse_inertia_a: jnp.ndarray  # [1/(kg m^2)]
+    inverse_mass_b: jnp.ndarray
+    inverse_inertia_b: jnp.ndarray
+    mass: tuple  # (4,) of arrays [kg] effective mass of each row (0 when its point is disabled)
+    coupling: tuple  # (6,) of arrays: speed change of row r per unit impulse on row s < r, see `_coupling`
+    separation: tuple  # (2,) of arrays [m] of each point at the start of the step
+    approach_velocity: tuple  # (2,) of arrays [m/s] normal relative velocity at impact
+    enabled: tuple  # (2,) of bool arrays, per point
+    friction: jnp.ndarray  # [-] mixed coefficient
+    restitution: jnp.ndarray  # [-] mixed coefficient
+    softness: Softness  # fields (C, W, *batch): stiffer against static bodies
+
+
+def _direction(rows: ContactRows, r: int):
+    """Direction d_r of row r: the normal for the normal rows, the tangent (-n_y, n_x) for the friction rows."""
+    if r < NUM_POINTS:
+        return rows.normal_x, rows.normal_y
+    return -rows.normal_y, rows.normal_x
+
+
+def _coupling_index(r: int, s: int) -> int:
+    """Position of the (r, s) entry, s < r, in `ContactRows.coupling`."""
+    return r * (r - 1) // 2 + s
+
+
 def build_rows(geometry: ContactGeometry, response_scale, layout: PairLayout) -> ContactRows:
     """Constraint rows from contact geometry (rank-polymorphic; `response_scale` is (N+1, 3, *batch))."""
     g = geometry
     scale_a = response_scale[layout.colour_body_a]
     scale_b = response_scale[layout.colour_body_b]
-    nx, ny = g.normal[:, :, 0], g.normal[:, :, 1]
-    directions = ((nx, ny), (nx, ny), (-ny, nx), (-ny, nx))
-    jac_a, jac_b = [], []
-    for r, (dx, dy) in enumerate(directions):
-        point = r % 2
-        on = g.enabled[:, :, point][:, :, None]
+    inverse_mass_a, inverse_inertia_a = scale_a[:, :, 0], scale_a[:, :, 2]
+    inverse_mass_b, inverse_inertia_b = scale_b[:, :, 0], scale_b[:, :, 2]
+    normal_x, normal_y = g.normal[:, :, 0], g.normal[:, :, 1]
+    enabled = tuple(g.enabled[:, :, p] for p in range(NUM_POINTS))
+    partial = ContactRows(
+        normal_x=normal_x,
+        normal_y=normal_y,
+        arm_a=(),
+        arm_b=(),
+        inverse_mass_a=inverse_mass_a,
+        inverse_inertia_a=inverse_inertia_a,
+        inverse_mass_b=inverse_mass_b,
+        inverse_inertia_b=inverse_inertia_b,
+        mass=(),
+        coupling=(),
+        separation=tuple(g.separation[:, :, p] for p in range(NUM_POINTS)),
+        approach_velocity=tuple(g.approach_velocity[:, :, p] for p in range(NUM_POINTS)),
+        enabled=enabled,
+        friction=g.friction[:, :, 0],
+        restitution=g.restitution[:, :, 0],
+        softness=jax.tree_util.tree_map(lambda x: x[:, :, 0], g.softness),
+    )
+    arm_a, arm_b = [], []
+    for r in range(NUM_ROWS):
+        dx, dy = _direction(partial, r)
+        point = r % NUM_POINTS
         la, lb = g.lever_a[:, :, point], g.lever_b[:, :, point]
-        ja = jnp.stack([-dx, -dy, la[:, :, 1] * dx - la[:, :, 0] * dy], 2)
-        jb = jnp.stack([dx, dy, lb[:, :, 0] * dy - lb[:, :, 1] * dx], 2)
-        jac_a.append(jnp.where(on, ja, 0.0))
-        jac_b.append(jnp.where(on, jb, 0.0))
-    jac_a, jac_b = jnp.stack(jac_a, 2), jnp.stack(jac_b, 2)
-    resp_a, resp_b = scale_a[:, :, None] * jac_a, scale_b[:, :, None] * jac_b
-    # Explicit component sums (not a reduction): the same rounding whether or not a batch axis trails.
-    rows_a, cols_a = jac_a[:, :, :, None], resp_a[:, :, None]
-    rows_b, cols_b = jac_b[:, :, :, None], resp_b[:, :, None]
-    coupling = sum(
-        rows_a[:, :, :, :, c] * cols_a[:, :, :, :, c] + rows_b[:, :, :, :, c] * cols_b[:, :, :, :, c] for c in range(3)
-    )
-    k = jnp.stack([coupling[:, :, r, r] for r in range(NUM_ROWS)], 2)
-    mass = jnp.where(k > 0, 1.0 / jnp.where(k > 0, k, 1.0), 0.0)
-    return ContactRows(
-        jacobian_a=jac_a,
-        jacobian_b=jac_b,
-        response_a=resp_a,
-        response_b=resp_b,
-        mass=mass,
-        coupling=coupling,
-        geometry=g,
-    )
+        arm_a.append(jnp.where(enabled[point], la[:, :, 0] * dy - la[:, :, 1] * dx, 0.0))
+        arm_b.append(jnp.where(enabled[point], lb[:, :, 0] * dy - lb[:, :, 1] * dx, 0.0))
+
+    def coupling(r, s):
+        """J_r M^-1 J_s^T of rows r and s."""
+        (rx, ry), (sx, sy) = _direction(partial, r), _direction(partial, s)
+        along = rx * sx + ry * sy
+        return (
+            inverse_mass_a * along
+            + inverse_inertia_a * arm_a[r] * arm_a[s]
+            + inverse_mass_b * along
+            + inverse_inertia_b * arm_b[r] * arm_b[s]
+        )
+
+    mass = []
+    for r in range(NUM_ROWS):
+        k = coupling(r, r)
+        usable = enabled[r % NUM_POINTS] & (k > 0)
+        mass.append(jnp.where(usable, 1.0 / jnp.where(usable, k, 1.0), 0.0))
+    off_diagonal = [coupling(r, s) for r in range(NUM_ROWS) for s in range(r)]
+    return partial.replace(arm_a=tuple(arm_a), arm_b=tuple(arm_b), mass=tuple(mass), coupling=tuple(off_diagonal))
 
 
 def to_colour_layout(per_pair, layout: PairLayout):
@@ -170,71 +218,94 @@ def from_colour_layout(coloured, layout: PairLayout):
     return jax.tree_util.tree_map(lambda x: x.reshape((-1,) + x.shape[2:])[order], coloured)
 
 
-def _row_speed(rows: ContactRows, r: int, vel_a, vel_b):
-    """Velocity along row `r` of each pair: (W, *batch); body velocities (W, 3, *batch)."""
-    ja, jb = rows.jacobian_a[:, r], rows.jacobian_b[:, r]
+def _row_speed(rows: ContactRows, r: int, motion_a: Motion, motion_b: Motion):
+    """Relative velocity (or displacement) of the pair along row `r`, from the motions of its two bodies."""
+    dx, dy = _direction(rows, r)
     return (
-        ja[:, 0] * vel_a[:, 0]
-        + ja[:, 1] * vel_a[:, 1]
-        + ja[:, 2] * vel_a[:, 2]
-        + jb[:, 0] * vel_b[:, 0]
-        + jb[:, 1] * vel_b[:, 1]
-        + jb[:, 2] * vel_b[:, 2]
+        (motion_b[0] - motion_a[0]) * dx
+        + (motion_b[1] - motion_a[1]) * dy
+        + motion_b[2] * rows.arm_b[r]
+        - motion_a[2] * rows.arm_a[r]
     )
-
-
-def _apply_rows(rows: ContactRows, vel_a, vel_b, deltas):
-    """Body velocities (W, 3, *batch) after impulse `deltas[r]` (W, *batch) along each row r."""
-    for r, delta in enumerate(deltas):
-        vel_a = vel_a + rows.response_a[:, r] * delta[:, None]
-        vel_b = vel_b + rows.response_b[:, r] * delta[:, None]
-    return vel_a, vel_b
 
 
 def _speed_after(rows: ContactRows, r: int, speed, deltas):
     """Speed along row r after the impulse changes `deltas` of the rows solved before it."""
     for s, delta in enumerate(deltas):
-        speed = speed + rows.coupling[:, r, s] * delta
+        speed = speed + rows.coupling[_coupling_index(r, s)] * delta
     return speed
 
 
-def warm_start_contacts(velocity, rows: ContactRows, impulses: ContactImpulses, layout: PairLayout):
-    """Apply the accumulated impulses of every row to the (N+1, 3, *batch) velocities at once."""
-    impulse = impulses.impulse
-    delta_a = sum(rows.response_a[:, :, r] * impulse[:, :, r, None] for r in range(NUM_ROWS))
-    delta_b = sum(rows.response_b[:, :, r] * impulse[:, :, r, None] for r in range(NUM_ROWS))
-    flat = (-1,) + delta_a.shape[2:]
-    velocity = velocity.at[layout.colour_body_a.reshape(-1)].add(delta_a.reshape(flat))
-    return velocity.at[layout.colour_body_b.reshape(-1)].add(delta_b.reshape(flat))
+def _velocity_changes(rows: ContactRows, deltas) -> tuple[Motion, Motion]:
+    """Velocity changes of bodies a and b from impulse changes `deltas` on rows 0, 1, ... of each pair."""
+    linear_x, linear_y, turn_a, turn_b = 0.0, 0.0, 0.0, 0.0
+    for r, delta in enumerate(deltas):
+        dx, dy = _direction(rows, r)
+        linear_x = linear_x + dx * delta
+        linear_y = linear_y + dy * delta
+        turn_a = turn_a + rows.arm_a[r] * delta
+        turn_b = turn_b + rows.arm_b[r] * delta
+    change_a = (-rows.inverse_mass_a * linear_x, -rows.inverse_mass_a * linear_y, -rows.inverse_inertia_a * turn_a)
+    change_b = (rows.inverse_mass_b * linear_x, rows.inverse_mass_b * linear_y, rows.inverse_inertia_b * turn_b)
+    return change_a, change_b
 
 
-def _sweep(velocity, rows: ContactRows, impulse, layout: PairLayout, solve_colour):
+def warm_start_contacts(velocity: Motion, rows: ContactRows, impulses: ContactImpulses, layout: PairLayout) -> Motion:
+    """Apply the accumulated impulses of every row to the velocities at once."""
+    change_a, change_b = _velocity_changes(rows, impulses.impulse)
+    a, b = layout.colour_body_a.reshape(-1), layout.colour_body_b.reshape(-1)
+
+    def flat(x):
+        return x.reshape((-1,) + x.shape[2:])
+
+    return tuple(
+        v.at[a].add(flat(da)).at[b].add(flat(db)) for v, da, db in zip(velocity, change_a, change_b, strict=True)
+    )
+
+
+def _sweep(velocity: Motion, rows: ContactRows, impulse, layout: PairLayout, solve_colour, per_colour=None):
     """Visit the colours in order (Gauss-Seidel across colours), all pairs of a colour at once.
 
-    `solve_colour(c, rows, impulse, vel_a, vel_b) -> (W, 4, *batch)` is the new impulses of colour `c` from its
-    impulses `impulse` (W, 4, *batch) and the velocities of its bodies. They are written to the (C, W, 4, *batch)
-    impulses before the velocities are updated from there, so that the compiler computes them once instead of
-    again inside every velocity update. Colours are unrolled: static slices and static body indices are several
-    times faster on CPU than a `lax.scan`.
+    `impulse` holds the (C, W, *batch) impulses of the rows to solve, rows 0, 1, ... of every pair.
+    `solve_colour(rows, impulse, vel_a, vel_b, bodies_of, extra)` returns their new values for one colour from its
+    rows, its impulses (W, *batch), the velocities of its bodies a and b, a function `bodies_of(motion)` giving the
+    motions of its bodies a and b, and its slice `extra` of `per_colour` (a pytree with a leading colour axis, or
+    None). Returns the velocities and the new impulses.
     """
-    for c in range(layout.num_colours):
-        a, b = layout.colour_body_a[c], layout.colour_body_b[c]
-        colour_rows, vel_a, vel_b = _colour(rows, c), velocity[a], velocity[b]
-        old = impulse[c]
-        impulse = impulse.at[c].set(solve_colour(c, colour_rows, old, vel_a, vel_b))
-        new = impulse[c]
-        vel_a, vel_b = _apply_rows(colour_rows, vel_a, vel_b, [new[:, r] - old[:, r] for r in range(NUM_ROWS)])
-        velocity = velocity.at[a].set(vel_a).at[b].set(vel_b)
-    return velocity, impulse
+    # Per colour, the W bodies a then the W bodies b: one gather and one scatter per velocity component.
+    bodies = jnp.asarray(np.concatenate([layout.colour_body_a, layout.colour_body_b], axis=1))
+    width = layout.colour_body_a.shape[1]
 
+    def colour_slice(tree, c):
+        return jax.tree_util.tree_map(lambda x: x[c], tree)
 
-def _colour(tree, c: int):
-    return jax.tree_util.tree_map(lambda x: x[c], tree)
+    def split(motion: Motion, c) -> tuple[Motion, Motion]:
+        both = tuple(m[bodies[c]] for m in motion)
+        return tuple(x[:width] for x in both), tuple(x[width:] for x in both)
+
+    def gather(velocity, _):
+        # The gathers are not recomputed per output; passing the velocity whole avoids copying their slices.
+        return velocity
+
+    def solve(velocity, c):
+        vel_a, vel_b = split(velocity, c)
+        old = tuple(i[c] for i in impulse)
+        extra = colour_slice(per_colour, c)
+        return solve_colour(colour_slice(rows, c), old, vel_a, vel_b, lambda motion: split(motion, c), extra)
+
+    def apply(velocity, c, change):
+        change_a, change_b = _velocity_changes(colour_slice(rows, c), change)
+        return tuple(
+            v.at[bodies[c]].add(jnp.concatenate([da, db]))
+            for v, da, db in zip(velocity, change_a, change_b, strict=True)
+        )
+
+    return pipelined_sweep(velocity, layout.num_colours, tuple(impulse), gather, solve, apply)
 
 
 def solve_contacts(
-    velocity,
-    moved,
+    velocity: Motion,
+    moved: Motion,
     rows: ContactRows,
     impulses: ContactImpulses,
     layout: PairLayout,
@@ -244,67 +315,60 @@ def solve_contacts(
 ):
     """One sweep of normal rows, then friction rows, of every pair; returns velocities and impulses.
 
-    `moved` (N+1, 3, *batch) is each body's displacement since the start of the step; `use_bias` selects the
-    soft position-correcting solve, otherwise the relaxing solve without position bias.
+    `moved` is each body's displacement since the start of the step; `use_bias` (bool, may be traced) selects
+    the soft position-correcting solve, otherwise the relaxing solve without position bias.
     """
 
-    def solve_colour(c, rows, impulse, vel_a, vel_b):
-        g = rows.geometry
-        moved_a, moved_b = moved[layout.colour_body_a[c]], moved[layout.colour_body_b[c]]
+    def solve_colour(rows, impulse, vel_a, vel_b, bodies_of, _):
+        moved_a, moved_b = bodies_of(moved)
         deltas, new_impulses = [], []
-        for p in range(2):
-            separation = g.separation[:, p] + _row_speed(rows, p, moved_a, moved_b)
+        for p in range(NUM_POINTS):
+            separation = rows.separation[p] + _row_speed(rows, p, moved_a, moved_b)
             speculative = separation > 0
             pushing = use_bias & ~speculative
             bias = jnp.where(
                 speculative,
                 separation * inverse_substep,
-                jnp.where(use_bias, jnp.maximum(g.softness.bias_rate[:, 0] * separation, -max_push_velocity), 0.0),
+                jnp.where(use_bias, jnp.maximum(rows.softness.bias_rate * separation, -max_push_velocity), 0.0),
             )
-            mass_scale = jnp.where(pushing, g.softness.mass_scale[:, 0], 1.0)
-            impulse_scale = jnp.where(pushing, g.softness.impulse_scale[:, 0], 0.0)
+            mass_scale = jnp.where(pushing, rows.softness.mass_scale, 1.0)
+            impulse_scale = jnp.where(pushing, rows.softness.impulse_scale, 0.0)
             speed = _speed_after(rows, p, _row_speed(rows, p, vel_a, vel_b), deltas)
-            old = impulse[:, p]
-            new = old - rows.mass[:, p] * mass_scale * (speed + bias) - impulse_scale * old
-            new = jnp.where(g.enabled[:, p], jnp.maximum(new, 0.0), 0.0)
+            old = impulse[p]
+            new = old - rows.mass[p] * mass_scale * (speed + bias) - impulse_scale * old
+            new = jnp.where(rows.enabled[p], jnp.maximum(new, 0.0), 0.0)
             deltas.append(new - old)
             new_impulses.append(new)
-        for p in range(2):
-            r = 2 + p
+        for p in range(NUM_POINTS):
+            r = NUM_POINTS + p
             speed = _speed_after(rows, r, _row_speed(rows, r, vel_a, vel_b), deltas)
-            old = impulse[:, r]
-            bound = g.friction[:, 0] * new_impulses[p]
-            new = jnp.clip(old - rows.mass[:, r] * speed, -bound, bound)
+            old = impulse[r]
+            bound = rows.friction * new_impulses[p]
+            new = jnp.clip(old - rows.mass[r] * speed, -bound, bound)
             deltas.append(new - old)
             new_impulses.append(new)
-        return jnp.stack(new_impulses, 1)
+        return tuple(new_impulses)
 
     velocity, impulse = _sweep(velocity, rows, impulses.impulse, layout, solve_colour)
-    return velocity, ContactImpulses(impulse, jnp.maximum(impulses.max_normal, impulse[:, :, :2]))
+    max_normal = tuple(jnp.maximum(m, i) for m, i in zip(impulses.max_normal, impulse[:NUM_POINTS], strict=True))
+    return velocity, ContactImpulses(impulse, max_normal)
 
 
-def apply_restitution(velocity, rows: ContactRows, impulses: ContactImpulses, layout: PairLayout, threshold):
+def apply_restitution(velocity: Motion, rows: ContactRows, impulses: ContactImpulses, layout: PairLayout, threshold):
     """Bounce: drive the normal velocity of points that approached faster than `threshold` to -e times that speed."""
 
-    def solve_colour(c, rows, impulse, vel_a, vel_b):
-        g = rows.geometry
+    def solve_colour(rows, impulse, vel_a, vel_b, _, max_normal):
         deltas, normal = [], []
-        for p in range(2):
-            approach = g.approach_velocity[:, p]
-            applies = (
-                g.enabled[:, p]
-                & (g.restitution[:, 0] > 0)
-                & (approach < -threshold)
-                & (impulses.max_normal[c][:, p] > 0)
-            )
-            old = impulse[:, p]
+        for p in range(NUM_POINTS):
+            approach = rows.approach_velocity[p]
+            applies = rows.enabled[p] & (rows.restitution > 0) & (approach < -threshold) & (max_normal[p] > 0)
+            old = impulse[p]
             speed = _speed_after(rows, p, _row_speed(rows, p, vel_a, vel_b), deltas)
-            new = jnp.where(
-                applies, jnp.maximum(old - rows.mass[:, p] * (speed + g.restitution[:, 0] * approach), 0.0), old
-            )
+            new = jnp.where(applies, jnp.maximum(old - rows.mass[p] * (speed + rows.restitution * approach), 0.0), old)
             deltas.append(new - old)
             normal.append(new)
-        return jnp.stack(normal + [impulse[:, 2], impulse[:, 3]], 1)
+        return tuple(normal)
 
-    velocity, impulse = _sweep(velocity, rows, impulses.impulse, layout, solve_colour)
-    return velocity, impulses.replace(impulse=impulse)
+    normal_impulses = impulses.impulse[:NUM_POINTS]
+    velocity, normal = _sweep(velocity, rows, normal_impulses, layout, solve_colour, impulses.max_normal)
+    return velocity, impulses.replace(impulse=normal + impulses.impulse[NUM_POINTS:])

@@ -1,18 +1,22 @@
 """Revolute and fixed joints (soft point constraint, angle limits, motor), solved one joint after another.
 
 Preparation works on one scene. Warm starting and solving are rank-polymorphic: per-scene axes first, any
-number of trailing batch axes (see `engine.batch_last`); bodies are selected with one-hot masks because joint
-endpoints differ per scene.
+number of trailing batch axes (see `engine.batch_last`), with body velocities and poses as `Motion` triples of
+(N+1, *batch) arrays; bodies are selected with one-hot masks because joint endpoints differ per scene. What
+depends only on poses (`JointFrames`) is computed for all joints at once before a sweep; the sweep itself is an
+`engine.sweep.pipelined_sweep`, whose body is compiled once however many joints there are.
 """
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 from flax import struct
 
 from engine.geometry import rotate
 from engine.softness import Softness
 from engine.state import Joints
+from engine.sweep import Motion, pipelined_sweep
 
 SINGULAR_DETERMINANT = 1e-12
 """Point-constraint matrices with a smaller determinant (both bodies immovable) are not solved."""
@@ -83,68 +87,111 @@ def prepare_joints(
     )
 
 
-def _rotate_leading(angle, vector):
-    """Rotate (2, *batch) vectors by `angle` (*batch) radians."""
-    c, s = jnp.cos(angle), jnp.sin(angle)
-    return jnp.stack([c * vector[0] - s * vector[1], s * vector[0] + c * vector[1]])
-
-
-def _cross_leading(a, b):
-    return a[0] * b[1] - a[1] * b[0]
-
-
-def _one_hot(index, num_rows):
-    """(num_rows, *batch) bool mask selecting `index` (*batch)."""
-    return jnp.arange(num_rows).reshape((-1,) + (1,) * index.ndim) == index[None]
-
-
-def _select(array, mask):
-    """Row of (R, 3, *batch) `array` chosen by a (R, *batch) one-hot mask: (3, *batch)."""
-    selected = jnp.zeros_like(array[0])
-    for row in range(array.shape[0]):
-        selected = jnp.where(mask[row][None], array[row], selected)
+def _select(component, mask):
+    """Rows of a (N+1, *batch) `component` chosen by a (J, N+1, *batch) one-hot mask: (J, *batch)."""
+    selected = jnp.zeros(mask[:, 0].shape, component.dtype)
+    for row in range(component.shape[0]):
+        selected = jnp.where(mask[:, row], component[row][None], selected)
     return selected
 
 
-def _replace(array, mask, row):
-    return jnp.where(mask[:, None], row[None], array)
+@struct.dataclass
+class JointFrames:
+    """Pose-dependent joint data of one solver pass, for every joint at once: (J, *batch) arrays or tuples of them.
+
+    Poses do not change during a pass, so this is computed before the sequential sweep, vectorised over joints;
+    the sweep itself only carries velocities.
+    """
+
+    mask_a: jnp.ndarray  # (J, N+1, *batch) bool one-hot of body a
+    mask_b: jnp.ndarray
+    lever_a: tuple  # x, y [m] anchor offset from a's centre, turned by a's rotation since the step start
+    lever_b: tuple
+    angle: jnp.ndarray  # [rad] rotation_b - rotation_a - reference angle
+    gap: tuple  # x, y [m] anchor of b minus anchor of a
+    point_matrix: tuple  # k11, k12, k22 [1/kg] effective inverse mass matrix of the point constraint
+    inverse_determinant: jnp.ndarray  # [kg^2] 1 / det of that matrix, 0 where the point constraint is not solved
 
 
-def _joint_frame(rows: JointRows, j, pose, start_pose):
-    """One-hot masks of the joint's bodies, their current poses, and the current world levers."""
-    mask_a = _one_hot(rows.body_a[j], pose.shape[0])
-    mask_b = _one_hot(rows.body_b[j], pose.shape[0])
-    pose_a, pose_b = _select(pose, mask_a), _select(pose, mask_b)
-    lever_a = _rotate_leading(pose_a[2] - _select(start_pose, mask_a)[2], rows.lever_a[j])
-    lever_b = _rotate_leading(pose_b[2] - _select(start_pose, mask_b)[2], rows.lever_b[j])
-    return mask_a, mask_b, pose_a, pose_b, lever_a, lever_b
+def joint_frames(rows: JointRows, pose: Motion, start_rotation) -> JointFrames:
+    """Frames of every joint at poses `pose`; `start_rotation` (N+1, *batch) [rad] is the rotation at step start."""
+    index = jnp.arange(start_rotation.shape[0]).reshape((1, -1) + (1,) * (rows.body_a.ndim - 1))
+    mask_a, mask_b = index == rows.body_a[:, None], index == rows.body_b[:, None]
+    pose_a = tuple(_select(component, mask_a) for component in pose)
+    pose_b = tuple(_select(component, mask_b) for component in pose)
+
+    def turned(lever, rotation, mask):
+        angle = rotation - _select(start_rotation, mask)
+        c, s = jnp.cos(angle), jnp.sin(angle)
+        return c * lever[:, 0] - s * lever[:, 1], s * lever[:, 0] + c * lever[:, 1]
+
+    (ax, ay), (bx, by) = turned(rows.lever_a, pose_a[2], mask_a), turned(rows.lever_b, pose_b[2], mask_b)
+    ia, ib = rows.response_a[:, 2], rows.response_b[:, 2]
+    ma, mb = rows.response_a[:, 0], rows.response_b[:, 0]
+    k11 = ma + mb + ay**2 * ia + by**2 * ib
+    k12 = -ay * ax * ia - by * bx * ib
+    k22 = ma + mb + ax**2 * ia + bx**2 * ib
+    det = k11 * k22 - k12 * k12
+    solvable = rows.solve_point & (det > SINGULAR_DETERMINANT)
+    return JointFrames(
+        mask_a=mask_a,
+        mask_b=mask_b,
+        lever_a=(ax, ay),
+        lever_b=(bx, by),
+        angle=pose_b[2] - pose_a[2] - rows.reference_angle,
+        gap=((pose_b[0] + bx) - (pose_a[0] + ax), (pose_b[1] + by) - (pose_a[1] + ay)),
+        point_matrix=(k11, k12, k22),
+        inverse_determinant=jnp.where(solvable, 1.0 / jnp.where(solvable, det, 1.0), 0.0),
+    )
 
 
-def _push(vel_a, vel_b, rows: JointRows, j, lever_a, lever_b, linear, axial):
-    """Velocities after a linear impulse `linear` (2, *batch) at the levers plus an angular impulse `axial`."""
-    turn_a = _cross_leading(lever_a, linear) + axial
-    turn_b = _cross_leading(lever_b, linear) + axial
-    vel_a = vel_a - rows.response_a[j] * jnp.concatenate([linear, turn_a[None]])
-    vel_b = vel_b + rows.response_b[j] * jnp.concatenate([linear, turn_b[None]])
-    return vel_a, vel_b
+def _take(tree, j):
+    return jax.tree_util.tree_map(lambda x: x[j], tree)
 
 
-def warm_start_joints(velocity, pose, start_pose, rows: JointRows, impulses: JointImpulses):
-    """Apply every joint's accumulated impulses to the (N+1, 3, *batch) velocities."""
-    for j in range(rows.body_a.shape[0]):
-        mask_a, mask_b, _, _, lever_a, lever_b = _joint_frame(rows, j, pose, start_pose)
-        axial = impulses.angular[j] + impulses.motor[j] + impulses.limit[j, 0] - impulses.limit[j, 1]
-        linear = impulses.linear[j]
-        vel_a, vel_b = _push(
-            _select(velocity, mask_a), _select(velocity, mask_b), rows, j, lever_a, lever_b, linear, axial
-        )
-        velocity = _replace(_replace(velocity, mask_a, vel_a), mask_b, vel_b)
+def _select_motion(motion: Motion, mask) -> Motion:
+    """Components of the body chosen by a (N+1, *batch) one-hot mask."""
+    return tuple(_select(component, mask[None])[0] for component in motion)
+
+
+def _apply_impulse(velocity: Motion, row: JointRows, frame: JointFrames, linear, axial) -> Motion:
+    """Velocities after one joint's linear impulse `linear` (x, y) at the anchors and angular impulse `axial`.
+
+    The velocity changes depend only on the impulse and the frame, so they are added to the two bodies' rows by
+    their masks without reading the old velocities first.
+    """
+    (ax, ay), (bx, by) = frame.lever_a, frame.lever_b
+    turn_a = ax * linear[1] - ay * linear[0] + axial
+    turn_b = bx * linear[1] - by * linear[0] + axial
+    ra, rb = row.response_a, row.response_b
+    change_a = (-ra[0] * linear[0], -ra[1] * linear[1], -ra[2] * turn_a)
+    change_b = (rb[0] * linear[0], rb[1] * linear[1], rb[2] * turn_b)
+    return tuple(
+        v + jnp.where(frame.mask_a, da[None], 0.0) + jnp.where(frame.mask_b, db[None], 0.0)
+        for v, da, db in zip(velocity, change_a, change_b, strict=True)
+    )
+
+
+def _axial(impulse: JointImpulses):
+    """Net angular impulse on b (and, negated, on a) of one joint's angular rows."""
+    return impulse.angular + impulse.motor + impulse.limit[0] - impulse.limit[1]
+
+
+def warm_start_joints(velocity: Motion, rows: JointRows, frames: JointFrames, impulses: JointImpulses) -> Motion:
+    """Apply every joint's accumulated impulses to the velocities, one joint after another."""
+
+    def apply(velocity, j, impulse):
+        return _apply_impulse(velocity, _take(rows, j), _take(frames, j), impulse.linear, _axial(impulse))
+
+    def no_inputs(velocity, j):
+        return ()
+
+    def accumulated(_, j):
+        return _take(impulses, j)
+
+    zero = jax.tree_util.tree_map(jnp.zeros_like, impulses)
+    velocity, _ = pipelined_sweep(velocity, rows.body_a.shape[0], zero, no_inputs, accumulated, apply)
     return velocity
-
-
-def _spin(vel_a, vel_b, ia, ib, delta):
-    """Velocities after an angular impulse `delta` turning b positively and a negatively."""
-    return vel_a.at[2].add(-ia * delta), vel_b.at[2].add(ib * delta)
 
 
 def _angular_row(
@@ -166,74 +213,75 @@ def _angular_row(
 
 
 def solve_joints(
-    velocity, pose, start_pose, rows: JointRows, impulses: JointImpulses, softness: Softness, inverse_substep, use_bias
+    velocity: Motion,
+    rows: JointRows,
+    frames: JointFrames,
+    impulses: JointImpulses,
+    softness: Softness,
+    inverse_substep,
+    use_bias,
 ):
-    """One sweep over the joints in index order: motor, limits, fixed angle, then the point constraint."""
-    linear, angular, motor, limit = impulses.linear, impulses.angular, impulses.motor, impulses.limit
-    for j in range(rows.body_a.shape[0]):
-        mask_a, mask_b, pose_a, pose_b, lever_a, lever_b = _joint_frame(rows, j, pose, start_pose)
-        vel_a, vel_b = _select(velocity, mask_a), _select(velocity, mask_b)
-        ia, ib = rows.response_a[j][2], rows.response_b[j][2]
-        mass = rows.axial_mass[j]
-        angle = pose_b[2] - pose_a[2] - rows.reference_angle[j]
+    """One sweep over the joints in index order: motor, limits, fixed angle, then the point constraint.
 
+    `use_bias` (bool, may be traced) selects the soft position-correcting solve, otherwise the relaxing solve.
+    Returns the velocities and the new impulses.
+    """
+
+    def solve_joint(row: JointRows, frame: JointFrames, impulse: JointImpulses, vel_a: Motion, vel_b: Motion):
+        """New impulses of one joint, its rows solved in order, each seeing the velocity changes of the ones before."""
+        ia, ib = row.response_a[2], row.response_b[2]
+        mass = row.axial_mass
+        wa, wb = vel_a[2], vel_b[2]
         # Motor: velocity row with a bounded impulse.
-        bound = rows.motor_max_impulse[j]
-        new_motor = jnp.clip(motor[j] - mass * (vel_b[2] - vel_a[2] - rows.motor_target[j]), -bound, bound)
-        new_motor = jnp.where(rows.solve_motor[j], new_motor, 0.0)
-        vel_a, vel_b = _spin(vel_a, vel_b, ia, ib, new_motor - motor[j])
+        bound = row.motor_max_impulse
+        new_motor = jnp.clip(impulse.motor - mass * (wb - wa - row.motor_target), -bound, bound)
+        new_motor = jnp.where(row.solve_motor, new_motor, 0.0)
+        wa, wb = wa - ia * (new_motor - impulse.motor), wb + ib * (new_motor - impulse.motor)
         # Limits: one-sided rows.
+        lower_old, upper_old = impulse.limit[0], impulse.limit[1]
         lower = _angular_row(
-            mass,
-            vel_b[2] - vel_a[2],
-            angle - rows.lower_angle[j],
-            limit[j, 0],
-            softness,
-            use_bias,
-            inverse_substep,
-            True,
+            mass, wb - wa, frame.angle - row.lower_angle, lower_old, softness, use_bias, inverse_substep, True
         )
-        lower = jnp.where(rows.solve_limits[j], jnp.maximum(lower, 0.0), 0.0)
-        vel_a, vel_b = _spin(vel_a, vel_b, ia, ib, lower - limit[j, 0])
+        lower = jnp.where(row.solve_limits, jnp.maximum(lower, 0.0), 0.0)
+        wa, wb = wa - ia * (lower - lower_old), wb + ib * (lower - lower_old)
         upper = _angular_row(
-            mass,
-            vel_a[2] - vel_b[2],
-            rows.upper_angle[j] - angle,
-            limit[j, 1],
-            softness,
-            use_bias,
-            inverse_substep,
-            True,
+            mass, wa - wb, row.upper_angle - frame.angle, upper_old, softness, use_bias, inverse_substep, True
         )
-        upper = jnp.where(rows.solve_limits[j], jnp.maximum(upper, 0.0), 0.0)
-        vel_a, vel_b = _spin(vel_a, vel_b, ia, ib, limit[j, 1] - upper)
+        upper = jnp.where(row.solve_limits, jnp.maximum(upper, 0.0), 0.0)
+        wa, wb = wa - ia * (upper_old - upper), wb + ib * (upper_old - upper)
         # Fixed joint: relative angle held at the reference.
         new_angular = _angular_row(
-            mass, vel_b[2] - vel_a[2], angle, angular[j], softness, use_bias, inverse_substep, False
+            mass, wb - wa, frame.angle, impulse.angular, softness, use_bias, inverse_substep, False
         )
-        new_angular = jnp.where(rows.solve_angle[j], new_angular, 0.0)
-        vel_a, vel_b = _spin(vel_a, vel_b, ia, ib, new_angular - angular[j])
+        new_angular = jnp.where(row.solve_angle, new_angular, 0.0)
+        wa, wb = wa - ia * (new_angular - impulse.angular), wb + ib * (new_angular - impulse.angular)
         # Point constraint: anchors coincide (2x2 effective-mass solve).
-        point_a = vel_a[:2] + vel_a[2] * jnp.stack([-lever_a[1], lever_a[0]])
-        point_b = vel_b[:2] + vel_b[2] * jnp.stack([-lever_b[1], lever_b[0]])
-        relative = point_b - point_a
-        ma, mb = rows.response_a[j][0], rows.response_b[j][0]
-        k11 = ma + mb + lever_a[1] ** 2 * ia + lever_b[1] ** 2 * ib
-        k12 = -lever_a[1] * lever_a[0] * ia - lever_b[1] * lever_b[0] * ib
-        k22 = ma + mb + lever_a[0] ** 2 * ia + lever_b[0] ** 2 * ib
-        det = k11 * k22 - k12 * k12
-        solvable = rows.solve_point[j] & (det > SINGULAR_DETERMINANT)
-        inverse_det = jnp.where(solvable, 1.0 / jnp.where(solvable, det, 1.0), 0.0)
-        gap = (pose_b[:2] + lever_b) - (pose_a[:2] + lever_a)
-        target = relative + jnp.where(use_bias, softness.bias_rate, 0.0) * gap
+        (ax, ay), (bx, by) = frame.lever_a, frame.lever_b
+        bias_rate = jnp.where(use_bias, softness.bias_rate, 0.0)
+        target_x = (vel_b[0] - wb * by) - (vel_a[0] - wa * ay) + bias_rate * frame.gap[0]
+        target_y = (vel_b[1] + wb * bx) - (vel_a[1] + wa * ax) + bias_rate * frame.gap[1]
+        k11, k12, k22 = frame.point_matrix
+        solved_x = frame.inverse_determinant * (k22 * target_x - k12 * target_y)
+        solved_y = frame.inverse_determinant * (k11 * target_y - k12 * target_x)
         mass_scale = jnp.where(use_bias, softness.mass_scale, 1.0)
         impulse_scale = jnp.where(use_bias, softness.impulse_scale, 0.0)
-        solved = inverse_det * jnp.stack([k22 * target[0] - k12 * target[1], k11 * target[1] - k12 * target[0]])
-        new_linear = jnp.where(solvable, linear[j] - mass_scale * solved - impulse_scale * linear[j], 0.0)
-        vel_a, vel_b = _push(vel_a, vel_b, rows, j, lever_a, lever_b, new_linear - linear[j], 0.0)
-        velocity = _replace(_replace(velocity, mask_a, vel_a), mask_b, vel_b)
-        linear = linear.at[j].set(new_linear)
-        angular = angular.at[j].set(new_angular)
-        motor = motor.at[j].set(new_motor)
-        limit = limit.at[j].set(jnp.stack([lower, upper]))
-    return velocity, JointImpulses(linear, angular, motor, limit)
+        solvable = frame.inverse_determinant != 0.0
+        linear = tuple(
+            jnp.where(solvable, old - mass_scale * change - impulse_scale * old, 0.0)
+            for old, change in ((impulse.linear[0], solved_x), (impulse.linear[1], solved_y))
+        )
+        return JointImpulses(
+            linear=jnp.stack(linear), angular=new_angular, motor=new_motor, limit=jnp.stack([lower, upper])
+        )
+
+    def gather(velocity, j):
+        frame = _take(frames, j)
+        return _select_motion(velocity, frame.mask_a), _select_motion(velocity, frame.mask_b)
+
+    def solve(velocities, j):
+        return solve_joint(_take(rows, j), _take(frames, j), _take(impulses, j), *velocities)
+
+    def apply(velocity, j, change: JointImpulses):
+        return _apply_impulse(velocity, _take(rows, j), _take(frames, j), change.linear, _axial(change))
+
+    return pipelined_sweep(velocity, rows.body_a.shape[0], impulses, gather, solve, apply)

@@ -6,12 +6,14 @@ import functools
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from flax import struct
 
-from engine.batch_last import vmap_batch_last
+from engine.batch_last import vmap_batch_last, vmap_in_chunks
 from engine.collision import manifolds, world_geometry
 from engine.collision_filter import modes_collide
 from engine.contact_solver import (
+    NUM_POINTS,
     ContactGeometry,
     ContactImpulses,
     apply_restitution,
@@ -26,6 +28,7 @@ from engine.geometry import cross2, dot2, norm2, rotate
 from engine.joint_solver import (
     JointImpulses,
     JointRows,
+    joint_frames,
     prepare_joints,
     solve_joints,
     warm_start_joints,
@@ -37,6 +40,9 @@ from engine.state import NO_FEATURE, ContactCache, SimState
 
 STATIC_CONTACT_STIFFNESS_FACTOR = 2.0
 """Contacts against static bodies are this many times stiffer (in Hz) than between movable bodies."""
+
+SOLVER_PASSES = np.array([True, False])
+"""Each substep solves with position bias (soft step), integrates positions, then relaxes without bias."""
 
 
 @struct.dataclass
@@ -114,56 +120,69 @@ class Prepared:
 
 @functools.cache
 def substep_solver(static: StaticSimParams):
-    """The substep loop and restitution for `static`: `SolverInput -> SolverOutput`, batch-last under vmap."""
+    """The substep loop and restitution for `static`: `SolverInput -> SolverOutput`, batch-last under vmap.
+
+    Loops are `lax.scan`s (substeps, the biased and relaxing pass of a substep, joints, colours), so the compiled
+    size does not grow with the number of substeps, joints or colours.
+    """
     layout = pair_layout(static)
 
     def solve(solver_input: SolverInput) -> SolverOutput:
-        velocity, pose = solver_input.velocity, solver_input.pose
+        def components(x):
+            return tuple(x[:, k] for k in range(x.shape[1]))
+
+        velocity, start_pose = components(solver_input.velocity), components(solver_input.pose)
         rows = build_rows(solver_input.contact_geometry, solver_input.response_scale, layout)
         joint_rows, scalars = solver_input.joint_rows, solver_input.scalars
-        acceleration = solver_input.acceleration
-        contact_impulses, joint_impulses = solver_input.contact_impulses, solver_input.joint_impulses
-        start_pose = pose
-        move = solver_input.movable[:, None]
+        acceleration = components(solver_input.acceleration)
+        move = solver_input.movable
+
+        def solver_pass(carry, use_bias):
+            """Joints then contacts; after the biased pass, integrate positions."""
+            velocity, pose, contact_impulses, joint_impulses = carry
+            velocity, joint_impulses = solve_joints(
+                velocity,
+                joint_rows,
+                joint_frames(joint_rows, pose, start_pose[2]),
+                joint_impulses,
+                scalars.joint_softness,
+                scalars.inverse_substep,
+                use_bias,
+            )
+            velocity, contact_impulses = solve_contacts(
+                velocity,
+                tuple(p - s for p, s in zip(pose, start_pose, strict=True)),
+                rows,
+                contact_impulses,
+                layout,
+                scalars.inverse_substep,
+                scalars.max_push_velocity,
+                use_bias,
+            )
+            pose = tuple(
+                jnp.where(move & use_bias, p + scalars.substep * v, p) for p, v in zip(pose, velocity, strict=True)
+            )
+            return (velocity, pose, contact_impulses, joint_impulses), None
 
         def substep_body(carry, _):
             """Integrate velocities, warm start, soft solve, integrate positions, then relax without bias."""
             velocity, pose, contact_impulses, joint_impulses = carry
-            velocity = velocity + scalars.substep * acceleration
-            velocity = warm_start_joints(velocity, pose, start_pose, joint_rows, joint_impulses)
+            velocity = tuple(v + scalars.substep * a for v, a in zip(velocity, acceleration, strict=True))
+            velocity = warm_start_joints(
+                velocity, joint_rows, joint_frames(joint_rows, pose, start_pose[2]), joint_impulses
+            )
             velocity = warm_start_contacts(velocity, rows, contact_impulses, layout)
-            for use_bias in (True, False):
-                velocity, joint_impulses = solve_joints(
-                    velocity,
-                    pose,
-                    start_pose,
-                    joint_rows,
-                    joint_impulses,
-                    scalars.joint_softness,
-                    scalars.inverse_substep,
-                    use_bias,
-                )
-                velocity, contact_impulses = solve_contacts(
-                    velocity,
-                    pose - start_pose,
-                    rows,
-                    contact_impulses,
-                    layout,
-                    scalars.inverse_substep,
-                    scalars.max_push_velocity,
-                    use_bias,
-                )
-                if use_bias:
-                    pose = jnp.where(move, pose + scalars.substep * velocity, pose)
-            return (velocity, pose, contact_impulses, joint_impulses), None
+            carry = (velocity, pose, contact_impulses, joint_impulses)
+            return jax.lax.scan(solver_pass, carry, SOLVER_PASSES)[0], None
 
+        carry = (velocity, start_pose, solver_input.contact_impulses, solver_input.joint_impulses)
         (velocity, pose, contact_impulses, joint_impulses), _ = jax.lax.scan(
-            substep_body, (velocity, pose, contact_impulses, joint_impulses), None, length=static.num_substeps
+            substep_body, carry, None, length=static.num_substeps
         )
         velocity, contact_impulses = apply_restitution(
             velocity, rows, contact_impulses, layout, scalars.restitution_threshold
         )
-        return SolverOutput(velocity, pose, contact_impulses, joint_impulses)
+        return SolverOutput(jnp.stack(velocity, 1), jnp.stack(pose, 1), contact_impulses, joint_impulses)
 
     return vmap_batch_last(solve)
 
@@ -239,10 +258,11 @@ def prepare_step(
         ),
     )
     normal_warm, tangent_warm = _match_warm_start(state.contacts, manifold.feature)
+    warm = jnp.where(jnp.tile(point_enabled, (1, 2)), jnp.concatenate([normal_warm, tangent_warm], -1), 0.0)
     contact_impulses = to_colour_layout(
         ContactImpulses(
-            impulse=jnp.where(jnp.tile(point_enabled, (1, 2)), jnp.concatenate([normal_warm, tangent_warm], -1), 0.0),
-            max_normal=jnp.zeros_like(normal_warm),
+            impulse=tuple(warm[:, r] for r in range(warm.shape[1])),
+            max_normal=tuple(jnp.zeros_like(normal_warm[:, p]) for p in range(normal_warm.shape[1])),
         ),
         layout,
     )
@@ -288,7 +308,7 @@ def finish_step(
     bodies, joints = state.bodies, state.joints
     movable = prepared.solver_input.movable[:n]
     velocity, pose, joint_impulses = solved.velocity, solved.pose, solved.joint_impulses
-    per_pair = from_colour_layout(solved.contact_impulses, layout)
+    per_pair = from_colour_layout(solved.contact_impulses.impulse, layout)
     new_bodies = bodies.replace(
         position=jnp.where(
             movable[:, None], jnp.clip(pose[:n, :2], -params.max_position, params.max_position), bodies.position
@@ -310,11 +330,23 @@ def finish_step(
         limit_impulse=joint_impulses.limit,
     )
     cache = ContactCache(
-        normal_impulse=per_pair.impulse[:, :2],
-        tangent_impulse=per_pair.impulse[:, 2:],
+        normal_impulse=jnp.stack(per_pair[:NUM_POINTS], -1),
+        tangent_impulse=jnp.stack(per_pair[NUM_POINTS:], -1),
         feature=jnp.where(prepared.point_enabled, prepared.feature, NO_FEATURE),
     )
     return state.replace(bodies=new_bodies, joints=new_joints, contacts=cache)
+
+
+@functools.cache
+def _chunked_step(static: StaticSimParams):
+    """The step of `static`, vmapped in chunks (`engine.batch_last.vmap_in_chunks`)."""
+
+    def one_step(state, params, motor_actions, thruster_actions):
+        prepared = prepare_step(state, params, motor_actions, thruster_actions, static)
+        solved = substep_solver(static)(prepared.solver_input)
+        return finish_step(state, params, prepared, solved, static), prepared.info
+
+    return vmap_in_chunks(one_step)
 
 
 @functools.partial(jax.jit, static_argnames="static")
@@ -328,8 +360,7 @@ def step(
     """Advance `state` by `params.dt`.
 
     `motor_actions` (J,) in [-1, 1] scale each joint motor's target speed; `thruster_actions` (T,) in [0, 1]
-    scale each thruster's force. Returns the new state and per-pair contact information.
+    scale each thruster's force. Returns the new state and per-pair contact information. Under `vmap`, batches
+    larger than `engine.batch_last.BATCH_CHUNK` scenes are stepped in chunks.
     """
-    prepared = prepare_step(state, params, motor_actions, thruster_actions, static)
-    solved = substep_solver(static)(prepared.solver_input)
-    return finish_step(state, params, prepared, solved, static), prepared.info
+    return _chunked_step(static)(state, params, motor_actions, thruster_actions)

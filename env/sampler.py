@@ -97,10 +97,12 @@ def _boundary_level(static: StaticEnvParams) -> Level:
         return Level(sim=sim, task=jax.tree.map(np.asarray, task))
 
 
-def _shape_plan(key, static: StaticEnvParams):
-    """Per shape step: (kind, force_revolute, no_fixate, add_thruster) arrays of length num_bodies - reserved."""
+def _shape_plan(u, static: StaticEnvParams):
+    """Per shape step: (kind, force_revolute, no_fixate, add_thruster) arrays of length num_bodies - reserved.
+
+    `u`: `_plan_draws(static)` uniform draws in [0, 1).
+    """
     steps = static.num_bodies - static.sim.num_reserved_static
-    u = jax.random.uniform(key, (3 + steps,))
     first_no_fixate = u[0] < FIRST_SHAPE_NO_FIXATE_CHANCE
     force_thruster, force_motor = jnp.asarray(FORCED_CONTROLS)[categorical(u[1], jnp.ones(len(FORCED_CONTROLS)))]
     remaining = jax.vmap(categorical, in_axes=(0, None))(u[3:], jnp.asarray(ADD_SHAPE_WEIGHTS))
@@ -117,12 +119,16 @@ def _best(proposals, scores):
     return jax.tree.map(lambda x: x[jnp.argmin(scores)], proposals)
 
 
+def _step_draws(num_proposals: int) -> int:
+    """Uniform draws of one shape step: every proposal's shape draws, then the joint's and the thruster's."""
+    return num_proposals * NUM_DRAWS + NUM_JOINT_DRAWS + NUM_THRUSTER_DRAWS
+
+
 def _add_shape_step(level: Level, step, static: StaticEnvParams, num_proposals: int) -> Level:
     """Add the best of `num_proposals` connected or free shapes (per the step's plan), then maybe a thruster."""
-    key, kind, force_revolute, no_fixate, add_thruster_now = step
-    shape_key, detail_key = jax.random.split(key)
-    draws = jax.random.uniform(shape_key, (num_proposals, NUM_DRAWS))
-    details = jax.random.uniform(detail_key, (NUM_JOINT_DRAWS + NUM_THRUSTER_DRAWS,))
+    u, kind, force_revolute, no_fixate, add_thruster_now = step
+    draws = u[: num_proposals * NUM_DRAWS].reshape(num_proposals, NUM_DRAWS)
+    details = u[num_proposals * NUM_DRAWS :]
     free = jax.vmap(propose_free_shape, in_axes=(0, None, None, None))(draws, level, static, no_fixate)
     connected, attachments, hidden = jax.vmap(propose_connected_shape, in_axes=(0, None, None))(draws, level, static)
     score = jax.vmap(overlap_count, in_axes=(0, None, None))
@@ -153,15 +159,29 @@ def _swap_goals(u, level: Level) -> Level:
     return level.replace(task=level.task.replace(roles=jnp.where(swap, swapped, roles).astype(jnp.int32)))
 
 
-def _permute_slots(key, level: Level, static: StaticEnvParams) -> Level:
-    """Shuffle movable polygon slots, circle slots, joints and thrusters, keeping every reference consistent."""
+def _shuffled_groups(static: StaticEnvParams) -> tuple[int, ...]:
+    """Sizes of the slot groups `_permute_slots` shuffles: movable polygons, circles, joints, thrusters."""
+    sim = static.sim
+    return (sim.num_polygons - sim.num_reserved_static, sim.num_circles, sim.num_joints, sim.num_thrusters)
+
+
+def _permute_slots(u, level: Level, static: StaticEnvParams) -> Level:
+    """Shuffle movable polygon slots, circle slots, joints and thrusters, keeping every reference consistent.
+
+    `u`: one uniform draw per shuffled slot. The four shuffles are one sort of (group, draw): each group's slots end
+    up in a uniformly random order (up to ties between draws).
+    """
     p, reserved = static.sim.num_polygons, static.sim.num_reserved_static
-    keys = jax.random.split(key, 4)
-    polygon_order = jnp.concatenate([jnp.arange(reserved), reserved + jax.random.permutation(keys[0], p - reserved)])
-    body_order = jnp.concatenate([polygon_order, p + jax.random.permutation(keys[1], static.sim.num_circles)])
+    sizes = _shuffled_groups(static)
+    group = np.repeat(np.arange(len(sizes), dtype=np.int32), sizes)
+    _, _, shuffled = jax.lax.sort((jnp.asarray(group), u, jnp.arange(group.size, dtype=jnp.int32)), num_keys=2)
+    start = np.cumsum((0,) + sizes)
+    polygon_shuffle, circle_shuffle, joint_order, thruster_order = (
+        shuffled[start[k] : start[k + 1]] - start[k] for k in range(len(sizes))
+    )
+    polygon_order = jnp.concatenate([jnp.arange(reserved), reserved + polygon_shuffle])
+    body_order = jnp.concatenate([polygon_order, p + circle_shuffle])
     new_index = jnp.argsort(body_order)  # new_index[old slot] = new slot
-    joint_order = jax.random.permutation(keys[2], static.sim.num_joints)
-    thruster_order = jax.random.permutation(keys[3], static.sim.num_thrusters)
 
     sim, task = level.sim, level.task
     bodies = jax.tree.map(lambda x: x[body_order], sim.bodies)
@@ -186,28 +206,44 @@ def _permute_slots(key, level: Level, static: StaticEnvParams) -> Level:
 
 
 def sample_level(key: jax.Array, static: StaticEnvParams) -> Level:
-    """One random level of Kinetix's distribution for `static`'s size; the same key always gives the same level."""
+    """One random level of Kinetix's distribution for `static`'s size; the same key always gives the same level.
+
+    Every random number of the level comes from one draw of uniforms (each call of a JAX random function compiles
+    to its own loop), split in order among the floor, the plan, the shape steps, the extra thrusters, the goal swap
+    and the slot shuffle.
+    """
     _check_static(static)
     num_proposals = NUM_PROPOSALS_SMALL if _is_small(static) else NUM_PROPOSALS
-    floor_key, plan_key, shapes_key, extra_key, swap_key, permute_key = jax.random.split(key, 6)
+    steps = static.num_bodies - static.sim.num_reserved_static
+    extra_thrusters = static.sim.num_thrusters - 1
+    sizes = (
+        1,
+        3 + steps,
+        steps * _step_draws(num_proposals),
+        extra_thrusters * (1 + NUM_THRUSTER_DRAWS),
+        1,
+        sum(_shuffled_groups(static)),
+    )
+    u = jax.random.uniform(key, (sum(sizes),))
+    floor_u, plan_u, step_u, extra_u, swap_u, permute_u = (
+        u[start : start + size] for start, size in zip(np.cumsum((0,) + sizes[:-1]), sizes, strict=True)
+    )
     level = jax.tree.map(jnp.asarray, _boundary_level(static))
-    floor_role = jax.random.choice(floor_key, len(Role), p=jnp.asarray(FLOOR_ROLE_WEIGHTS))
+    floor_role = categorical(floor_u[0], jnp.asarray(FLOOR_ROLE_WEIGHTS))
     level = level.replace(task=level.task.replace(roles=level.task.roles.at[0].set(floor_role)))
 
-    plan = _shape_plan(plan_key, static)
-    steps = static.num_bodies - static.sim.num_reserved_static
+    plan = _shape_plan(plan_u, static)
     level, _ = jax.lax.scan(
         functools.partial(_add_shape_step, static=static, num_proposals=num_proposals),
         level,
-        (jax.random.split(shapes_key, steps),) + plan,
+        (step_u.reshape(steps, -1),) + plan,
     )
 
-    extra_draws = jax.random.uniform(extra_key, (static.sim.num_thrusters - 1, 1 + NUM_THRUSTER_DRAWS))
-    for draws in extra_draws:
+    for draws in extra_u.reshape(extra_thrusters, 1 + NUM_THRUSTER_DRAWS):
         level = add_thruster(draws[1:], level, static, draws[0] < EXTRA_THRUSTER_CHANCE)
 
-    level = _swap_goals(jax.random.uniform(swap_key), level)
-    return _permute_slots(permute_key, level, static)
+    level = _swap_goals(swap_u[0], level)
+    return _permute_slots(permute_u, level, static)
 
 
 @functools.partial(jax.jit, static_argnames="static")

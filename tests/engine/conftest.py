@@ -39,10 +39,12 @@ FLOOR_TOP = 0.4
 
 
 class Trajectory(NamedTuple):
-    """Per-step results, leading axes ([batch,] steps): the bodies after each step, and the step's info."""
+    """Per-step results, leading axes ([batch,] steps): bodies, joints and contact cache after each step, and the
+    step's info (with the initial state, everything needed to restart from any step)."""
 
     bodies: engine.Bodies
     joints: engine.Joints
+    contacts: engine.ContactCache
     info: StepInfo
 
 
@@ -51,7 +53,7 @@ def _scan_steps(static: StaticSimParams):
     def run(state, params, motor_actions, thruster_actions):
         def body(carry, actions):
             new, info = engine.step(carry, params, actions[0], actions[1], static=static)
-            return new, Trajectory(new.bodies, new.joints, info)
+            return new, Trajectory(new.bodies, new.joints, new.contacts, info)
 
         return jax.lax.scan(body, state, (motor_actions, thruster_actions))
 
