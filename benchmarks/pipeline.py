@@ -24,9 +24,10 @@ from pathlib import Path
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 from pipeline.config import load_config  # noqa: E402
+from pipeline.layout import STATE_PREFIX  # noqa: E402
 from pipeline.manifest import iter_records  # noqa: E402
 from pipeline.run import run_job  # noqa: E402
-from pipeline.shard_store import DATA_DIR  # noqa: E402
+from pipeline.shard_store import DATA_DIR, open_dataset  # noqa: E402
 from pipeline.writer import PROVENANCE  # noqa: E402
 
 KINETIX_OFFLINE_BYTES_PER_TRANSITION = {"s": 80.4, "m": 110.9, "l": 306.0}
@@ -43,6 +44,25 @@ def bytes_on_disk(root: Path) -> tuple[int, int]:
     files = [path for path in (root / DATA_DIR).rglob("*") if path.is_file()]
     metadata = sum(path.stat().st_size for path in files if path.name == "zarr.json")
     return sum(path.stat().st_size for path in files) - metadata, metadata
+
+
+def bytes_by_group(root: Path) -> dict[str, int]:
+    """Shard-file bytes of the dataset's arrays in four groups: per-step state, per-level state, per-step actions and
+    flags, per-level metadata (`meta/*`, `action_mask`)."""
+    layout = open_dataset(root).layout
+    groups: dict[str, int] = {}
+    for spec in layout.fields:
+        state = spec.name.startswith(STATE_PREFIX + "/")
+        group = {
+            (True, True): "per-step state",
+            (True, False): "per-level state",
+            (False, True): "actions, done, success",
+            (False, False): "metadata",
+        }[(state, spec.per_step)]
+        folder = root / DATA_DIR / spec.name
+        size = sum(path.stat().st_size for path in folder.rglob("*") if path.is_file() and path.name != "zarr.json")
+        groups[group] = groups.get(group, 0) + size
+    return groups
 
 
 def steady_state_outside_share(records: list[dict]) -> float | None:
@@ -109,6 +129,9 @@ def measure(size: str, workers: int, args, scratch: Path) -> dict:
         "bytes_on_disk": disk,
         "metadata_bytes": metadata,
         "bytes_per_transition": disk / transitions if transitions else None,
+        "bytes_per_transition_by_group": {
+            group: size / transitions for group, size in bytes_by_group(output).items() if transitions
+        },
         "data_digests": sorted(
             (record["global_batch"], name, entry["data_sha256"])
             for record in records
@@ -156,6 +179,9 @@ def _line(result: dict) -> str:
         if per_transition is not None
         else "no kept trajectory"
     )
+    if per_transition is not None:
+        groups = ", ".join(f"{group} {size:.1f}" for group, size in result["bytes_per_transition_by_group"].items())
+        storage += f" [{groups}]"
     share = result["steady_state_outside_training_share"]
     steady = "n/a" if share is None else f"{100 * share:4.1f} %"
     return (
