@@ -18,11 +18,14 @@ PPO and collection settings and per-level keys). Per set and budget it prints:
 
 Budgets must be multiples of the PPO update (num_envs x num_steps; 2,000 env steps by default); `--scale tiny` or
 `--set ppo.num_envs=8 ppo.num_steps=32` allows powers of two. `--json` prints one JSON document with per-level
-results instead. The default run (64 random levels at 1M) trains 64M env steps plus the hand-designed set, over an
-hour on a 2-core CPU; 10M as well is about 8 x 10^8 env steps, most of a day. A quick check:
+results instead. The default run (64 random levels at 1M) trains 64M env steps plus the hand-designed set, about
+half an hour on a 2-core CPU; 10M as well is about 8 x 10^8 env steps, about five hours. `--first-level K` measures
+levels K, K + 1, ... with their own keys, so a long measurement can be cut into parts (same results as one run
+with the same `--batch`). A quick check:
 
     python benchmarks/experts.py --levels 8 --budgets 65536 131072 --scale tiny
     python benchmarks/experts.py --budgets 1000000 10000000 --json
+    python benchmarks/experts.py --levels 32 --first-level 32 --batch 32 --budgets 10000000 --sets random --json
 """
 
 from __future__ import annotations
@@ -77,12 +80,13 @@ def load_hand_levels(directory: Path, static: StaticEnvParams) -> tuple[list[str
     return [path.stem for path in paths], jax.tree.map(lambda *x: jnp.stack(x), *(level.level for level in loaded))
 
 
-def sample_split_levels(job: JobConfig, count: int) -> Level:
-    """The split's first `count` levels, sampled in the pipeline's batches (`work.levels_per_batch` levels per call,
-    the same shape as pipeline/level_batch.py, since XLA may round differently for another shape)."""
+def sample_split_levels(job: JobConfig, first: int, count: int) -> Level:
+    """The split's levels first, ..., first + count - 1, sampled in the pipeline's batches (`work.levels_per_batch`
+    levels per call, aligned as in pipeline/level_batch.py, since XLA may round differently for another shape)."""
     batch = job.work.levels_per_batch
-    chunks = [sample_batch(job, np.arange(start, start + batch)) for start in range(0, count, batch)]
-    return jax.tree.map(lambda *x: jnp.concatenate(x)[:count], *chunks)
+    aligned = first - first % batch
+    chunks = [sample_batch(job, np.arange(start, start + batch)) for start in range(aligned, first + count, batch)]
+    return jax.tree.map(lambda *x: jnp.concatenate(x)[first - aligned : first - aligned + count], *chunks)
 
 
 class _BatchExperts:
@@ -129,8 +133,13 @@ def _timed(function, warm_up: bool) -> tuple[object, float]:
     return output, time.perf_counter() - clock
 
 
-def run_experts(job: JobConfig, levels: Level, seed: int, batch: int, episodes: int, programs: dict, log) -> dict:
+def run_experts(
+    job: JobConfig, levels: Level, seed: int, first: int, batch: int, episodes: int, programs: dict, log
+) -> dict:
     """Train, roll out and evaluate one expert per level in vmapped batches of `batch` levels (the last padded).
+
+    Level j of `levels` gets the keys of level `first + j` of its set, so a range measured in parts gets the same
+    results as in one run with the same `batch`.
 
     `programs` holds compiled training programs by (PPO config, static params, batch size), shared between calls.
     Returns per-level arrays (window success, episodes ended in the window, evaluation success rate, last update's
@@ -146,7 +155,7 @@ def run_experts(job: JobConfig, levels: Level, seed: int, batch: int, episodes: 
     for start in range(0, padded, batch):
         indices = np.minimum(np.arange(start, start + batch), count - 1)
         batch_levels = jax.tree.map(lambda x, indices=indices: x[indices], levels)
-        train_keys = level_keys(seed, indices, KeyPurpose.TRAIN)
+        train_keys = level_keys(seed, first + indices, KeyPurpose.TRAIN)
         if (config, static, batch) not in programs:
             clock = time.perf_counter()
             programs[config, static, batch] = train_levels.lower(
@@ -156,7 +165,7 @@ def run_experts(job: JobConfig, levels: Level, seed: int, batch: int, episodes: 
         compiled = programs[config, static, batch]
         trained, elapsed = _timed(functools.partial(compiled, batch_levels, train_keys, env_params), warm_up=False)
         seconds["train"] += elapsed
-        expert = _BatchExperts(job, trained.params, batch_levels, seed, indices)
+        expert = _BatchExperts(job, trained.params, batch_levels, seed, first + indices)
         window, elapsed = _timed(expert.window, warm_up=start == 0)
         seconds["window"] += elapsed
         evaluation, elapsed = _timed(functools.partial(expert.evaluate, episodes), warm_up=start == 0)
@@ -221,7 +230,8 @@ def measure_set(name: str, ids: list, levels: Level, seed: int, args, programs: 
         config = ppo_config(job)
         log(f"{name} budget {budget:,}: {config.num_updates} updates of {config.num_envs} x {config.num_steps} steps")
         batch = args.batch or job.work.levels_per_batch
-        run = run_experts(job, levels, seed, batch, args.episodes, programs, log)
+        first = ids[0] if random else 0
+        run = run_experts(job, levels, seed, first, batch, args.episodes, programs, log)
         summary = summarise(run["per_level"], keep, run["seconds"], count, run["padded_levels"])
         log(
             f"{name} budget {budget:,}: window success {summary['solved']}/{count} = "
@@ -264,7 +274,13 @@ def compare_budgets(name: str, ids: list, budgets: dict, log) -> list:
 
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--levels", type=int, default=DEFAULT_RANDOM_LEVELS, help="random levels: split 1M/s's first")
+    parser.add_argument("--levels", type=int, default=DEFAULT_RANDOM_LEVELS, help="random levels of split 1M/s")
+    parser.add_argument(
+        "--first-level",
+        type=int,
+        default=0,
+        help="first random level (measure a range in parts: the same results as one run with the same --batch)",
+    )
     parser.add_argument("--budgets", nargs="+", type=int, default=list(DEFAULT_BUDGETS), help="env steps per expert")
     parser.add_argument(
         "--batch", type=int, help="levels per vmapped program (default: the job's work.levels_per_batch)"
@@ -290,9 +306,10 @@ def main(argv=None) -> None:
     job = load_config(SPLIT_CONFIG, args.set, args.scale)
     programs = {}  # compiled training programs, shared by the level sets
     if "random" in args.sets:
-        levels = sample_split_levels(job, args.levels)
+        ids = list(range(args.first_level, args.first_level + args.levels))
+        levels = sample_split_levels(job, args.first_level, args.levels)
         report["sets"]["random"] = measure_set(
-            "random s", list(range(args.levels)), levels, job.split.seed, args, programs, log, random=True
+            "random s", ids, levels, job.split.seed, args, programs, log, random=True
         )
     if "hand" in args.sets:
         names, levels = load_hand_levels(args.hand_levels, environment(job)[1])
