@@ -24,6 +24,7 @@ import jax.numpy as jnp
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 from benchmarks.scenes import build_scene  # noqa: E402
+from benchmarks.timing import best_time  # noqa: E402
 from engine import SimParams, step  # noqa: E402
 
 DISTINCT_SCENES = 16
@@ -32,17 +33,6 @@ DISTINCT_SCENES = 16
 GPU_BATCHES = (4096, 16384, 65536)
 JAX2D_PUBLISHED_PEAK_STEPS_PER_SECOND = {"s": 2e7, "m": 9e6, "l": 1.7e6}
 """Jax2D README plots (hardware not stated), for comparison when a GPU is present."""
-
-
-def best_time(function, argument, repeats: int) -> float:
-    """Fastest of `repeats` timed calls [s], after one untimed warm-up call."""
-    jax.block_until_ready(function(argument))
-    best = float("inf")
-    for _ in range(repeats):
-        start = time.perf_counter()
-        jax.block_until_ready(function(argument))
-        best = min(best, time.perf_counter() - start)
-    return best
 
 
 def _batched_states(size: str, batch: int):
@@ -64,7 +54,7 @@ def measure_ours(size: str, batch: int, n_steps: int, repeats: int) -> dict:
         return jax.lax.scan(lambda s, _: (batched(s), None), states, None, length=n_steps)[0]
 
     compiled = jax.jit(rollout).lower(states).compile()
-    seconds = best_time(compiled, states, repeats)
+    seconds = best_time(lambda: compiled(states), repeats)[0]
     return {"engine": "ours", "size": size, "batch": batch, "steps_per_second": batch * n_steps / seconds}
 
 

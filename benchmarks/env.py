@@ -26,7 +26,7 @@ import jax.numpy as jnp
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
-from benchmarks.engine import best_time  # noqa: E402
+from benchmarks.timing import best_time  # noqa: E402
 from env import EnvParams, StaticEnvParams, reset, step  # noqa: E402
 from env.actions import MULTI_DISCRETE_SIZES  # noqa: E402
 from env.observations import ObservationType, observe  # noqa: E402
@@ -49,7 +49,7 @@ def measure_sampler(size: str, batch: int, repeats: int) -> dict:
     start = time.perf_counter()
     compiled = sample.lower(keys).compile()
     compile_seconds = time.perf_counter() - start
-    seconds = best_time(compiled, keys, repeats)
+    seconds = best_time(lambda: compiled(keys), repeats)[0]
     return {"size": size, "batch": batch, "levels_per_second": batch / seconds, "compile_seconds": compile_seconds}
 
 
@@ -81,7 +81,7 @@ def measure_steps(size: str, batch: int, n_steps: int, repeats: int) -> dict:
     start = time.perf_counter()
     compiled = jax.jit(rollout).lower(key).compile()
     compile_seconds = time.perf_counter() - start
-    seconds = best_time(compiled, key, repeats)
+    seconds = best_time(lambda: compiled(key), repeats)[0]
     return {
         "size": size,
         "batch": batch,

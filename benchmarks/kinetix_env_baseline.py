@@ -24,21 +24,13 @@ from kinetix.environment import (
     static_env_params_from_size,
 )
 from kinetix.environment.ued.ued import make_reset_fn_sample_kinetix_level
+from timing import best_time  # benchmarks/timing.py, beside this script (needs only jax)
 
 MULTI_DISCRETE_SIZES = (3, 3, 3, 3, 2, 2)
 
 
 def _static(size: str) -> StaticEnvParams:
     return static_env_params_from_size(size)
-
-
-def _best_time(function, argument, repeats: int) -> float:
-    best = float("inf")
-    for _ in range(repeats):
-        start = time.perf_counter()
-        jax.block_until_ready(function(argument))
-        best = min(best, time.perf_counter() - start)
-    return best
 
 
 def measure_sampler(size: str, batch: int, repeats: int) -> dict:
@@ -48,7 +40,7 @@ def measure_sampler(size: str, batch: int, repeats: int) -> dict:
     start = time.perf_counter()
     compiled = sample.lower(keys).compile()
     compile_seconds = time.perf_counter() - start
-    seconds = _best_time(compiled, keys, repeats)
+    seconds = best_time(lambda: compiled(keys), repeats)[0]
     return {"size": size, "batch": batch, "levels_per_second": batch / seconds, "compile_seconds": compile_seconds}
 
 
@@ -76,7 +68,7 @@ def measure_steps(size: str, batch: int, n_steps: int, repeats: int) -> dict:
     start = time.perf_counter()
     compiled = jax.jit(rollout).lower(key).compile()
     compile_seconds = time.perf_counter() - start
-    seconds = _best_time(compiled, key, repeats)
+    seconds = best_time(lambda: compiled(key), repeats)[0]
     return {
         "size": size,
         "batch": batch,

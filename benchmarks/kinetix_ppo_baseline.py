@@ -36,6 +36,7 @@ from kinetix.environment import (
 )
 from kinetix.environment.ued.ued import make_reset_fn_sample_kinetix_level
 from kinetix.models import ScannedRNN, make_network_from_config
+from timing import best_time  # benchmarks/timing.py, beside this script (needs only jax)
 
 KINETIX_NUM_ENVS = 2048
 """Parallel envs of Kinetix's configs/learning/ppo-base.yaml (num_train_envs)."""
@@ -195,17 +196,6 @@ def make_train(args, env, env_params, network):
         return {"runner_state": runner_state, "metric": metric}
 
     return train
-
-
-def best_time(function, repeats: int) -> tuple[float, float]:
-    """(wall, process CPU) seconds of the fastest of `repeats` calls, after one untimed warm-up call."""
-    jax.block_until_ready(function())
-    best = (float("inf"), float("inf"))
-    for _ in range(repeats):
-        wall, cpu = time.perf_counter(), time.process_time()
-        jax.block_until_ready(function())
-        best = min(best, (time.perf_counter() - wall, time.process_time() - cpu))
-    return best
 
 
 def main() -> None:

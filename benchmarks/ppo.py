@@ -33,6 +33,7 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 from agents import PPOConfig, initial_params, train_levels  # noqa: E402
 from benchmarks.env import DEFAULT_KINETIX_VENV, REPO_ROOT, kinetix_python  # noqa: E402
+from benchmarks.timing import best_time  # noqa: E402
 from env import EnvParams, StaticEnvParams, sample_levels  # noqa: E402
 
 DEFAULT_CONFIG = REPO_ROOT / "configs" / "ppo_specialist.yaml"
@@ -59,17 +60,6 @@ def load_ppo_config(path: Path, overrides: list[str], updates: int) -> PPOConfig
     return PPOConfig.from_mapping(values)
 
 
-def _timed(function, repeats: int) -> tuple[float, float]:
-    """(wall, process CPU) seconds of the fastest of `repeats` calls, after one untimed warm-up call."""
-    jax.block_until_ready(function())
-    best = (float("inf"), float("inf"))
-    for _ in range(repeats):
-        wall, cpu = time.perf_counter(), time.process_time()
-        jax.block_until_ready(function())
-        best = min(best, (time.perf_counter() - wall, time.process_time() - cpu))
-    return best
-
-
 def measure_ours(size: str, num_levels: int, config: PPOConfig, repeats: int) -> dict:
     """Env steps per second of `train_levels` on `num_levels` random levels of `size` (compile excluded)."""
     static, env_params = StaticEnvParams.for_size(size), EnvParams()
@@ -79,7 +69,7 @@ def measure_ours(size: str, num_levels: int, config: PPOConfig, repeats: int) ->
     start = time.perf_counter()
     compiled = train_levels.lower(levels, keys, config, env_params, static).compile()
     compile_seconds = time.perf_counter() - start
-    seconds, cpu_seconds = _timed(lambda: compiled(levels, keys, env_params), repeats)
+    seconds, cpu_seconds = best_time(lambda: compiled(levels, keys, env_params), repeats)
     env_steps = num_levels * config.env_steps_per_level
     return {
         "levels": num_levels,
