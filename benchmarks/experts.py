@@ -21,11 +21,14 @@ Budgets must be multiples of the PPO update (num_envs x num_steps; 2,000 env ste
 results instead. The default run (64 random levels at 1M) trains 64M env steps plus the hand-designed set, about
 half an hour on a 2-core CPU; 10M as well is about 8 x 10^8 env steps, about five hours. `--first-level K` measures
 levels K, K + 1, ... with their own keys, so a long measurement can be cut into parts (same results as one run
-with the same `--batch`). A quick check:
+with the same `--batch`), and `--merge` prints the summaries and budget comparisons of the parts' `--json` reports
+taken together (the levels every budget covers). A quick check, and a measurement in parts:
 
     python benchmarks/experts.py --levels 8 --budgets 65536 131072 --scale tiny
     python benchmarks/experts.py --budgets 1000000 10000000 --json
-    python benchmarks/experts.py --levels 32 --first-level 32 --batch 32 --budgets 10000000 --sets random --json
+    python benchmarks/experts.py --levels 32 --first-level 32 --batch 32 --budgets 10000000 \\
+        --sets random --json > b.json
+    python benchmarks/experts.py --merge a.json b.json 1m.json
 """
 
 from __future__ import annotations
@@ -233,19 +236,23 @@ def measure_set(name: str, ids: list, levels: Level, seed: int, args, programs: 
         first = ids[0] if random else 0
         run = run_experts(job, levels, seed, first, batch, args.episodes, programs, log)
         summary = summarise(run["per_level"], keep, run["seconds"], count, run["padded_levels"])
-        log(
-            f"{name} budget {budget:,}: window success {summary['solved']}/{count} = "
-            f"{_percent(summary['solved_share'])}{reference}; among the {summary['kept_by_filter']} kept "
-            f"{summary['solved_kept']} = {_percent(summary['solved_share_kept'])}; evaluation success "
-            f"{_percent(summary['eval_success_rate'])} (kept {_percent(summary['eval_success_rate_kept'])}); "
-            f"{summary['seconds_per_level']:.1f} s per level, compile {summary['compile_seconds']:.0f} s"
-        )
+        log(_summary_line(name, budget, summary, reference))
         report["budgets"][str(budget)] = {
             "summary": summary,
             "per_level": {key: value.tolist() for key, value in run["per_level"].items()},
         }
     report["budget_comparisons"] = compare_budgets(name, ids, report["budgets"], log)
     return report
+
+
+def _summary_line(name: str, budget: int, summary: dict, reference: str) -> str:
+    return (
+        f"{name} budget {int(budget):,}: window success {summary['solved']}/{summary['levels']} = "
+        f"{_percent(summary['solved_share'])}{reference}; among the {summary['kept_by_filter']} kept "
+        f"{summary['solved_kept']} = {_percent(summary['solved_share_kept'])}; evaluation success "
+        f"{_percent(summary['eval_success_rate'])} (kept {_percent(summary['eval_success_rate_kept'])}); "
+        f"{summary['seconds_per_level']:.1f} s per level, compile {summary['compile_seconds']:.0f} s"
+    )
 
 
 def compare_budgets(name: str, ids: list, budgets: dict, log) -> list:
@@ -272,6 +279,67 @@ def compare_budgets(name: str, ids: list, budgets: dict, log) -> list:
     return comparisons
 
 
+MERGE_SETTINGS = ("split_config", "scale", "overrides", "batch")
+"""Report keys that parts of one measurement must share (a part that does not record a key is not checked on it)."""
+
+
+def merge_reports(reports: list[dict], log) -> dict:
+    """One report from the reports of a measurement's parts (level ranges, or budgets run apart): per level set, the
+    levels that every budget covers, their summaries and the budget comparisons. A level measured twice must have
+    the same results in both reports."""
+    for key in MERGE_SETTINGS:
+        values = {json.dumps(report[key]) for report in reports if report.get(key) is not None}
+        if len(values) > 1:
+            raise SystemExit(f"--merge: the reports were measured with different {key}: {', '.join(sorted(values))}")
+    merged = {key: reports[0].get(key) for key in ("machine", *MERGE_SETTINGS)}
+    merged |= {"merged_reports": len(reports), "sets": {}}
+    for name in sorted({name for report in reports for name in report["sets"]}):
+        reasons, results, parts = {}, {}, {}
+        for report in reports:
+            part = report["sets"].get(name)
+            if part is None:
+                continue
+            for i, level in enumerate(part["levels"]):
+                if reasons.setdefault(level, part["filter_reason"][i]) != part["filter_reason"][i]:
+                    raise SystemExit(f"--merge: set {name} level {level}: the filter differs between reports")
+            for budget, entry in part["budgets"].items():
+                parts.setdefault(budget, []).append(entry["summary"])
+                for i, level in enumerate(part["levels"]):
+                    values = {key: column[i] for key, column in entry["per_level"].items()}
+                    if results.setdefault(budget, {}).setdefault(level, values) != values:
+                        raise SystemExit(f"--merge: set {name} level {level} budget {budget}: results differ")
+        ids = sorted(set.intersection(*(set(by_level) for by_level in results.values())))
+        missing = sorted(set(reasons) - set(ids))
+        if missing:
+            log(f"{name}: {len(missing)} levels lack a budget and are left out: {missing}")
+        keep = np.array([reasons[level] == "kept" for level in ids], bool)
+        log(f"{name}: {len(ids)} levels, {int(keep.sum())} kept by the trivial-level filter")
+        reference = f" (Kinetix-Offline ~{KINETIX_OFFLINE_SOLVED_SHARE:.0%})" if name == "random" else ""
+        budgets = {}
+        for budget in sorted(results, key=int):
+            per_level = {
+                key: np.array([results[budget][level][key] for level in ids]) for key in results[budget][ids[0]]
+            }
+            counted = sum(summary["levels"] for summary in parts[budget])
+            work = sum(summary["seconds_per_level"] * summary["levels"] for summary in parts[budget])
+            train = sum(summary["train_seconds_per_level"] * summary["levels"] for summary in parts[budget])
+            compile_seconds = max(summary["compile_seconds"] for summary in parts[budget])
+            seconds = {"train": train, "window": work - train, "evaluate": 0.0, "compile": compile_seconds}
+            summary = summarise(per_level, keep, seconds, len(ids), counted)
+            log(_summary_line(f"{name} (merged)", int(budget), summary, reference))
+            budgets[budget] = {
+                "summary": summary,
+                "per_level": {key: value.tolist() for key, value in per_level.items()},
+            }
+        merged["sets"][name] = {
+            "levels": ids,
+            "filter_reason": [reasons[level] for level in ids],
+            "budgets": budgets,
+            "budget_comparisons": compare_budgets(name, ids, budgets, log),
+        }
+    return merged
+
+
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--levels", type=int, default=DEFAULT_RANDOM_LEVELS, help="random levels of split 1M/s")
@@ -290,17 +358,31 @@ def main(argv=None) -> None:
     parser.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE", help="pipeline config overrides")
     parser.add_argument("--sets", nargs="+", default=["random", "hand"], choices=["random", "hand"])
     parser.add_argument("--hand-levels", type=Path, default=HAND_LEVELS_DIR, help="directory of hand-designed levels")
+    parser.add_argument(
+        "--merge",
+        nargs="+",
+        type=Path,
+        metavar="REPORT",
+        help="measure nothing: merge --json reports of parts of one measurement and print their summaries",
+    )
     parser.add_argument("--json", action="store_true", help="print one JSON document with per-level results")
     args = parser.parse_args(argv)
 
     def log(line: str) -> None:
         print(line, file=sys.stderr if args.json else sys.stdout, flush=True)
 
+    if args.merge:
+        merged = merge_reports([json.loads(path.read_text()) for path in args.merge], log)
+        if args.json:
+            print(json.dumps(merged, indent=2))
+        return
+
     report = {
         "machine": {"backend": jax.default_backend(), "cpu_count": os.cpu_count(), "platform": platform.platform()},
         "split_config": str(SPLIT_CONFIG),
         "scale": args.scale,
         "overrides": args.set,
+        "batch": args.batch,
         "sets": {},
     }
     job = load_config(SPLIT_CONFIG, args.set, args.scale)

@@ -14,6 +14,7 @@ level batch (which compiles every program), bytes of shard files per stored tran
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import platform
@@ -46,9 +47,15 @@ def bytes_on_disk(root: Path) -> tuple[int, int]:
     return sum(path.stat().st_size for path in files) - metadata, metadata
 
 
+SOLVER_CACHE_PREFIXES = (f"{STATE_PREFIX}/sim/contacts/", f"{STATE_PREFIX}/sim/joints/")
+"""Per-step state fields that are the solver's warm-start caches (accumulated impulses, contact feature ids): not
+observed, needed only to restart the simulation bit for bit."""
+
+
 def bytes_by_group(root: Path) -> dict[str, int]:
-    """Shard-file bytes of the dataset's arrays in four groups: per-step state, per-level state, per-step actions and
-    flags, per-level metadata (`meta/*`, `action_mask`)."""
+    """Shard-file bytes of the dataset's arrays in five groups: per-step state split into body motion and the
+    solver's warm-start caches, per-level state, per-step actions and flags, per-level metadata (`meta/*`,
+    `action_mask`)."""
     layout = open_dataset(root).layout
     groups: dict[str, int] = {}
     for spec in layout.fields:
@@ -59,6 +66,8 @@ def bytes_by_group(root: Path) -> dict[str, int]:
             (False, True): "actions, done, success",
             (False, False): "metadata",
         }[(state, spec.per_step)]
+        if group == "per-step state" and spec.name.startswith(SOLVER_CACHE_PREFIXES):
+            group = "per-step solver caches"
         folder = root / DATA_DIR / spec.name
         size = sum(path.stat().st_size for path in folder.rglob("*") if path.is_file() and path.name != "zarr.json")
         groups[group] = groups.get(group, 0) + size
@@ -142,10 +151,18 @@ def measure(size: str, workers: int, args, scratch: Path) -> dict:
 
 def run(args, log=print) -> dict:
     results = []
-    with tempfile.TemporaryDirectory(prefix="kforge-bench-") as scratch:
+    with contextlib.ExitStack() as stack:
+        if args.keep is None:
+            scratch = Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="kforge-bench-")))
+        else:
+            scratch = args.keep
+            taken = [f"{size}-{workers}w" for size in args.sizes for workers in args.workers]
+            taken = [name for name in taken if (scratch / name).exists()]
+            if taken:
+                raise SystemExit(f"--keep {scratch}: {', '.join(taken)} already exist (a rerun would resume them)")
         for size in args.sizes:
             for workers in args.workers:
-                result = measure(size, workers, args, Path(scratch))
+                result = measure(size, workers, args, scratch)
                 results.append(result)
                 log(_line(result))
     report = {
@@ -203,6 +220,12 @@ def main(argv=None) -> None:
     parser.add_argument("--batches-per-shard", type=int, default=2)
     parser.add_argument("--num-envs", type=int, default=16)
     parser.add_argument("--num-steps", type=int, default=64)
+    parser.add_argument(
+        "--keep",
+        type=Path,
+        help="write the datasets to DIR/<size>-<workers>w and keep them (e.g. for benchmarks/storage.py); "
+        "each must not exist yet",
+    )
     parser.add_argument("--json", action="store_true", help="print one JSON document")
     args = parser.parse_args(argv)
     report = run(args, log=(lambda _: None) if args.json else print)
