@@ -4,7 +4,8 @@ For each size it runs the same small job (embedded local Ray, a fresh output dir
 prints: stored transitions per second, expert env steps per second, the share of worker time spent outside
 training and rollout (sampling, filtering, writing, coordination, start-up), overall and after each worker's first
 level batch (which compiles every program), bytes of shard files per stored transition next to Kinetix-Offline's
-(release figures, reference §11), and whether every worker count wrote the same data.
+(release figures, reference §11) and by field group, the trajectories per second the loader reads back, and whether
+every worker count wrote the same data.
 `--json` prints one JSON document instead.
 
     python benchmarks/pipeline.py
@@ -20,12 +21,16 @@ import os
 import platform
 import sys
 import tempfile
+import time
 from pathlib import Path
+
+import jax
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 from pipeline.config import load_config  # noqa: E402
 from pipeline.layout import STATE_PREFIX  # noqa: E402
+from pipeline.loader import TrajectoryDatasetManager  # noqa: E402
 from pipeline.manifest import iter_records  # noqa: E402
 from pipeline.run import run_job  # noqa: E402
 from pipeline.shard_store import DATA_DIR, open_dataset  # noqa: E402
@@ -72,6 +77,26 @@ def bytes_by_group(root: Path) -> dict[str, int]:
         size = sum(path.stat().st_size for path in folder.rglob("*") if path.is_file() and path.name != "zarr.json")
         groups[group] = groups.get(group, 0) + size
     return groups
+
+
+LOADER_BATCH = 8
+"""Trajectories per loader batch when measuring read speed."""
+
+LOADER_TRAJECTORIES = 256
+"""Trajectories the loader reads (after one untimed batch) when measuring read speed."""
+
+
+def loader_rate(root: Path, kept: int) -> float | None:
+    """Trajectories per second that `TrajectoryDatasetManager` delivers (shuffled, decoded, on the JAX device)."""
+    if kept == 0:
+        return None
+    manager = TrajectoryDatasetManager(root, batch_size=min(LOADER_BATCH, kept), seed=0)
+    jax.block_until_ready(manager.load_next_batch().action)
+    batches = max(1, LOADER_TRAJECTORIES // manager.batch_size)
+    clock = time.perf_counter()
+    for _ in range(batches):
+        jax.block_until_ready(manager.load_next_batch().action)
+    return batches * manager.batch_size / (time.perf_counter() - clock)
 
 
 def steady_state_outside_share(records: list[dict]) -> float | None:
@@ -138,6 +163,7 @@ def measure(size: str, workers: int, args, scratch: Path) -> dict:
         "bytes_on_disk": disk,
         "metadata_bytes": metadata,
         "bytes_per_transition": disk / transitions if transitions else None,
+        "loader_trajectories_per_second": loader_rate(output, kept),
         "bytes_per_transition_by_group": {
             group: size / transitions for group, size in bytes_by_group(output).items() if transitions
         },
@@ -201,6 +227,9 @@ def _line(result: dict) -> str:
         storage += f" [{groups}]"
     share = result["steady_state_outside_training_share"]
     steady = "n/a" if share is None else f"{100 * share:4.1f} %"
+    rate = result["loader_trajectories_per_second"]
+    if rate is not None:
+        storage += f"; the loader reads {rate:,.0f} trajectories/s"
     return (
         f"{size} {result['workers']} worker(s): {result['wall_seconds']:6.1f} s, {result['kept_trajectories']} kept of "
         f"{result['levels']} levels, {result['transitions_per_second']:8.1f} transitions/s, "

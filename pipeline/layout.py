@@ -8,6 +8,7 @@ other leaf is static per level and stored once per trajectory; the writer checks
 from __future__ import annotations
 
 import dataclasses
+import functools
 from collections.abc import Mapping
 
 import jax
@@ -214,5 +215,10 @@ def flatten_state(state: EnvState) -> dict[str, np.ndarray]:
 
 def unflatten_state(layout: Layout, arrays: Mapping[str, object]) -> EnvState:
     """The `EnvState` whose leaves are `arrays[stored name]` (inverse of `flatten_state`)."""
-    _, treedef = jax.tree_util.tree_flatten(_state_template(layout.static))
-    return jax.tree_util.tree_unflatten(treedef, [arrays[spec.name] for spec in layout.state_fields])
+    leaves = [arrays[spec.name] for spec in layout.state_fields]
+    return jax.tree_util.tree_unflatten(_state_treedef(layout.static), leaves)
+
+
+@functools.cache
+def _state_treedef(static: StaticEnvParams):
+    return jax.tree_util.tree_structure(_state_template(static))

@@ -108,19 +108,27 @@ class TrajectoryDatasetManager:
             )
         steps = layout.num_steps
 
-        def over_time(name: str) -> jnp.ndarray:
+        def over_time(name: str) -> np.ndarray:
             value = arrays[name]
             if layout.field(name).per_step:
-                return jnp.asarray(value)
-            return jnp.asarray(np.broadcast_to(value[:, None], (value.shape[0], steps) + value.shape[1:]))
+                return value
+            return np.broadcast_to(value[:, None], (value.shape[0], steps) + value.shape[1:])
 
-        env_state = unflatten_state(layout, {spec.name: over_time(spec.name) for spec in layout.state_fields})
-        done = jnp.asarray(arrays[DONE])
+        # One transfer of the whole batch rather than one per field.
+        state, action, action_mask, done = jax.device_put(
+            (
+                {spec.name: over_time(spec.name) for spec in layout.state_fields},
+                arrays[ACTION],
+                over_time(ACTION_MASK),
+                arrays[DONE],
+            )
+        )
+        env_state = unflatten_state(layout, state)
         return ActionEnvStateMask(
-            action=jnp.asarray(arrays[ACTION]),
+            action=action,
             env_state=env_state,
             mask=jnp.ones(done.shape, bool),
-            action_mask=over_time(ACTION_MASK),
+            action_mask=action_mask,
             done=done,
             obs=None if self._render is None else self._render(env_state),
             trajectory_index=np.asarray(slots, np.int64),

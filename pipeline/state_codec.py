@@ -29,8 +29,8 @@ STORED_DTYPE = "uint32"
 CODED_DTYPES = ("float32", "int32")
 """Per-step state fields of these dtypes are coded; any other field is stored as it is."""
 
-_LOW_BITS = np.int64(0x7FFFFFFF)
-_HALF_WORD = 1 << 31
+_SIGN_SHIFT = np.uint32(31)
+_LOW_BITS = np.uint32(0x7FFFFFFF)
 
 
 def is_coded(spec: FieldSpec) -> bool:
@@ -43,25 +43,31 @@ def stored_dtype(spec: FieldSpec) -> str:
     return STORED_DTYPE if is_coded(spec) else spec.dtype
 
 
+# All arithmetic below is on uint32, which wraps modulo 2^32: an int32 image and its two's-complement bits are the
+# same word, so differences, sums and zigzags need no wider type.
+
+
 def _image(values: np.ndarray, spec: FieldSpec) -> np.ndarray:
-    """int64 image of float32 bit patterns (order-preserving, one-to-one onto int32) or of int32 values."""
-    signed = np.ascontiguousarray(values, spec.dtype).view(np.int32).astype(np.int64)
+    """uint32 words of the order-preserving image of float32 bit patterns (negative floats get their 31 low bits
+    flipped), or of int32 values as they are."""
+    bits = np.ascontiguousarray(values, spec.dtype).view(np.uint32)
     if spec.dtype == "float32":
-        return np.where(signed < 0, signed ^ _LOW_BITS, signed)
-    return signed
-
-
-def _wrap(x: np.ndarray) -> np.ndarray:
-    """int64 values modulo 2^32, into [-2^31, 2^31)."""
-    return (x + _HALF_WORD) % (2 * _HALF_WORD) - _HALF_WORD
+        return bits ^ ((bits >> _SIGN_SHIFT) * _LOW_BITS)
+    return bits
 
 
 def _from_image(image: np.ndarray, spec: FieldSpec) -> np.ndarray:
-    signed = _wrap(image).astype(np.int32)
-    if spec.dtype == "float32":
-        signed = np.where(signed < 0, signed ^ np.int32(_LOW_BITS), signed).astype(np.int32)
-        return signed.view(np.float32)
-    return signed
+    bits = image ^ ((image >> _SIGN_SHIFT) * _LOW_BITS) if spec.dtype == "float32" else image
+    return np.ascontiguousarray(bits, np.uint32).view(spec.dtype)
+
+
+def _zigzag(residual: np.ndarray) -> np.ndarray:
+    """Signed residuals (as uint32 words) to small unsigned ones: 0, -1, 1, -2, ... -> 0, 1, 2, 3, ..."""
+    return (residual << np.uint32(1)) ^ (np.uint32(0) - (residual >> _SIGN_SHIFT))
+
+
+def _unzigzag(stored: np.ndarray) -> np.ndarray:
+    return (stored >> np.uint32(1)) ^ (np.uint32(0) - (stored & np.uint32(1)))
 
 
 def _episode_starts(done: np.ndarray) -> np.ndarray:
@@ -83,23 +89,33 @@ def _predictions(image: np.ndarray, starts: np.ndarray) -> np.ndarray:
 def encode(spec: FieldSpec, values: np.ndarray, done: np.ndarray) -> np.ndarray:
     """Stored residuals (uint32, shape of `values`) of a coded field's trajectories (B, T, ...) given their done."""
     image = _image(values, spec)
-    residual = _wrap(image - _predictions(image, _episode_starts(done)))
-    return ((residual << 1) ^ (residual >> 63)).astype(np.uint32)
+    return _zigzag(image - _predictions(image, _episode_starts(done)))
+
+
+class _Episodes:
+    """Where each step's episode began, from the trajectories' (B, T) done flags (shared by every field)."""
+
+    def __init__(self, done: np.ndarray):
+        batch, steps = done.shape
+        step = np.arange(steps)
+        start = np.maximum.accumulate(np.where(_episode_starts(done), step, 0), axis=1)
+        self.shape = done.shape
+        self.later = start > 0  # the step's episode began after t = 0
+        self.row_before_start = (np.arange(batch)[:, None] * steps + np.maximum(start - 1, 0)).reshape(-1)
+
+
+def _decode(spec: FieldSpec, stored: np.ndarray, episodes: _Episodes) -> np.ndarray:
+    # Image at t of an episode starting at s: image[0] + (total[t] - total[s - 1]) when s > 0, total[t] for the
+    # first episode, where total is the running sum of residuals (so image[0] = total[0]).
+    total = np.cumsum(_unzigzag(np.asarray(stored, np.uint32)), axis=1, dtype=np.uint32)
+    before_start = total.reshape(episodes.shape[0] * episodes.shape[1], -1)[episodes.row_before_start]
+    later = _expand(episodes.later, total.ndim)
+    return _from_image(np.where(later, total[:, :1] - before_start.reshape(total.shape) + total, total), spec)
 
 
 def decode(spec: FieldSpec, stored: np.ndarray, done: np.ndarray) -> np.ndarray:
     """Values of `spec`'s dtype from stored residuals (B, T, ...) and the trajectories' done (inverse of encode)."""
-    zigzag = np.asarray(stored, np.uint32).astype(np.int64)
-    residual = (zigzag >> 1) ^ -(zigzag & 1)
-    starts = _expand(_episode_starts(done), residual.ndim)
-    # Image at t of an episode starting at s: image[0] + (total[t] - total[s - 1]) when s > 0, total[t] for the
-    # first episode, where total is the running sum of residuals (so image[0] = total[0]).
-    total = np.cumsum(residual, axis=1)
-    step = np.arange(residual.shape[1]).reshape((1, -1) + (1,) * (residual.ndim - 2))
-    start = np.maximum.accumulate(np.where(starts, step, 0), axis=1)
-    before_start = np.take_along_axis(total, np.maximum(start - 1, 0), axis=1)
-    base = np.where(start > 0, total[:, :1] - before_start, 0)
-    return _from_image(base + total, spec)
+    return _decode(spec, stored, _Episodes(np.asarray(done, bool)))
 
 
 def encode_arrays(layout: Layout, arrays: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
@@ -121,9 +137,12 @@ def decode_arrays(
 ) -> dict[str, np.ndarray]:
     """Inverse of `encode_arrays`, given the slots' done and valid flags: slots not valid read as the fill value."""
     arrays = dict(stored)
+    episodes, valid = _Episodes(np.asarray(done, bool)), np.asarray(valid, bool)
     for name, value in stored.items():
         spec = layout.field(name)
         if is_coded(spec):
-            arrays[name] = np.where(_expand(valid, value.ndim), decode(spec, value, done), spec.fill_value)
-            arrays[name] = arrays[name].astype(spec.dtype)
+            decoded = _decode(spec, value, episodes)
+            if not valid.all():
+                decoded = np.where(_expand(valid, value.ndim), decoded, spec.fill_value).astype(spec.dtype, copy=False)
+            arrays[name] = decoded
     return arrays

@@ -63,6 +63,23 @@ def test_special_floats_round_trip():
     np.testing.assert_array_equal(_bits(decode(FLOAT_FIELD, encode(FLOAT_FIELD, values, done), done)), _bits(values))
 
 
+def test_stored_words_are_the_documented_residuals():
+    """The on-disk format, worked by hand from the module docstring (a change here breaks every stored dataset)."""
+    spec = FieldSpec("env_state/last_distance", (), "float32", True)
+    values = np.array([[0x3F800000, 0x3F800001, 0x80000000, 0x00000000]], np.uint32).view(np.float32)  # 1, 1+ulp, -0, 0
+    done = np.array([[False, True, False, False]])  # step 2 starts an episode: predicted by step 0
+    # image(1.0) = 0x3F800000 -> zigzag 2 x; +1 ulp -> 2; image(-0.0) = -1, -1 - 0x3F800000 -> 2 x 0x3F800001 - 1;
+    # image(0.0) - image(-0.0) = 1 -> 2
+    expected = np.array([[0x7F000000, 2, 0x7F000001, 2]], np.uint32)
+    np.testing.assert_array_equal(encode(spec, values, done), expected)
+    np.testing.assert_array_equal(_bits(decode(spec, expected, done)), _bits(values))
+    ints = FieldSpec("env_state/timestep", (), "int32", True)
+    counts = np.array([[5, -3, 7, 7]], np.int32)  # residuals 5, -8, 10, 0 -> zigzag 10, 15, 20, 0
+    no_done = np.zeros((1, 4), bool)
+    np.testing.assert_array_equal(encode(ints, counts, no_done), np.array([[10, 15, 20, 0]], np.uint32))
+    np.testing.assert_array_equal(decode(ints, np.array([[10, 15, 20, 0]], np.uint32), no_done), counts)
+
+
 def test_empty_slots_store_zeros_and_read_as_the_fill_value():
     """A slot not kept is all zeros on disk (the zarr fill value: no chunk is written) and reads as NaN / -1."""
     layout = make_layout(StaticEnvParams.for_size("s"), ActionType.MULTI_DISCRETE, NUM_STEPS)
