@@ -52,11 +52,6 @@ def bytes_on_disk(root: Path) -> tuple[int, int]:
     return sum(path.stat().st_size for path in files) - metadata, metadata
 
 
-SOLVER_CACHE_PREFIXES = (f"{STATE_PREFIX}/sim/contacts/", f"{STATE_PREFIX}/sim/joints/")
-"""Per-step state fields that are the solver's warm-start caches (accumulated impulses, contact feature ids): not
-observed, needed only to restart the simulation bit for bit."""
-
-
 def bytes_by_group(root: Path) -> dict[str, int]:
     """Shard-file bytes of the dataset's arrays in five groups: per-step state split into body motion and the
     solver's warm-start caches, per-level state, per-step actions and flags, per-level metadata (`meta/*`,
@@ -71,7 +66,7 @@ def bytes_by_group(root: Path) -> dict[str, int]:
             (False, True): "actions, done, success",
             (False, False): "metadata",
         }[(state, spec.per_step)]
-        if group == "per-step state" and spec.name.startswith(SOLVER_CACHE_PREFIXES):
+        if spec.is_solver_cache:
             group = "per-step solver caches"
         folder = root / DATA_DIR / spec.name
         size = sum(path.stat().st_size for path in folder.rglob("*") if path.is_file() and path.name != "zarr.json")

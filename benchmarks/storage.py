@@ -35,17 +35,11 @@ from numcodecs import Blosc
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 from pipeline.layout import DONE, VALID  # noqa: E402
-from pipeline.shard_store import DATA_DIR, open_dataset  # noqa: E402
+from pipeline.shard_store import BLOSC_LEVEL, DATA_DIR, open_dataset  # noqa: E402
 from pipeline.state_codec import encode, is_coded  # noqa: E402
 
-SOLVER_CACHE_PREFIXES = ("env_state/sim/contacts/", "env_state/sim/joints/")
-"""Per-step state fields that are the solver's warm-start caches."""
 
-STORED_BLOSC_LEVEL = 5
-"""Blosc zstd level of the shard files (pipeline.shard_store.BLOSC_LEVEL)."""
-
-
-def _blosc(level: int = STORED_BLOSC_LEVEL, shuffle: int = Blosc.SHUFFLE) -> Callable[[np.ndarray], int]:
+def _blosc(level: int = BLOSC_LEVEL, shuffle: int = Blosc.SHUFFLE) -> Callable[[np.ndarray], int]:
     codec = Blosc(cname="zstd", clevel=level, shuffle=shuffle)
     return lambda array: len(codec.encode(array))
 
@@ -117,7 +111,7 @@ def measure(root: Path) -> dict:
             totals[name] += nbytes
             if name == "order-1 (stored)":
                 by_field[spec.name] = nbytes / transitions
-                caches += nbytes if spec.name.startswith(SOLVER_CACHE_PREFIXES) else 0
+                caches += nbytes if spec.is_solver_cache else 0
         size = _blosc()
         for batch in np.unique(batch_of):
             chunk = order1[batch_of == batch]

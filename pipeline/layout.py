@@ -48,6 +48,9 @@ EXPERT_SUCCESS_RATE = "meta/expert_success_rate"
 NUM_EPISODES = "meta/num_episodes"
 EPISODE_LENGTHS = "meta/episode_lengths"
 
+SOLVER_CACHE_PREFIXES = (f"{STATE_PREFIX}/sim/contacts/", f"{STATE_PREFIX}/sim/joints/")
+"""Name prefixes of the state leaves whose per-step fields are solver caches (`FieldSpec.is_solver_cache`)."""
+
 INT_FILL = -1
 """Fill value of integer arrays: an unwritten slot reads as -1 (never a valid level id, seed or length)."""
 
@@ -78,6 +81,12 @@ class FieldSpec:
         if kind in "iu":
             return INT_FILL
         return False
+
+    @property
+    def is_solver_cache(self) -> bool:
+        """A per-step field of the solver's warm-start caches (accumulated contact and joint impulses, contact
+        feature ids): no observation reads it, but a bit-exact restart of the simulation needs it."""
+        return self.per_step and self.name.startswith(SOLVER_CACHE_PREFIXES)
 
     def to_json(self) -> dict:
         return {"name": self.name, "shape": list(self.shape), "dtype": self.dtype, "per_step": self.per_step}

@@ -35,6 +35,21 @@ def test_exactly_the_declared_dynamic_leaves_are_per_step():
     assert not layout.field("env_state/sim/joints/motor_speed").per_step
 
 
+def test_solver_caches_are_the_per_step_impulses_and_contact_features():
+    layout = make_layout(SIZE_S, ActionType.MULTI_DISCRETE)
+    caches = {spec.name.removeprefix("env_state/sim/") for spec in layout.fields if spec.is_solver_cache}
+    assert caches == {
+        "contacts/normal_impulse",
+        "contacts/tangent_impulse",
+        "contacts/feature",
+        "joints/linear_impulse",
+        "joints/angular_impulse",
+        "joints/motor_impulse",
+        "joints/limit_impulse",
+    }
+    assert not layout.field("env_state/sim/joints/anchor_a").is_solver_cache  # per-level joint geometry
+
+
 def test_contact_cache_size_follows_the_static_size():
     # size m: 6 polygons + 3 circles; K candidate pairs grows, so the per-step contact fields do too
     small = make_layout(SIZE_S, ActionType.MULTI_DISCRETE).field("env_state/sim/contacts/feature").shape
