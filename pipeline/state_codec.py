@@ -108,9 +108,10 @@ def _decode(spec: FieldSpec, stored: np.ndarray, episodes: _Episodes) -> np.ndar
     # Image at t of an episode starting at s: image[0] + (total[t] - total[s - 1]) when s > 0, total[t] for the
     # first episode, where total is the running sum of residuals (so image[0] = total[0]).
     total = np.cumsum(_unzigzag(np.asarray(stored, np.uint32)), axis=1, dtype=np.uint32)
-    before_start = total.reshape(episodes.shape[0] * episodes.shape[1], -1)[episodes.row_before_start]
+    rows = total.reshape((episodes.shape[0] * episodes.shape[1],) + total.shape[2:])
+    before_start = rows[episodes.row_before_start].reshape(total.shape)
     later = _expand(episodes.later, total.ndim)
-    return _from_image(np.where(later, total[:, :1] - before_start.reshape(total.shape) + total, total), spec)
+    return _from_image(np.where(later, total[:, :1] - before_start + total, total), spec)
 
 
 def decode(spec: FieldSpec, stored: np.ndarray, done: np.ndarray) -> np.ndarray:

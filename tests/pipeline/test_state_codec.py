@@ -80,6 +80,15 @@ def test_stored_words_are_the_documented_residuals():
     np.testing.assert_array_equal(decode(ints, np.array([[10, 15, 20, 0]], np.uint32), no_done), counts)
 
 
+@pytest.mark.parametrize(("batch", "shape"), [(0, (3, 2)), (2, (0, 2)), (0, ())])
+def test_empty_batches_and_zero_size_fields_round_trip(batch, shape):
+    spec = FieldSpec("env_state/sim/joints/motor_impulse", shape, "float32", True)  # (0,): a size without joints
+    values = np.full((batch, NUM_STEPS) + shape, 1.5, np.float32)
+    done = np.zeros((batch, NUM_STEPS), bool)
+    decoded = decode(spec, encode(spec, values, done), done)
+    assert decoded.shape == values.shape and decoded.dtype == np.float32 and (decoded == 1.5).all()
+
+
 def test_empty_slots_store_zeros_and_read_as_the_fill_value():
     """A slot not kept is all zeros on disk (the zarr fill value: no chunk is written) and reads as NaN / -1."""
     layout = make_layout(StaticEnvParams.for_size("s"), ActionType.MULTI_DISCRETE, NUM_STEPS)
