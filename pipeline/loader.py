@@ -8,8 +8,11 @@ and the last incomplete batch of an epoch is dropped (it differs from epoch to e
 
 from __future__ import annotations
 
+import collections
+import itertools
 import os
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from concurrent.futures import Future, ThreadPoolExecutor
 from typing import Any, NamedTuple
 
 import jax
@@ -38,7 +41,8 @@ class TrajectoryDatasetManager:
     """Endless deterministic batches of (B, T, ...) trajectories from a dataset directory.
 
     `render_fn(env_state) -> observation` of one state (e.g. `lambda s: env.observe(s, static, type)`) is applied
-    to every step of a batch, compiled once.
+    to every step of a batch, compiled once. With `prefetch=k`, a background thread reads and decodes the next k
+    batches while the caller works on the current one (same batches, same order).
     """
 
     def __init__(
@@ -50,9 +54,12 @@ class TrajectoryDatasetManager:
         total_shard_count: int = 1,
         render_fn: Callable[[EnvState], Any] | None = None,
         static_env_params: StaticEnvParams | None = None,
+        prefetch: int = 0,
     ):
         if batch_size < 1:
             raise ValueError(f"batch_size must be >= 1, got {batch_size}")
+        if prefetch < 0:
+            raise ValueError(f"prefetch must be >= 0, got {prefetch}")
         if not 0 <= shard_index < total_shard_count:
             raise ValueError(f"shard_index {shard_index} out of range [0, {total_shard_count})")
         self.dataset = open_dataset(dataset_dir)
@@ -76,9 +83,13 @@ class TrajectoryDatasetManager:
                 f"{total_shard_count} only {self.length} per epoch, fewer than batch_size {batch_size}"
             )
         self.batches_per_epoch = self.length // batch_size
-        self.epoch, self._batch = 0, 0
-        self._order = self._epoch_order(0)
+        self.epoch = 0
+        """Epoch of the batch `load_next_batch` returned last."""
         self._render = None if render_fn is None else jax.jit(jax.vmap(jax.vmap(render_fn)))
+        self._upcoming = self._slot_batches()
+        self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="loader") if prefetch else None
+        self._queue: collections.deque[tuple[int, np.ndarray, Future]] = collections.deque()
+        self._prefetch = prefetch
 
     def _epoch_order(self, epoch: int) -> np.ndarray:
         permutation = np.random.default_rng([self.seed, epoch]).permutation(len(self.slots))
@@ -86,21 +97,52 @@ class TrajectoryDatasetManager:
             permutation[: self.length * self.total_shard_count][self.shard_index :: self.total_shard_count]
         ]
 
+    def _slot_batches(self) -> Iterator[tuple[int, np.ndarray]]:
+        """(epoch, slots) of every batch of this reader, in order, endlessly."""
+        epoch = 0
+        while True:
+            order = self._epoch_order(epoch)
+            for start in range(0, self.batches_per_epoch * self.batch_size, self.batch_size):
+                yield epoch, order[start : start + self.batch_size]
+            epoch += 1
+
     def load_next_batch(self) -> ActionEnvStateMask:
         """The next batch of this reader; after `batches_per_epoch` batches a new epoch starts (new permutation)."""
-        if self._batch == self.batches_per_epoch:
-            self.epoch, self._batch = self.epoch + 1, 0
-            self._order = self._epoch_order(self.epoch)
-        start = self._batch * self.batch_size
-        self._batch += 1
-        return self.load_slots(self._order[start : start + self.batch_size])
+        if self._pool is None:
+            self.epoch, slots = next(self._upcoming)
+            return self._to_batch(slots, self._read(slots))
+        while len(self._queue) <= self._prefetch:
+            epoch, slots = next(self._upcoming)
+            self._queue.append((epoch, slots, self._pool.submit(self._read, slots)))
+        self.epoch, slots, future = self._queue.popleft()
+        return self._to_batch(slots, future.result())
+
+    def close(self) -> None:
+        """Stop prefetching; later batches are the same, read when asked for."""
+        if self._pool is not None:
+            for _, _, future in self._queue:
+                future.cancel()
+            self._pool.shutdown(wait=True)
+            self._upcoming = itertools.chain([(epoch, slots) for epoch, slots, _ in self._queue], self._upcoming)
+            self._pool, self._queue = None, collections.deque()
+
+    def __enter__(self) -> TrajectoryDatasetManager:
+        return self
+
+    def __exit__(self, *exc_info) -> None:
+        self.close()
 
     def load_slots(self, slots: np.ndarray) -> ActionEnvStateMask:
         """The batch made of the given global slots (in that order); they must hold committed trajectories."""
+        return self._to_batch(slots, self._read(slots))
+
+    def _read(self, slots: np.ndarray) -> dict[str, np.ndarray]:
+        """Host arrays of the given slots (decoded, static fields broadcast over time), checked to be kept."""
+        slots = np.asarray(slots)
         layout = self.dataset.layout
         names = [ACTION, ACTION_MASK, DONE, VALID] + [spec.name for spec in layout.state_fields]
-        arrays = self.dataset.read(names, np.asarray(slots))
-        empty = np.asarray(slots)[~arrays[VALID]]
+        arrays = self.dataset.read(names, slots)
+        empty = slots[~arrays[VALID]]
         if len(empty):
             raise DatasetError(
                 f"{self.dataset.root}: committed slots {empty.tolist()} read as empty (missing data files?); "
@@ -114,12 +156,16 @@ class TrajectoryDatasetManager:
                 return value
             return np.broadcast_to(value[:, None], (value.shape[0], steps) + value.shape[1:])
 
+        return {name: over_time(name) for name in names if name != VALID}
+
+    def _to_batch(self, slots: np.ndarray, arrays: dict[str, np.ndarray]) -> ActionEnvStateMask:
+        layout = self.dataset.layout
         # One transfer of the whole batch rather than one per field.
         state, action, action_mask, done = jax.device_put(
             (
-                {spec.name: over_time(spec.name) for spec in layout.state_fields},
+                {spec.name: arrays[spec.name] for spec in layout.state_fields},
                 arrays[ACTION],
-                over_time(ACTION_MASK),
+                arrays[ACTION_MASK],
                 arrays[DONE],
             )
         )

@@ -57,6 +57,22 @@ def test_the_order_depends_only_on_the_seed(dataset_dir):
     assert first == again and first != other
 
 
+def test_prefetching_gives_the_same_batches_and_epochs(dataset_dir):
+    """Three epochs of batches of 3 (two per epoch), read ahead by a background thread or not; closing the
+    prefetching loader midway continues the same sequence."""
+    plain = TrajectoryDatasetManager(dataset_dir, batch_size=3, seed=4)
+    expected = [(plain.load_next_batch(), plain.epoch) for _ in range(6)]
+    with TrajectoryDatasetManager(dataset_dir, batch_size=3, seed=4, prefetch=2) as ahead:
+        got = [(ahead.load_next_batch(), ahead.epoch) for _ in range(3)]
+        ahead.close()
+        got += [(ahead.load_next_batch(), ahead.epoch) for _ in range(3)]
+    assert [epoch for _, epoch in got] == [epoch for _, epoch in expected] == [0, 0, 1, 1, 2, 2]
+    for (batch, _), (reference, _) in zip(got, expected, strict=True):
+        np.testing.assert_array_equal(batch.trajectory_index, reference.trajectory_index)
+        np.testing.assert_array_equal(batch.action, reference.action)
+        np.testing.assert_array_equal(batch.env_state.sim.bodies.velocity, reference.env_state.sim.bodies.velocity)
+
+
 @pytest.mark.parametrize("readers", [2, 3])
 def test_data_parallel_readers_are_disjoint_and_cover_the_epoch(dataset_dir, readers):
     per_reader = NUM_TRAJECTORIES // readers
@@ -89,6 +105,8 @@ def test_bad_requests_are_named(dataset_dir, tmp_path):
         TrajectoryDatasetManager(tmp_path, batch_size=1)
     with pytest.raises(ValueError, match=r"shard_index 2 out of range \[0, 2\)"):
         TrajectoryDatasetManager(dataset_dir, batch_size=1, shard_index=2, total_shard_count=2)
+    with pytest.raises(ValueError, match="prefetch must be >= 0, got -1"):
+        TrajectoryDatasetManager(dataset_dir, batch_size=1, prefetch=-1)
 
 
 def test_a_missing_or_corrupt_data_file_is_a_named_error(dataset_dir, tmp_path):
