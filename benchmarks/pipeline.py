@@ -53,8 +53,8 @@ def bytes_on_disk(root: Path) -> tuple[int, int]:
 
 
 def bytes_by_group(root: Path) -> dict[str, int]:
-    """Shard-file bytes of the dataset's arrays in five groups: per-step state split into body motion and the
-    solver's warm-start caches, per-level state, per-step actions and flags, per-level metadata (`meta/*`,
+    """Shard-file bytes of the dataset's arrays in five groups: per-step state (bodies, counters), the per-step
+    solver warm-start caches, per-level state, per-step actions and flags, per-level metadata (`meta/*`,
     `action_mask`)."""
     layout = open_dataset(root).layout
     groups: dict[str, int] = {}
