@@ -22,7 +22,8 @@ results instead. The default run (64 random levels at 1M) trains 64M env steps p
 half an hour on a 2-core CPU; 10M as well is about 8 x 10^8 env steps, about five hours. `--first-level K` measures
 levels K, K + 1, ... with their own keys, so a long measurement can be cut into parts (same results as one run
 with the same `--batch`), and `--merge` prints the summaries and budget comparisons of the parts' `--json` reports
-taken together (the levels every budget covers). A quick check, and a measurement in parts:
+taken together (the levels every budget covers). benchmarks/results/ holds the reports the README quotes (per-level
+results included), so a new part can be merged with them. A quick check, and a measurement in parts:
 
     python benchmarks/experts.py --levels 8 --budgets 65536 131072 --scale tiny
     python benchmarks/experts.py --budgets 1000000 10000000 --json
@@ -379,7 +380,7 @@ def main(argv=None) -> None:
 
     report = {
         "machine": {"backend": jax.default_backend(), "cpu_count": os.cpu_count(), "platform": platform.platform()},
-        "split_config": str(SPLIT_CONFIG),
+        "split_config": SPLIT_CONFIG.relative_to(REPO_ROOT).as_posix(),
         "scale": args.scale,
         "overrides": args.set,
         "batch": args.batch,
