@@ -6,11 +6,12 @@ they are made of (GAE, loss, policy).
 
 from agents.collect import WINDOW_STEPS, Window, collect_windows
 from agents.config import PPOConfig
-from agents.evaluate import EvalOutput, evaluate
+from agents.evaluate import Episode, EvalOutput, evaluate, level_episodes
 from agents.networks import ActorCritic, make_network
 from agents.ppo import (
     Batch,
     LossTerms,
+    Selection,
     TrainOutput,
     UpdateMetrics,
     gae,
@@ -25,9 +26,11 @@ __all__ = [
     "WINDOW_STEPS",
     "ActorCritic",
     "Batch",
+    "Episode",
     "EvalOutput",
     "LossTerms",
     "PPOConfig",
+    "Selection",
     "TrainOutput",
     "UpdateMetrics",
     "Window",
@@ -35,6 +38,7 @@ __all__ = [
     "evaluate",
     "gae",
     "initial_params",
+    "level_episodes",
     "make_network",
     "ppo_loss",
     "train_from",

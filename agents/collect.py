@@ -9,9 +9,9 @@ import jax
 import jax.numpy as jnp
 
 from agents import policy
+from agents.batching import ACTION_TYPE, check_level_keys, num_levels
 from agents.config import PPOConfig
 from agents.networks import make_network
-from agents.ppo import ACTION_TYPE, check_level_keys, num_levels
 from env import EnvParams, EnvState, Level, StaticEnvParams, action_mask, reset, step
 from env.observations import observe
 

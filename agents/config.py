@@ -17,7 +17,9 @@ class PPOConfig:
     """Hyperparameters of PPO on one level (static under `jit`; every level of a batch shares them).
 
     The budget is given in env steps per level; the number of updates derives from it:
-    `env_steps_per_level = num_envs * num_steps * num_updates`.
+    `env_steps_per_level = num_envs * num_steps * num_updates`. The policy is evaluated every
+    `select_every_updates` updates and after the last (`selection_updates`); training returns the parameters of the
+    best evaluation, so a policy that unlearns late keeps what it had learnt.
     """
 
     env_steps_per_level: int = 1_000_000  # budget: env steps collected per level over the whole training
@@ -37,15 +39,21 @@ class PPOConfig:
     num_hidden_layers: int = 2  # tanh hidden layers of each MLP (Kinetix: 5 x 128)
     bootstrap_truncation: bool = False  # time-limit ends bootstrap from the value of the final state
     observation_type: ObservationType = ObservationType.SYMBOLIC_FLAT
+    select_every_updates: int = 50  # evaluate the policy every this many updates (and after the last); 0: last only
+    select_episodes: int = 16  # episodes from the level's start per evaluation
+    select_greedy: bool = False  # evaluation episodes act with the most probable choice per slot instead of sampling
 
     def __post_init__(self):
         positive = (
-            "env_steps_per_level num_envs num_steps update_epochs num_minibatches hidden_size num_hidden_layers"
+            "env_steps_per_level num_envs num_steps update_epochs num_minibatches hidden_size num_hidden_layers "
+            "select_episodes"
         ).split()
         for name in positive:
             value = getattr(self, name)
             if not (isinstance(value, int) and value > 0):
                 raise ValueError(f"PPOConfig.{name} must be a positive int, got {value!r}")
+        if not (isinstance(self.select_every_updates, int) and self.select_every_updates >= 0):
+            raise ValueError(f"PPOConfig.select_every_updates must be an int >= 0, got {self.select_every_updates!r}")
         for name in ("learning_rate", "adam_eps", "max_grad_norm", "clip_eps"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"PPOConfig.{name} must be > 0, got {getattr(self, name)!r}")
@@ -85,6 +93,13 @@ class PPOConfig:
     def num_updates(self) -> int:
         """PPO updates per level: the budget divided by the steps per update."""
         return self.env_steps_per_level // self.steps_per_update
+
+    @property
+    def selection_updates(self) -> tuple[int, ...]:
+        """Updates done at each evaluation of the policy: every `select_every_updates` and after the last."""
+        every = self.select_every_updates or self.num_updates
+        points = tuple(range(every, self.num_updates + 1, every))
+        return points if points and points[-1] == self.num_updates else (*points, self.num_updates)
 
     @property
     def minibatch_size(self) -> int:

@@ -9,9 +9,9 @@ import jax
 import jax.numpy as jnp
 
 from agents import policy
+from agents.batching import ACTION_TYPE, check_level_keys, num_levels
 from agents.config import PPOConfig
 from agents.networks import make_network
-from agents.ppo import ACTION_TYPE, check_level_keys, num_levels
 from env import EnvParams, EnvState, Level, StaticEnvParams, action_mask, advance, reset
 from env.observations import observe
 
@@ -27,7 +27,9 @@ class EvalOutput(NamedTuple):
     lengths: jnp.ndarray  # (L, K) i32
 
 
-class _Episode(NamedTuple):
+class Episode(NamedTuple):
+    """How an episode ended (state, success, return and length once finished)."""
+
     state: EnvState
     finished: jnp.ndarray  # () bool
     success: jnp.ndarray  # () bool
@@ -37,16 +39,16 @@ class _Episode(NamedTuple):
 
 def _run_episode(
     params, start: EnvState, mask: jnp.ndarray, key: jax.Array, config: PPOConfig, env_params, static, greedy: bool
-) -> _Episode:
+) -> Episode:
     """One episode from `start` until it ends (at most `static.max_timesteps` steps); no reset."""
     network = make_network(config)
 
-    def step(episode: _Episode, step_key):
+    def step(episode: Episode, step_key):
         logits, _ = network.apply(params, observe(episode.state, static, config.observation_type))
         action = policy.mode(logits, mask) if greedy else policy.sample(step_key, logits, mask)
         reached, result = advance(episode.state, action, env_params, static, ACTION_TYPE)
         running = ~episode.finished
-        following = _Episode(
+        following = Episode(
             state=reached,
             finished=result.done,
             success=result.success,
@@ -55,7 +57,7 @@ def _run_episode(
         )
         return jax.tree.map(lambda new, old: jnp.where(running, new, old), following, episode), None
 
-    first = _Episode(
+    first = Episode(
         state=start,
         finished=jnp.zeros((), bool),
         success=jnp.zeros((), bool),
@@ -91,18 +93,43 @@ def evaluate(
     return _evaluate(params, levels, start_states, keys, config, env_params, static, num_episodes, greedy)
 
 
+def level_episodes(
+    params,
+    level: Level,
+    start: EnvState,
+    key: jax.Array,
+    config: PPOConfig,
+    env_params: EnvParams,
+    static: StaticEnvParams,
+    num_episodes: int,
+    greedy: bool = False,
+) -> Episode:
+    """`num_episodes` episodes of one level (no level axis) from `start`: an `Episode` with leaves (num_episodes,).
+
+    Pure and traceable, so training evaluates its checkpoints with it inside the training program.
+    """
+    run = functools.partial(
+        _run_episode,
+        params,
+        start,
+        action_mask(level),
+        config=config,
+        env_params=env_params,
+        static=static,
+        greedy=greedy,
+    )
+    return jax.vmap(run)(jax.random.split(key, num_episodes))
+
+
 @functools.partial(jax.jit, static_argnames=("config", "static", "num_episodes", "greedy"))
 def _evaluate(
     params, levels, start_states, keys, config, env_params, static, num_episodes: int, greedy: bool
 ) -> EvalOutput:
-    def level_episodes(level_params, level, start, key):
-        mask = action_mask(level)
-        run = functools.partial(
-            _run_episode, level_params, start, mask, config=config, env_params=env_params, static=static, greedy=greedy
+    episodes = jax.vmap(
+        lambda level_params, level, start, key: level_episodes(
+            level_params, level, start, key, config, env_params, static, num_episodes, greedy
         )
-        return jax.vmap(run)(jax.random.split(key, num_episodes))
-
-    episodes = jax.vmap(level_episodes)(params, levels, start_states, keys)
+    )(params, levels, start_states, keys)
     return EvalOutput(
         success_rate=jnp.mean(episodes.success.astype(jnp.float32), axis=1),
         mean_return=jnp.mean(episodes.episode_return, axis=1),

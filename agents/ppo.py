@@ -4,6 +4,11 @@
 minibatches, with no reduction across levels, so `train_levels` (its vmap over a leading level axis) trains every
 level exactly as it would be trained alone. GAE and the loss are top-level functions so they can be tested alone.
 
+Expert selection: every `PPOConfig.select_every_updates` updates and after the last, the policy plays
+`select_episodes` episodes from the level's start (drawn from their own key stream, so evaluating never changes the
+training), and training returns the parameters of the best evaluation. Long budgets need it: with a constant
+learning rate, some policies that had solved their level unlearnt it later in training.
+
 Time limits: with `PPOConfig.bootstrap_truncation`, an episode cut by `StaticEnvParams.max_timesteps`
 (`StepResult.truncated`) bootstraps its last step from the value of the state it reached (observed before the
 auto-reset); otherwise (the default) the time limit is terminal like success, failure and instability. Kinetix
@@ -23,16 +28,19 @@ import jax.numpy as jnp
 import optax
 
 from agents import policy
+from agents.batching import ACTION_TYPE, check_level_keys, num_levels
 from agents.config import PPOConfig
+from agents.evaluate import level_episodes
 from agents.networks import make_network
-from env import ActionType, EnvParams, EnvState, Level, StaticEnvParams, StepResult, action_mask, advance, reset
+from env import EnvParams, EnvState, Level, StaticEnvParams, StepResult, action_mask, advance, reset
 from env.observations import observation_shape, observe
-
-ACTION_TYPE = ActionType.MULTI_DISCRETE
-"""The action space the agents act in."""
 
 ADVANTAGE_NORM_EPS = 1e-8
 """Added to the minibatch advantage standard deviation before dividing by it."""
+
+SELECTION_STREAM = 0x5E1EC7
+"""Folded into a level's training key to draw its evaluation episodes, apart from the training randomness (so a
+run's rollouts and updates are the same whether or not, and how often, it is evaluated)."""
 
 
 # --------------------------------------------------------------------------- data carried through training
@@ -83,11 +91,28 @@ class UpdateMetrics(NamedTuple):
     loss: LossTerms  # averaged over epochs and minibatches
 
 
+class Selection(NamedTuple):
+    """The policy's evaluations during training (at `PPOConfig.selection_updates`) and the one whose parameters
+    training returns: the highest success rate, the latest on ties."""
+
+    env_steps: jnp.ndarray  # (C,) i32 env steps trained when each evaluation ran
+    success_rate: jnp.ndarray  # (C,) f32 share of the `select_episodes` episodes from the start that succeeded
+    mean_return: jnp.ndarray  # (C,) f32 their mean undiscounted return
+    best: jnp.ndarray  # () i32 index of the evaluation whose parameters are returned
+
+
 class TrainOutput(NamedTuple):
     """Result of training; `train_levels` adds a leading level axis to every leaf."""
 
-    params: dict  # final network parameters
+    params: dict  # network parameters of the best evaluation (`selection.best`)
     metrics: UpdateMetrics  # leaves (num_updates,): learning curves
+    selection: Selection
+
+
+class _Best(NamedTuple):
+    params: dict
+    success_rate: jnp.ndarray  # () f32
+    index: jnp.ndarray  # () i32
 
 
 class _TrainCarry(NamedTuple):
@@ -277,6 +302,32 @@ def train_from(
         )
         return carry._replace(params=params, opt_state=opt_state), metrics
 
+    selection_key = jax.random.fold_in(key, SELECTION_STREAM)
+
+    def train_and_evaluate(carry: _TrainCarry, best: _Best, index, updates_done, num_updates: int):
+        """`num_updates` updates, then evaluation `index` of the policy; keeps it as best unless a better one was.
+
+        The episodes' key depends on the updates done, so a policy gets the same episodes whatever the period.
+        """
+        carry, metrics = jax.lax.scan(update, carry, None, length=num_updates)
+        episodes = level_episodes(
+            carry.params,
+            level,
+            start,
+            jax.random.fold_in(selection_key, updates_done),
+            config,
+            env_params,
+            static,
+            config.select_episodes,
+            config.select_greedy,
+        )
+        success_rate = jnp.mean(episodes.success.astype(jnp.float32))
+        better = success_rate >= best.success_rate
+        best = jax.tree.map(
+            lambda new, old: jnp.where(better, new, old), _Best(carry.params, success_rate, index), best
+        )
+        return carry, best, metrics, (success_rate, jnp.mean(episodes.episode_return))
+
     carry = _TrainCarry(
         params=params,
         opt_state=optimizer.init(params),
@@ -285,27 +336,32 @@ def train_from(
         episode_return=jnp.zeros((config.num_envs,), jnp.float32),
         key=key,
     )
-    carry, metrics = jax.lax.scan(update, carry, None, length=config.num_updates)
-    return TrainOutput(params=carry.params, metrics=metrics)
+    best = _Best(params, jnp.array(-jnp.inf, jnp.float32), jnp.array(-1, jnp.int32))
+    points = config.selection_updates
+    every = points[0]
+    regular = config.num_updates // every  # evaluations after `every` updates each; one more after a remainder
 
+    def regular_segment(state, index):
+        carry, best, metrics, evaluation = train_and_evaluate(*state, index, (index + 1) * every, every)
+        return (carry, best), (metrics, evaluation)
 
-def num_levels(levels: Level) -> int:
-    """The size of the leading level axis of a batched `Level`; errors when the leaves disagree."""
-    sizes = {x.shape[0] if x.ndim else None for x in jax.tree.leaves(levels)}
-    if len(sizes) != 1 or None in sizes:
-        raise ValueError(f"levels must be a batched Level with one leading level axis; leading sizes {sizes}")
-    return sizes.pop()
-
-
-def check_level_keys(keys: jax.Array, count: int) -> None:
-    """Errors unless `keys` holds one PRNG key per level."""
-    typed = jnp.issubdtype(keys.dtype, jax.dtypes.prng_key)
-    shape_ok = keys.shape == (count,) if typed else keys.shape == (count, 2)
-    if not shape_ok:
-        raise ValueError(
-            f"expected one PRNG key per level ({count} levels): shape ({count},) typed or ({count}, 2) raw uint32 "
-            f"keys, got shape {keys.shape} dtype {keys.dtype}"
+    (carry, best), (metrics, evaluations) = jax.lax.scan(
+        regular_segment, (carry, best), jnp.arange(regular, dtype=jnp.int32)
+    )
+    metrics = jax.tree.map(lambda x: x.reshape((regular * every,) + x.shape[2:]), metrics)
+    if len(points) > regular:
+        carry, best, last_metrics, last = train_and_evaluate(
+            carry, best, jnp.int32(regular), config.num_updates, config.num_updates - regular * every
         )
+        metrics = jax.tree.map(lambda a, b: jnp.concatenate([a, b]), metrics, last_metrics)
+        evaluations = jax.tree.map(lambda a, b: jnp.concatenate([a, b[None]]), evaluations, last)
+    selection = Selection(
+        env_steps=jnp.asarray(points, jnp.int32) * config.steps_per_update,
+        success_rate=evaluations[0],
+        mean_return=evaluations[1],
+        best=best.index,
+    )
+    return TrainOutput(params=best.params, metrics=metrics, selection=selection)
 
 
 @functools.partial(jax.jit, static_argnames=("config", "static"))

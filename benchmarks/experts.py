@@ -147,14 +147,15 @@ def run_experts(
 
     `programs` holds compiled training programs by (PPO config, static params, batch size), shared between calls.
     Returns per-level arrays (window success, episodes ended in the window, evaluation success rate, last update's
-    training success rate) and seconds: compiling the training (0 when reused), and training / window / evaluation
-    summed over batches.
+    training success rate, env steps of the selected expert) and seconds: compiling the training (0 when reused),
+    and training / window / evaluation summed over batches.
     """
     env_params, static = environment(job)
     config = ppo_config(job)
     count = len(jax.tree.leaves(levels)[0])
     padded = -(-count // batch) * batch
-    results = {name: [] for name in ("successful", "episodes_ended", "eval_success_rate", "train_success_rate")}
+    names = ("successful", "episodes_ended", "eval_success_rate", "train_success_rate", "selected_env_steps")
+    results = {name: [] for name in names}
     seconds = {"compile": 0.0, "train": 0.0, "window": 0.0, "evaluate": 0.0}
     for start in range(0, padded, batch):
         indices = np.minimum(np.arange(start, start + batch), count - 1)
@@ -178,6 +179,8 @@ def run_experts(
         results["episodes_ended"].append(window.episodes_ended)
         results["eval_success_rate"].append(evaluation.success_rate)
         results["train_success_rate"].append(trained.metrics.success_rate[:, -1])
+        selection = trained.selection
+        results["selected_env_steps"].append(np.take_along_axis(selection.env_steps, selection.best[:, None], 1)[:, 0])
         log(f"  levels {start}-{min(start + batch, count) - 1} of {count} done ({seconds['train']:.0f} s training)")
     per_level = {name: np.concatenate(values)[:count] for name, values in results.items()}
     return {"per_level": per_level, "seconds": seconds, "padded_levels": padded}
@@ -283,6 +286,10 @@ def compare_budgets(name: str, ids: list, budgets: dict, log) -> list:
 MERGE_SETTINGS = ("split_config", "scale", "overrides", "batch")
 """Report keys that parts of one measurement must share (a part that does not record a key is not checked on it)."""
 
+SELECTION_SETTINGS = ("select_every_updates", "select_episodes", "select_greedy")
+"""PPO keys of expert selection; a report records them, and reports from before selection (none recorded) do not
+merge with reports that use it."""
+
 
 def merge_reports(reports: list[dict], log) -> dict:
     """One report from the reports of a measurement's parts (level ranges, or budgets run apart): per level set, the
@@ -292,7 +299,10 @@ def merge_reports(reports: list[dict], log) -> dict:
         values = {json.dumps(report[key]) for report in reports if report.get(key) is not None}
         if len(values) > 1:
             raise SystemExit(f"--merge: the reports were measured with different {key}: {', '.join(sorted(values))}")
-    merged = {key: reports[0].get(key) for key in ("machine", *MERGE_SETTINGS)}
+    selections = {json.dumps(report.get("expert_selection")) for report in reports}
+    if len(selections) > 1:
+        raise SystemExit(f"--merge: the reports select experts differently (null: before selection): {selections}")
+    merged = {key: reports[0].get(key) for key in ("machine", *MERGE_SETTINGS, "expert_selection")}
     merged |= {"merged_reports": len(reports), "sets": {}}
     for name in sorted({name for report in reports for name in report["sets"]}):
         reasons, results, parts = {}, {}, {}
@@ -387,6 +397,7 @@ def main(argv=None) -> None:
         "sets": {},
     }
     job = load_config(SPLIT_CONFIG, args.set, args.scale)
+    report["expert_selection"] = {key: getattr(ppo_config(job), key) for key in SELECTION_SETTINGS}
     programs = {}  # compiled training programs, shared by the level sets
     if "random" in args.sets:
         ids = list(range(args.first_level, args.first_level + args.levels))

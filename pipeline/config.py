@@ -74,6 +74,8 @@ class PPOSection:
     hidden_size: int = 64  # units per hidden layer of the actor and of the critic (Kinetix: 128)
     num_hidden_layers: int = 2  # tanh hidden layers of each MLP (Kinetix: 5)
     bootstrap_truncation: bool = False  # time-limit ends bootstrap from the final state's value (false: terminal)
+    select_every_updates: int = 50  # evaluate the expert every this many updates and after the last; keep the best
+    select_episodes: int = 16  # episodes from the level's start per evaluation (acting as collect.greedy says)
 
 
 @dataclasses.dataclass
@@ -312,8 +314,11 @@ def check_config(job: JobConfig) -> None:
 
 
 def ppo_config(job: JobConfig) -> PPOConfig:
-    """The specialists' PPO config: the `ppo` section with the split's expert budget."""
-    return PPOConfig(env_steps_per_level=job.split.expert_budget, **dataclasses.asdict(job.ppo))
+    """The specialists' PPO config: the `ppo` section with the split's expert budget; experts are selected by
+    episodes that act as the stored windows do (`collect.greedy`)."""
+    return PPOConfig(
+        env_steps_per_level=job.split.expert_budget, select_greedy=job.collect.greedy, **dataclasses.asdict(job.ppo)
+    )
 
 
 def data_fingerprint(job: JobConfig) -> str:

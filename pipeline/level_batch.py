@@ -103,7 +103,7 @@ def run_level_batch(job: JobConfig, shard: int, batch: int) -> BatchTrajectories
         num_steps=job.collect.window_steps,
         greedy=job.collect.greedy,
     )
-    window, metrics = jax.device_get((window, trained.metrics))
+    window, metrics, selection = jax.device_get((window, trained.metrics, trained.selection))
     clock.lap("collect")
     finite = _finite_per_level(trained.params) & _finite_per_level(window)
     in_split = indices < job.split.num_levels
@@ -119,7 +119,8 @@ def run_level_batch(job: JobConfig, shard: int, batch: int) -> BatchTrajectories
         kept=np.array([outcome == KEPT for outcome in outcomes]),
         level_id=indices,
         level_seed=np.full(indices.shape, job.split.seed),
-        expert_success_rate=np.asarray(metrics.success_rate, np.float32)[:, -1],
+        expert_success_rate=_at_best(selection.success_rate, selection.best).astype(np.float32),
+        expert_env_steps=_at_best(selection.env_steps, selection.best).astype(np.int64),
         outcome=outcomes,
         curves=learning_curves(
             np.asarray(metrics.success_rate), np.asarray(metrics.mean_return), config.steps_per_update
@@ -150,6 +151,11 @@ def level_outcome(in_split: bool, dropped: bool, reason: int, finite: bool, succ
     if not finite:
         return FAILED
     return KEPT if successful else UNSOLVED
+
+
+def _at_best(per_evaluation: np.ndarray, best: np.ndarray) -> np.ndarray:
+    """(L,) the value of each level's selected evaluation from (L, C) values per evaluation."""
+    return np.take_along_axis(np.asarray(per_evaluation), np.asarray(best)[:, None], axis=1)[:, 0]
 
 
 def _finite_per_level(tree) -> np.ndarray:

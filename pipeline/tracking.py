@@ -68,7 +68,7 @@ def batch_metrics(records: Sequence[dict], job: JobConfig) -> dict[str, float]:
 
     levels: levels of the split (padding slots excluded); <outcome>: levels per outcome (kept, unsolved, failed,
     filtered/<reason>); kept_rate: kept / levels; solve_rate: kept / trained levels (not filtered);
-    expert_success_rate: mean final training success rate of the trained levels' experts; env_steps and transitions
+    expert_success_rate: mean evaluation success rate of the trained levels' selected experts; env_steps and transitions
     (stored steps: kept trajectories x window); seconds and seconds/<phase>: wall time from the records' provenance;
     env_steps_per_s and transitions_per_s over the batches that have it. Ratios without a denominator are left out.
     """

@@ -55,6 +55,7 @@ class BatchTrajectories:
     level_seed: np.ndarray  # (L,) int: the seed the level was sampled from
     expert_success_rate: np.ndarray  # (L,) f32 [-] success rate of the level's expert in evaluation
     outcome: Sequence[str]  # (L,) KEPT, or why the level was not kept (e.g. "filtered:trivial", "unsolved")
+    expert_env_steps: np.ndarray | None = None  # (L,) int: env steps the selected expert had trained for
     curves: LearningCurves | None = None  # the experts' training curves, for dataset cards
     seconds: dict[str, float] = dataclasses.field(default_factory=dict)  # wall time per phase (not data)
 
@@ -227,6 +228,7 @@ def stage_level_batch(dataset: Dataset, shard: int, batch: int, result: BatchTra
             "expert_success_rate": _json_number(result.expert_success_rate[i]),
             "episode_lengths": episode_lengths(np.asarray(result.done[i])).tolist(),
         }
+        | _expert_env_steps_entry(result.expert_env_steps, i)
         | _curve_entry(result.curves, i)
         for i, slot in enumerate(slots)
     ]
@@ -248,6 +250,10 @@ def stage_level_batch(dataset: Dataset, shard: int, batch: int, result: BatchTra
 
 PROVENANCE = "provenance"
 """Record key of how a batch was made (wall times, worker); it varies between runs and is not part of the data."""
+
+
+def _expert_env_steps_entry(env_steps: np.ndarray | None, level: int) -> dict:
+    return {} if env_steps is None else {"expert_env_steps": int(env_steps[level])}
 
 
 def _curve_entry(curves: LearningCurves | None, level: int) -> dict:

@@ -27,11 +27,32 @@ def test_num_updates_divides_the_budget_by_the_steps_per_update():
         (dict(gamma=1.5), "gamma must lie in"),
         (dict(learning_rate=0.0), "learning_rate must be > 0"),
         (dict(observation_type=ObservationType.PIXELS), "not supported"),
+        (dict(select_every_updates=-1), "select_every_updates must be an int >= 0"),
+        (dict(select_episodes=0), "select_episodes must be a positive int"),
     ],
 )
 def test_bad_configs_name_the_keys_at_fault(overrides, message):
     with pytest.raises(ValueError, match=message):
         PPOConfig(**overrides)
+
+
+@pytest.mark.parametrize(
+    ("budget", "every", "points"),
+    [
+        (1_000_000, 50, tuple(range(50, 501, 50))),  # 500 updates: every 100,000 env steps
+        (48_000, 5, (5, 10, 15, 20, 24)),  # 24 updates: the last evaluation after the remainder
+        (48_000, 0, (24,)),  # after the last update only
+        (48_000, 100, (24,)),  # a period longer than training
+    ],
+)
+def test_the_policy_is_evaluated_every_period_and_after_the_last_update(budget, every, points):
+    config = PPOConfig(env_steps_per_level=budget, num_envs=16, num_steps=125, select_every_updates=every)
+    assert config.selection_updates == points
+
+
+def test_a_10m_budget_evaluates_every_point_a_1m_budget_does():
+    one, ten = (PPOConfig(env_steps_per_level=budget) for budget in (1_000_000, 10_000_000))
+    assert set(one.selection_updates) <= set(ten.selection_updates)
 
 
 def test_from_mapping_rejects_unknown_keys_and_reads_observation_names():

@@ -104,6 +104,7 @@ def batch_result(rolled_out, level_ids=(10, 11, 12)) -> BatchTrajectories:
         level_seed=np.asarray(level_ids) * 1000 + 7,
         expert_success_rate=np.array([1.0, 0.75, 0.0], np.float32),
         outcome=(KEPT, KEPT, "unsolved"),
+        expert_env_steps=np.array([2000, 1000, 4000]),
     )
 
 
@@ -150,6 +151,7 @@ TINY_JOB = [
     "ppo.num_steps=16",
     "ppo.num_minibatches=2",
     "ppo.update_epochs=1",
+    "ppo.select_episodes=2",
     "collect.window_steps=24",
     "filter.noop_steps=24",
 ]

@@ -29,7 +29,7 @@ SCALES = ("tiny", "local", "full")
 
 TINY_LEVELS = 8
 TINY_BUDGET = 65_536  # [env steps per level]
-TINY_PPO = {"num_envs": 8, "num_steps": 32}
+TINY_PPO = {"num_envs": 8, "num_steps": 32, "select_every_updates": 128}
 """The only PPO keys the tiny scale changes (documented in configs/scales/tiny.yaml)."""
 
 LOCAL_LEVELS = 64

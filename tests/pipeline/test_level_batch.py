@@ -5,6 +5,7 @@ import numpy as np
 import pytest
 from pipeline_test_helpers import tiny_job
 
+from pipeline.config import ppo_config
 from pipeline.level_batch import (
     FILTERED_PREFIX,
     PADDING,
@@ -51,6 +52,10 @@ def test_level_batch_is_deterministic_and_outcomes_are_consistent(job):
         window_ok = bool(done.any()) and bool(np.all(success[done]))
         assert (outcome == KEPT) == (window_ok and not outcome.startswith(FILTERED_PREFIX))
     assert first.action.shape == (2, 24, 6) and first.expert_success_rate.shape == (2,)
+    # The experts are the selected ones: trained to an evaluation point, rated by its episodes.
+    config = ppo_config(job)
+    assert set(first.expert_env_steps) <= {update * config.steps_per_update for update in config.selection_updates}
+    np.testing.assert_array_equal(np.mod(first.expert_success_rate * config.select_episodes, 1), 0)
     np.testing.assert_array_equal(first.curves.success_rate, first.curves.success_rate.astype(np.float32))
     assert first.curves.success_rate.shape == first.curves.mean_return.shape == (2, len(first.curves.env_steps))
     assert first.curves.env_steps[-1] == job.split.expert_budget

@@ -104,6 +104,7 @@ def test_a_level_not_kept_leaves_its_slot_empty_and_is_recorded(written):
         "level_seed": 12007,
         "expert_success_rate": 0.0,
         "episode_lengths": None,
+        "expert_env_steps": 4000,
     }
 
 
