@@ -39,7 +39,7 @@ PHASES = ("sample_and_filter", "train", "collect", "write")
 """Phases of a level batch timed in its record's provenance; "total" spans them all."""
 
 SOLVED_ABOVE = 0.0
-"""[-] a trained level counts as solved when its expert's success rate in the last training update exceeds this."""
+"""[-] a trained level counts as solved when its selected expert's evaluation success rate exceeds this."""
 
 CURVE_BAND = (0.1, 0.9)
 """[-] quantiles over levels bounding the shaded band of the learning-curve plot."""
@@ -108,7 +108,7 @@ class DatasetStats:
     levels_per_batch: int
     window_steps: int  # env steps per stored trajectory
     outcomes: collections.Counter  # outcome -> levels, padding slots left out
-    success_rates: np.ndarray  # (trained levels,) f32 [-] last-update expert success rate (NaN: no episode ended)
+    success_rates: np.ndarray  # (trained levels,) f32 [-] the selected expert's evaluation success rate (NaN: none)
     episode_lengths: dict[str, collections.Counter]  # outcome in WINDOW_OUTCOMES -> {length [env steps]: episodes}
     curve_env_steps: list[int] | None  # x axis of the learning curves (None: the records have none)
     curves: np.ndarray  # (held levels, points) f32 [-] success-rate curves of every curve_stride-th trained level
@@ -139,7 +139,7 @@ class DatasetStats:
 
     @property
     def solved(self) -> int:
-        """Trained levels whose expert's last-update success rate exceeds `SOLVED_ABOVE`."""
+        """Trained levels whose selected expert's evaluation success rate exceeds `SOLVED_ABOVE`."""
         return int(np.sum(self.success_rates > SOLVED_ABOVE))
 
     @property
@@ -313,7 +313,7 @@ def count_rows(stats: DatasetStats) -> list[tuple[str, int, str]]:
     ]
     rows += [
         ("trained", stats.trained, "an expert was trained on the level"),
-        ("solved", stats.solved, f"trained, and the expert's last-update success rate > {SOLVED_ABOVE:g}"),
+        ("solved", stats.solved, f"trained, and the selected expert's evaluation success rate > {SOLVED_ABOVE:g}"),
         ("kept", outcomes[KEPT], "the expert's window was stored: every episode ending in it is a success"),
         ("unsolved", outcomes[UNSOLVED], "trained, window not stored"),
         ("failed", outcomes[FAILED], "training or rollout produced non-finite values"),
@@ -432,17 +432,17 @@ def plot_outcomes(stats: DatasetStats, path: Path) -> None:
 
 
 def plot_success_rates(stats: DatasetStats, path: Path) -> None:
-    """Histogram of the trained levels' final expert success rates."""
+    """Histogram of the trained levels' selected experts' evaluation success rates."""
     figure, axes = _figure()
     known = stats.success_rates[np.isfinite(stats.success_rates)]
     if len(known):
         axes.hist(known, bins=np.linspace(0.0, 1.0, SUCCESS_RATE_BINS + 1), color="tab:blue")
     else:
         _no_data(axes, "no trained level has a success rate")
-    axes.set_xlabel("expert success rate in the last training update")
+    axes.set_xlabel("selected expert's evaluation success rate")
     axes.set_ylabel("levels")
     unknown = len(stats.success_rates) - len(known)
-    axes.set_title(f"{len(stats.success_rates):,} trained levels; {unknown:,} ended no episode in the last update")
+    axes.set_title(f"{len(stats.success_rates):,} trained levels; {unknown:,} without a success rate")
     figure.savefig(path)
 
 
