@@ -1,8 +1,10 @@
 """PPO specialists: one parameter set per level, many levels trained in one program (vmap over levels).
 
 `train_level` is one pure function of (level, key): nested `lax.scan`s over updates, rollout steps, epochs and
-minibatches, with no reduction across levels, so `train_levels` (its vmap over a leading level axis) trains every
-level exactly as it would be trained alone. GAE and the loss are top-level functions so they can be tested alone.
+minibatches, with no reduction across levels, so in `train_levels` (its vmap over a leading level axis) a level's
+training never depends on the other levels of its batch: bit for bit within one batch size, to rounding across
+sizes (XLA's CPU code vectorises some reductions differently by batch size). GAE and the loss are top-level
+functions so they can be tested alone.
 
 Expert selection: every `PPOConfig.select_every_updates` updates and after the last, the policy plays
 `select_episodes` episodes from the level's start (drawn from their own key stream, so evaluating never changes the
