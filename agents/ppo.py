@@ -27,6 +27,7 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 import optax
 
 from agents import policy
@@ -101,6 +102,10 @@ class Selection(NamedTuple):
     success_rate: jnp.ndarray  # (C,) f32 share of the `select_episodes` episodes from the start that succeeded
     mean_return: jnp.ndarray  # (C,) f32 their mean undiscounted return
     best: jnp.ndarray  # () i32 index of the evaluation whose parameters are returned
+
+    def at_best(self, values) -> np.ndarray:
+        """Per-evaluation `values` (..., C), e.g. `success_rate`, at the chosen evaluation (...), on the host."""
+        return np.take_along_axis(np.asarray(values), np.asarray(self.best)[..., None], axis=-1)[..., 0]
 
 
 class TrainOutput(NamedTuple):

@@ -179,8 +179,7 @@ def run_experts(
         results["episodes_ended"].append(window.episodes_ended)
         results["eval_success_rate"].append(evaluation.success_rate)
         results["train_success_rate"].append(trained.metrics.success_rate[:, -1])
-        selection = trained.selection
-        results["selected_env_steps"].append(np.take_along_axis(selection.env_steps, selection.best[:, None], 1)[:, 0])
+        results["selected_env_steps"].append(trained.selection.at_best(trained.selection.env_steps))
         log(f"  levels {start}-{min(start + batch, count) - 1} of {count} done ({seconds['train']:.0f} s training)")
     per_level = {name: np.concatenate(values)[:count] for name, values in results.items()}
     return {"per_level": per_level, "seconds": seconds, "padded_levels": padded}

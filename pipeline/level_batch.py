@@ -119,8 +119,8 @@ def run_level_batch(job: JobConfig, shard: int, batch: int) -> BatchTrajectories
         kept=np.array([outcome == KEPT for outcome in outcomes]),
         level_id=indices,
         level_seed=np.full(indices.shape, job.split.seed),
-        expert_success_rate=_at_best(selection.success_rate, selection.best).astype(np.float32),
-        expert_env_steps=_at_best(selection.env_steps, selection.best).astype(np.int64),
+        expert_success_rate=selection.at_best(selection.success_rate).astype(np.float32),
+        expert_env_steps=selection.at_best(selection.env_steps).astype(np.int64),
         outcome=outcomes,
         curves=learning_curves(
             np.asarray(metrics.success_rate), np.asarray(metrics.mean_return), config.steps_per_update
@@ -151,11 +151,6 @@ def level_outcome(in_split: bool, dropped: bool, reason: int, finite: bool, succ
     if not finite:
         return FAILED
     return KEPT if successful else UNSOLVED
-
-
-def _at_best(per_evaluation: np.ndarray, best: np.ndarray) -> np.ndarray:
-    """(L,) the value of each level's selected evaluation from (L, C) values per evaluation."""
-    return np.take_along_axis(np.asarray(per_evaluation), np.asarray(best)[:, None], axis=1)[:, 0]
 
 
 def _finite_per_level(tree) -> np.ndarray:

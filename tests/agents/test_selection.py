@@ -38,6 +38,7 @@ def test_the_returned_policy_is_the_best_evaluated_the_latest_on_ties(trained_mi
         rates = selection.success_rate[level]
         assert np.all((rates >= 0) & (rates <= 1))
         assert selection.best[level] == np.flatnonzero(rates == rates.max())[-1]
+        assert selection.at_best(selection.success_rate)[level] == rates.max()
         # Each rate is a count of successes among the evaluation episodes.
         np.testing.assert_array_equal(np.mod(rates * TRAIN_CONFIG.select_episodes, 1), 0)
 
@@ -89,5 +90,5 @@ def test_a_longer_budget_continues_the_shorter_run_and_evaluates_its_policies(tr
             getattr(longer.selection, name)[:, :points], getattr(shorter.selection, name), err_msg=name
         )
     # So the longer budget's choice is at least as good as the shorter one's.
-    best = lambda output: np.take_along_axis(output.selection.success_rate, output.selection.best[:, None], 1)  # noqa: E731
+    best = lambda output: output.selection.at_best(output.selection.success_rate)  # noqa: E731
     assert np.all(best(longer) >= best(shorter))
