@@ -14,7 +14,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import sys
 import time
 
@@ -23,6 +22,7 @@ import jax.numpy as jnp
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
+from benchmarks.machine import describe_machine  # noqa: E402
 from benchmarks.scenes import build_scene  # noqa: E402
 from benchmarks.timing import best_time  # noqa: E402
 from engine import SimParams, step  # noqa: E402
@@ -86,12 +86,7 @@ def run(sizes, batches, n_steps: int, repeats: int, versus_jax2d: bool, log=prin
     on_gpu = jax.default_backend() == "gpu"
     engines = ["ours", "jax2d"] if versus_jax2d else ["ours"]
     report = {
-        "machine": {
-            "backend": jax.default_backend(),
-            "devices": [str(device) for device in jax.devices()],
-            "cpu_count": os.cpu_count(),
-            "platform": platform.platform(),
-        },
+        "machine": describe_machine(),
         "steps_per_timed_call": n_steps,
         "steps_per_second": {engine: {} for engine in engines},
         "compile_seconds": {engine: {} for engine in engines},

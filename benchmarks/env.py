@@ -15,7 +15,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import subprocess
 import sys
 import time
@@ -26,6 +25,7 @@ import jax.numpy as jnp
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
+from benchmarks.machine import describe_machine  # noqa: E402
 from benchmarks.timing import best_time  # noqa: E402
 from env import EnvParams, StaticEnvParams, reset, step  # noqa: E402
 from env.actions import MULTI_DISCRETE_SIZES  # noqa: E402
@@ -195,7 +195,7 @@ def main(argv=None) -> None:
         print(line, file=sys.stderr if args.json else sys.stdout, flush=True)
 
     report = {
-        "machine": {"backend": jax.default_backend(), "cpu_count": os.cpu_count(), "platform": platform.platform()},
+        "machine": describe_machine(),
         "steps_per_timed_rollout": args.steps,
         "ours": measure_ours(args.sizes, args.batches, args.steps, args.repeats, log),
     }

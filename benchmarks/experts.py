@@ -38,7 +38,6 @@ import argparse
 import functools
 import json
 import os
-import platform
 import sys
 import time
 from pathlib import Path
@@ -51,6 +50,7 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 from agents import collect_windows, evaluate, train_levels  # noqa: E402
 from benchmarks.env import REPO_ROOT  # noqa: E402
+from benchmarks.machine import describe_machine  # noqa: E402
 from env import FilterReason, Level, StaticEnvParams, filter_levels, load_level  # noqa: E402
 from pipeline.config import JobConfig, load_config, ppo_config  # noqa: E402
 from pipeline.level_batch import KeyPurpose, environment, level_key, level_keys, sample_batch  # noqa: E402
@@ -283,7 +283,8 @@ def compare_budgets(name: str, ids: list, budgets: dict, log) -> list:
 
 
 MERGE_SETTINGS = ("split_config", "scale", "overrides", "batch")
-"""Report keys that parts of one measurement must share (a part that does not record a key is not checked on it)."""
+"""Report keys that parts of one measurement must share (null, the default, is a value like any other; a part that
+does not record a key is not checked on it)."""
 
 SELECTION_SETTINGS = ("select_every_updates", "select_episodes", "select_greedy")
 """PPO keys of expert selection; a report records them, and reports from before selection (none recorded) do not
@@ -295,13 +296,16 @@ def merge_reports(reports: list[dict], log) -> dict:
     levels that every budget covers, their summaries and the budget comparisons. A level measured twice must have
     the same results in both reports."""
     for key in MERGE_SETTINGS:
-        values = {json.dumps(report[key]) for report in reports if report.get(key) is not None}
+        values = {json.dumps(report[key]) for report in reports if key in report}
         if len(values) > 1:
             raise SystemExit(f"--merge: the reports were measured with different {key}: {', '.join(sorted(values))}")
     selections = {json.dumps(report.get("expert_selection")) for report in reports}
     if len(selections) > 1:
         raise SystemExit(f"--merge: the reports select experts differently (null: before selection): {selections}")
-    merged = {key: reports[0].get(key) for key in ("machine", *MERGE_SETTINGS, "expert_selection")}
+    machines = list(
+        {json.dumps(report.get("machine"), sort_keys=True): report.get("machine") for report in reports}.values()
+    )
+    merged = {"machines": machines} | {key: reports[0].get(key) for key in (*MERGE_SETTINGS, "expert_selection")}
     merged |= {"merged_reports": len(reports), "sets": {}}
     for name in sorted({name for report in reports for name in report["sets"]}):
         reasons, results, parts = {}, {}, {}
@@ -388,7 +392,7 @@ def main(argv=None) -> None:
         return
 
     report = {
-        "machine": {"backend": jax.default_backend(), "cpu_count": os.cpu_count(), "platform": platform.platform()},
+        "machine": describe_machine(),
         "split_config": SPLIT_CONFIG.relative_to(REPO_ROOT).as_posix(),
         "scale": args.scale,
         "overrides": args.set,

@@ -18,7 +18,6 @@ import argparse
 import contextlib
 import json
 import os
-import platform
 import sys
 import tempfile
 import time
@@ -28,6 +27,7 @@ import jax
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
+from benchmarks.machine import describe_machine  # noqa: E402
 from pipeline.config import load_config  # noqa: E402
 from pipeline.layout import STATE_PREFIX  # noqa: E402
 from pipeline.loader import TrajectoryDatasetManager  # noqa: E402
@@ -187,7 +187,7 @@ def run(args, log=print) -> dict:
                 results.append(result)
                 log(_line(result))
     report = {
-        "machine": {"platform": platform.platform(), "cpus": os.cpu_count()},
+        "machine": describe_machine(),
         "settings": {k: getattr(args, k) for k in ("levels", "budget", "levels_per_batch", "batches_per_shard")},
         "runs": [{k: v for k, v in result.items() if k != "data_digests"} for result in results],
         "same_data_across_worker_counts": {

@@ -20,7 +20,6 @@ import argparse
 import dataclasses
 import json
 import os
-import platform
 import subprocess
 import sys
 import time
@@ -33,6 +32,7 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 from agents import PPOConfig, initial_params, train_levels  # noqa: E402
 from benchmarks.env import DEFAULT_KINETIX_VENV, REPO_ROOT, kinetix_python  # noqa: E402
+from benchmarks.machine import describe_machine  # noqa: E402
 from benchmarks.timing import best_time  # noqa: E402
 from env import EnvParams, StaticEnvParams, sample_levels  # noqa: E402
 
@@ -137,7 +137,7 @@ def main(argv=None) -> None:
         f"{args.updates} updates per timed call"
     )
     report = {
-        "machine": {"backend": jax.default_backend(), "cpu_count": os.cpu_count(), "platform": platform.platform()},
+        "machine": describe_machine(),
         "config": dataclasses.asdict(config),
         "updates_per_call": args.updates,
         "sizes": {},
