@@ -302,9 +302,8 @@ def merge_reports(reports: list[dict], log) -> dict:
     selections = {json.dumps(report.get("expert_selection")) for report in reports}
     if len(selections) > 1:
         raise SystemExit(f"--merge: the reports select experts differently (null: before selection): {selections}")
-    machines = list(
-        {json.dumps(report.get("machine"), sort_keys=True): report.get("machine") for report in reports}.values()
-    )
+    machines = [machine for report in reports for machine in report.get("machines", [report.get("machine")])]
+    machines = list({json.dumps(machine, sort_keys=True): machine for machine in machines}.values())
     merged = {"machines": machines} | {key: reports[0].get(key) for key in (*MERGE_SETTINGS, "expert_selection")}
     merged |= {"merged_reports": len(reports), "sets": {}}
     for name in sorted({name for report in reports for name in report["sets"]}):

@@ -90,6 +90,9 @@ def test_every_machine_of_the_parts_is_recorded(measured):
     assert merge_reports(parts, _quiet)["machines"] == [first, second]
     same = [_part(measured, slice(0, 16), machine=first), _part(measured, slice(16, None), machine=first)]
     assert merge_reports(same, _quiet)["machines"] == [first]
+    third = {"cpu_model": "CPU C", "cpu_count": 2}
+    merged_again = merge_reports([merge_reports(parts, _quiet), _part(measured, slice(8, 24), machine=third)], _quiet)
+    assert merged_again["machines"] == [first, second, third]
 
 
 @pytest.mark.parametrize(
