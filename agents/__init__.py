@@ -1,7 +1,7 @@
 """RL agents that train on env tasks: PPO specialists, one parameter set per level, many levels per program.
 
 Public surface: the config, training of a level batch, evaluation, expert windows for the dataset, and the pieces
-they are made of (GAE, loss, policy).
+they are made of (GAE, loss, policy), and progress reports from a training program while it runs.
 """
 
 from agents.collect import WINDOW_STEPS, Window, collect_windows
@@ -21,6 +21,7 @@ from agents.ppo import (
     train_level,
     train_levels,
 )
+from agents.progress import ProgressListener, training_progress
 
 __all__ = [
     "WINDOW_STEPS",
@@ -30,6 +31,7 @@ __all__ = [
     "EvalOutput",
     "LossTerms",
     "PPOConfig",
+    "ProgressListener",
     "Selection",
     "TrainOutput",
     "UpdateMetrics",
@@ -44,4 +46,5 @@ __all__ = [
     "train_from",
     "train_level",
     "train_levels",
+    "training_progress",
 ]

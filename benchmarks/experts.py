@@ -45,10 +45,11 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 import numpy as np
+from tqdm import tqdm
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
-from agents import collect_windows, evaluate, train_levels  # noqa: E402
+from agents import collect_windows, evaluate, train_levels, training_progress  # noqa: E402
 from benchmarks.env import REPO_ROOT  # noqa: E402
 from benchmarks.machine import describe_machine  # noqa: E402
 from env import FilterReason, Level, StaticEnvParams, filter_levels, load_level  # noqa: E402
@@ -164,11 +165,18 @@ def run_experts(
         if (config, static, batch) not in programs:
             clock = time.perf_counter()
             programs[config, static, batch] = train_levels.lower(
-                batch_levels, train_keys, config, env_params, static
-            ).compile()
+                batch_levels, train_keys, config, env_params, static, progress=jnp.int32(0)
+            ).compile()  # with a progress token, as the pipeline trains
             seconds["compile"] = time.perf_counter() - clock
         compiled = programs[config, static, batch]
-        trained, elapsed = _timed(functools.partial(compiled, batch_levels, train_keys, env_params), warm_up=False)
+        last = min(start + batch, count) - 1
+        with (
+            tqdm(total=config.num_updates, unit="update", desc=f"  levels {start}-{last}", leave=False) as bar,
+            training_progress(lambda done, total, bar=bar: bar.update(done - bar.n)) as token,
+        ):
+            trained, elapsed = _timed(
+                functools.partial(compiled, batch_levels, train_keys, env_params, progress=token), warm_up=False
+            )
         seconds["train"] += elapsed
         expert = _BatchExperts(job, trained.params, batch_levels, seed, first + indices)
         window, elapsed = _timed(expert.window, warm_up=start == 0)
@@ -180,7 +188,7 @@ def run_experts(
         results["eval_success_rate"].append(evaluation.success_rate)
         results["train_success_rate"].append(trained.metrics.success_rate[:, -1])
         results["selected_env_steps"].append(trained.selection.at_best(trained.selection.env_steps))
-        log(f"  levels {start}-{min(start + batch, count) - 1} of {count} done ({seconds['train']:.0f} s training)")
+        log(f"  levels {start}-{last} of {count} done ({seconds['train']:.0f} s training)")
     per_level = {name: np.concatenate(values)[:count] for name, values in results.items()}
     return {"per_level": per_level, "seconds": seconds, "padded_levels": padded}
 

@@ -35,6 +35,7 @@ class Coordinator:
         self._abandoned: set[int] = set()
         self._budget = max_batches
         self._unreported: list[Commit] = []
+        self._training: dict[tuple[int, int], float] = {}
 
     def next_shard(self, worker: str) -> int | None:
         """The lowest shard with uncommitted level batches that no worker holds, leased to `worker`; None if done."""
@@ -50,6 +51,7 @@ class Coordinator:
         """Give a shard back (its worker finished or failed); its uncommitted batches may be claimed again."""
         self._leased.pop(shard, None)
         self._claimed = {(s, b) for s, b in self._claimed if s != shard}
+        self._training = {key: share for key, share in self._training.items() if key[0] != shard}
 
     def abandon(self, shard: int) -> None:
         """Hand `shard` out no more in this run (its workers keep failing); a later run retries it."""
@@ -77,6 +79,7 @@ class Coordinator:
             return False
         stored = write_record(self._root, shard, batch, record)
         self._committed[shard].add(batch)
+        self._training.pop((shard, batch), None)
         self._unreported.append(Commit(stored, len(self._committed[shard]) == self._batches_per_shard))
         return True
 
@@ -93,3 +96,13 @@ class Coordinator:
         """(committed level batches, all level batches)."""
         done = sum(len(batches) for batches in self._committed.values())
         return done, len(self._committed) * self._batches_per_shard
+
+    def report_training(self, shard: int, batch: int, updates_done: int, num_updates: int) -> None:
+        """A worker's report on a claimed level batch: its experts have done `updates_done` of `num_updates`."""
+        if (shard, batch) in self._claimed and batch not in self._committed[shard]:
+            self._training[shard, batch] = updates_done / num_updates
+
+    def training(self) -> dict[tuple[int, int], float]:
+        """The share of training done, by (shard, batch), of each claimed level batch not yet committed that has
+        reported (a batch at 1.0 is being rolled out or written)."""
+        return dict(self._training)

@@ -14,7 +14,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from agents import collect_windows, train_levels
+from agents import ProgressListener, collect_windows, train_levels, training_progress
 from env import EnvParams, FilterReason, Level, StaticEnvParams, filter_levels, sample_levels
 from pipeline.config import JobConfig, ppo_config
 from pipeline.writer import KEPT, BatchTrajectories, learning_curves
@@ -74,11 +74,14 @@ def sample_batch(job: JobConfig, level_indices: np.ndarray) -> Level:
     return sample_levels(level_keys(job.split.seed, level_indices, KeyPurpose.SAMPLE), static)
 
 
-def run_level_batch(job: JobConfig, shard: int, batch: int) -> BatchTrajectories:
+def run_level_batch(
+    job: JobConfig, shard: int, batch: int, on_progress: ProgressListener | None = None
+) -> BatchTrajectories:
     """Sample, filter, train and roll out one level batch; a pure function of (config, shard, batch).
 
     Every level gets an outcome (`level_outcome`); only kept levels' windows are stored. Levels past
-    `split.num_levels` (padding of the last shard) are computed with the rest but never kept.
+    `split.num_levels` (padding of the last shard) are computed with the rest but never kept. `on_progress` is told
+    the PPO updates done per level while the experts train (from another thread), and all of them once trained.
     """
     clock = PhaseClock()
     params, static = environment(job)
@@ -90,8 +93,11 @@ def run_level_batch(job: JobConfig, shard: int, batch: int) -> BatchTrajectories
     clock.lap("sample_and_filter")
 
     config = ppo_config(job)
-    trained = train_levels(levels, level_keys(job.split.seed, indices, KeyPurpose.TRAIN), config, params, static)
-    jax.block_until_ready(trained)
+    train_keys = level_keys(job.split.seed, indices, KeyPurpose.TRAIN)
+    listener = on_progress or _ignore_progress  # one compiled program, whether or not anyone listens
+    with training_progress(listener) as token:
+        trained = jax.block_until_ready(train_levels(levels, train_keys, config, params, static, progress=token))
+    listener(config.num_updates, config.num_updates)
     clock.lap("train")
     window = collect_windows(
         trained.params,
@@ -127,6 +133,10 @@ def run_level_batch(job: JobConfig, shard: int, batch: int) -> BatchTrajectories
         ),
         seconds=clock.seconds,
     )
+
+
+def _ignore_progress(updates_done: int, num_updates: int) -> None:
+    pass
 
 
 class PhaseClock:

@@ -135,7 +135,10 @@ def run_job(job: JobConfig, max_batches: int | None = None, show_progress: bool 
                     ray.get(coordinator.release.remote(shard))
                     assign(worker, name)
                 tracker.log_commits(ray.get(coordinator.take_commits.remote()))
-                bar.update(ray.get(coordinator.progress.remote())[0] - bar.n)
+                committed = ray.get(coordinator.progress.remote())[0]
+                training = ray.get(coordinator.training.remote())
+                bar.update(round(committed + sum(training.values()), 2) - bar.n)  # in-flight batches count in part
+                bar.set_postfix_str(_training_summary(training), refresh=False)
     except BaseException:
         tracker.finish()  # marks the tracked run failed
         raise
@@ -148,6 +151,23 @@ def run_job(job: JobConfig, max_batches: int | None = None, show_progress: bool 
     summary["abandoned_shards"] = sorted(shard for shard, count in attempts.items() if count >= MAX_SHARD_ATTEMPTS)
     tracker.finish(summary)
     return summary
+
+
+LISTED_TRAINING_BATCHES = 4
+"""The progress bar lists the training share of up to this many in-flight level batches, then only their mean."""
+
+
+def _training_summary(training: dict[tuple[int, int], float]) -> str:
+    """How far the experts of the level batches in flight have trained: "training 2 batches: 40% 95%"."""
+    if not training:
+        return ""
+    shares = [share for _, share in sorted(training.items())]
+    listed = (
+        " ".join(f"{share:.0%}" for share in shares)
+        if len(shares) <= LISTED_TRAINING_BATCHES
+        else f"mean {sum(shares) / len(shares):.0%}"
+    )
+    return f"training {len(shares)} batch{'es' if len(shares) > 1 else ''}: {listed}"
 
 
 def summarize(root) -> dict:

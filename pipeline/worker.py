@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import os
 import time
 from pathlib import Path
@@ -47,7 +48,12 @@ class Worker:
         summaries = []
         while (batch := _call(coordinator.claim_batch, shard)) is not None:
             started = time.perf_counter()
-            result = run_level_batch(self._job, shard, batch)
+            result = run_level_batch(
+                self._job,
+                shard,
+                batch,
+                on_progress=functools.partial(_notify, coordinator.report_training, shard, batch),
+            )
             written = time.perf_counter()
             record = stage_level_batch(dataset, shard, batch, result)
             provenance = record.setdefault(PROVENANCE, {"seconds": {}})
@@ -77,3 +83,12 @@ def _call(method, *args):
     import ray
 
     return ray.get(remote(*args))
+
+
+def _notify(method, *args) -> None:
+    """Call a Ray actor method without waiting for it (safe from any thread), or a plain method directly."""
+    remote = getattr(method, "remote", None)
+    if remote is None:
+        method(*args)
+    else:
+        remote(*args)
