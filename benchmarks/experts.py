@@ -22,8 +22,10 @@ results instead. The default run (64 random levels at 1M) trains 64M env steps p
 half an hour on a 2-core CPU; 10M as well is about 8 x 10^8 env steps, about five hours. `--first-level K` measures
 levels K, K + 1, ... with their own keys, so a long measurement can be cut into parts (same results as one run
 with the same `--batch`), and `--merge` prints the summaries and budget comparisons of the parts' `--json` reports
-taken together (the levels every budget covers). benchmarks/results/ holds the reports the README quotes (per-level
-results included), so a new part can be merged with them. A quick check, and a measurement in parts:
+taken together (the levels every budget covers); `--hand-first K --hand-count N` cuts the hand-designed set the
+same way (levels in name order, each with the keys of its position in the whole set). benchmarks/results/ holds
+the reports the README quotes (per-level results included), so a new part can be merged with them. A quick check,
+and a measurement in parts:
 
     python benchmarks/experts.py --levels 8 --budgets 65536 131072 --scale tiny
     python benchmarks/experts.py --budgets 1000000 10000000 --json
@@ -83,6 +85,14 @@ def load_hand_levels(directory: Path, static: StaticEnvParams) -> tuple[list[str
         if level.static != static:
             raise SystemExit(f"{path}: static parameters {level.static} differ from the split's {static}")
     return [path.stem for path in paths], jax.tree.map(lambda *x: jnp.stack(x), *(level.level for level in loaded))
+
+
+def hand_range(first: int, count: int | None, available: int, error) -> tuple[int, int]:
+    """(first, count) of the hand-designed levels to measure; `error(message)` reports a range outside the set."""
+    count = available - first if count is None else count
+    if first < 0 or count < 1 or first + count > available:
+        error(f"--hand-first {first} --hand-count {count}: the set has hand-designed levels 0..{available - 1}")
+    return first, count
 
 
 def sample_split_levels(job: JobConfig, first: int, count: int) -> Level:
@@ -222,10 +232,13 @@ def summarise(per_level: dict, keep: np.ndarray, seconds: dict, count: int, padd
     }
 
 
-def measure_set(name: str, ids: list, levels: Level, seed: int, args, programs: dict, log, random: bool) -> dict:
+def measure_set(
+    name: str, ids: list, levels: Level, seed: int, first: int, args, programs: dict, log, random: bool
+) -> dict:
     """Every budget on one level set: the filter's verdicts, then per budget the experts' results and summary.
 
-    `random`: the set is sampled from the level distribution, so Kinetix-Offline's solved share is its reference.
+    Level j of `levels` is level `first + j` of its set (its keys). `random`: the set is sampled from the level
+    distribution, so Kinetix-Offline's solved share is its reference.
     """
     base = load_config(SPLIT_CONFIG, args.set, args.scale)
     env_params, static = environment(base)
@@ -244,7 +257,6 @@ def measure_set(name: str, ids: list, levels: Level, seed: int, args, programs: 
         config = ppo_config(job)
         log(f"{name} budget {budget:,}: {config.num_updates} updates of {config.num_envs} x {config.num_steps} steps")
         batch = args.batch or job.work.levels_per_batch
-        first = ids[0] if random else 0
         run = run_experts(job, levels, seed, first, batch, args.episodes, programs, log)
         summary = summarise(run["per_level"], keep, run["seconds"], count, run["padded_levels"])
         log(_summary_line(name, budget, summary, reference))
@@ -380,6 +392,13 @@ def main(argv=None) -> None:
     parser.add_argument("--sets", nargs="+", default=["random", "hand"], choices=["random", "hand"])
     parser.add_argument("--hand-levels", type=Path, default=HAND_LEVELS_DIR, help="directory of hand-designed levels")
     parser.add_argument(
+        "--hand-first",
+        type=int,
+        default=0,
+        help="first hand-designed level in name order (measure the set in parts, like --first-level)",
+    )
+    parser.add_argument("--hand-count", type=int, help="hand-designed levels from --hand-first (default: the rest)")
+    parser.add_argument(
         "--merge",
         nargs="+",
         type=Path,
@@ -413,12 +432,14 @@ def main(argv=None) -> None:
         ids = list(range(args.first_level, args.first_level + args.levels))
         levels = sample_split_levels(job, args.first_level, args.levels)
         report["sets"]["random"] = measure_set(
-            "random s", ids, levels, job.split.seed, args, programs, log, random=True
+            "random s", ids, levels, job.split.seed, args.first_level, args, programs, log, random=True
         )
     if "hand" in args.sets:
         names, levels = load_hand_levels(args.hand_levels, environment(job)[1])
+        first, count = hand_range(args.hand_first, args.hand_count, len(names), parser.error)
+        names, levels = names[first : first + count], jax.tree.map(lambda x: x[first : first + count], levels)
         report["sets"]["hand"] = measure_set(
-            "hand-designed s", names, levels, HAND_LEVELS_SEED, args, programs, log, random=False
+            "hand-designed s", names, levels, HAND_LEVELS_SEED, first, args, programs, log, random=False
         )
     if args.json:
         print(json.dumps(report, indent=2))
