@@ -181,7 +181,9 @@ def run_experts(
         compiled = programs[config, static, batch]
         last = min(start + batch, count) - 1
         with (
-            tqdm(total=config.num_updates, unit="update", desc=f"  levels {start}-{last}", leave=False) as bar,
+            tqdm(
+                total=config.num_updates, unit="update", desc=f"  levels {first + start}-{first + last}", leave=False
+            ) as bar,
             training_progress(lambda done, total, bar=bar: bar.update(done - bar.n)) as token,
         ):
             trained, elapsed = _timed(
@@ -198,7 +200,7 @@ def run_experts(
         results["eval_success_rate"].append(evaluation.success_rate)
         results["train_success_rate"].append(trained.metrics.success_rate[:, -1])
         results["selected_env_steps"].append(trained.selection.at_best(trained.selection.env_steps))
-        log(f"  levels {start}-{last} of {count} done ({seconds['train']:.0f} s training)")
+        log(f"  levels {first + start}-{first + last} done, {last + 1} of {count} ({seconds['train']:.0f} s training)")
     per_level = {name: np.concatenate(values)[:count] for name, values in results.items()}
     return {"per_level": per_level, "seconds": seconds, "padded_levels": padded}
 
