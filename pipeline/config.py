@@ -25,7 +25,7 @@ from omegaconf import MISSING, DictConfig, OmegaConf
 from omegaconf.errors import ConfigKeyError, MissingMandatoryValue, OmegaConfBaseException, ValidationError
 
 from agents import PPOConfig
-from engine import KINETIX_SIZES
+from engine import KINETIX_SIZES, SimParams
 
 
 @dataclasses.dataclass
@@ -321,10 +321,16 @@ def ppo_config(job: JobConfig) -> PPOConfig:
     )
 
 
-def data_fingerprint(job: JobConfig) -> str:
-    """Hash of the sections that define the data: equal fingerprints mean identical datasets."""
+def data_definition(job: JobConfig) -> dict:
+    """What defines the dataset's content: the config's data sections, and the engine's physics parameters (set by
+    the code, not the config, so that data made by code with other physics is told apart)."""
     data = {section: dataclasses.asdict(getattr(job, section)) for section in DATA_SECTIONS}
-    return hashlib.sha256(json.dumps(data, sort_keys=True).encode()).hexdigest()[:16]
+    return data | {"physics": dataclasses.asdict(SimParams())}
+
+
+def data_fingerprint(job: JobConfig) -> str:
+    """Hash of `data_definition`: equal fingerprints mean identical datasets."""
+    return hashlib.sha256(json.dumps(data_definition(job), sort_keys=True).encode()).hexdigest()[:16]
 
 
 def field_docs(section: type) -> dict[str, str]:

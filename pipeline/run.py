@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import argparse
 import collections
-import dataclasses
 import json
 import os
 import sys
@@ -15,7 +14,7 @@ from pathlib import Path
 from tqdm import tqdm
 
 from env import ActionType
-from pipeline.config import DATA_SECTIONS, ConfigError, JobConfig, data_fingerprint, load_config, scale_names, to_yaml
+from pipeline.config import ConfigError, JobConfig, data_definition, data_fingerprint, load_config, scale_names, to_yaml
 from pipeline.coordinator import Coordinator
 from pipeline.layout import DatasetError, make_layout
 from pipeline.level_batch import batches_per_shard, environment, num_shards
@@ -48,7 +47,7 @@ def dataset_spec(job: JobConfig) -> DatasetSpec:
         split=job.split.name,
         attributes={
             "data_fingerprint": data_fingerprint(job),
-            "data_config": {section: dataclasses.asdict(getattr(job, section)) for section in DATA_SECTIONS},
+            "data_config": data_definition(job),
         },
     )
 

@@ -329,7 +329,7 @@ def card_markdown(stats: DatasetStats, figures: dict[str, str]) -> str:
         f"# Dataset card: {stats.split}" + (f" (scale {scale})" if scale else ""),
         "",
         f"- Directory: `{stats.root}`",
-        f"- Data fingerprint (hash of the data-defining config): `{stats.fingerprint}`",
+        f"- Data fingerprint (hash of the data-defining config and the physics parameters): `{stats.fingerprint}`",
         f"- Level batches committed: {stats.batches_committed:,} of {stats.batches_total:,} ({complete})",
         "",
         "## Levels",

@@ -6,6 +6,7 @@ with the in-process one.
 """
 
 import contextlib
+import dataclasses
 import json
 import os
 import signal
@@ -19,6 +20,8 @@ import pytest
 import zarr
 from pipeline_test_helpers import run_in_process, tiny_job
 
+import pipeline.config
+from engine import SimParams
 from pipeline.config import to_yaml
 from pipeline.level_batch import run_level_batch
 from pipeline.manifest import committed_batches, iter_records
@@ -89,6 +92,14 @@ def test_a_config_that_changes_the_data_is_refused(tmp_path):
     prepare_output(tiny_job(tmp_path, "ray.num_workers=3"))  # where it runs does not change the data
     with pytest.raises(ResumeRefused, match=r"split\.seed \(0 -> 1\)"):
         prepare_output(tiny_job(tmp_path, "split.seed=1"))
+
+
+def test_a_dataset_made_with_other_physics_is_refused(tmp_path, monkeypatch):
+    prepare_output(tiny_job(tmp_path))
+    stiffer = dataclasses.replace(SimParams(), joint_hertz=SimParams().joint_hertz + 15.0)
+    monkeypatch.setattr(pipeline.config, "SimParams", lambda: stiffer)  # code whose engine defaults differ
+    with pytest.raises(ResumeRefused, match=r"physics\.joint_hertz \("):
+        prepare_output(tiny_job(tmp_path))
 
 
 @pytest.mark.slow
