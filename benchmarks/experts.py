@@ -55,8 +55,13 @@ from agents import collect_windows, evaluate, train_levels, training_progress  #
 from benchmarks.env import REPO_ROOT  # noqa: E402
 from benchmarks.machine import describe_machine  # noqa: E402
 from env import FilterReason, Level, StaticEnvParams, filter_levels, load_level  # noqa: E402
-from pipeline.config import JobConfig, load_config, ppo_config  # noqa: E402
-from pipeline.level_batch import KeyPurpose, environment, level_key, level_keys, sample_batch  # noqa: E402
+from pipeline.config import (  # noqa: E402
+    JobConfig,
+    environment,  # noqa: E402
+    load_config,
+    ppo_config,
+)
+from pipeline.level_batch import KeyPurpose, level_key, level_keys, sample_batch  # noqa: E402
 
 SPLIT_CONFIG = REPO_ROOT / "configs" / "splits" / "1M" / "s.yaml"
 """The split whose levels, env, filter, PPO and collection settings are used (its budget is replaced)."""

@@ -25,7 +25,8 @@ from omegaconf import MISSING, DictConfig, OmegaConf
 from omegaconf.errors import ConfigKeyError, MissingMandatoryValue, OmegaConfBaseException, ValidationError
 
 from agents import PPOConfig
-from engine import KINETIX_SIZES, SimParams
+from engine import KINETIX_SIZES
+from env import EnvParams, StaticEnvParams
 
 
 @dataclasses.dataclass
@@ -321,11 +322,16 @@ def ppo_config(job: JobConfig) -> PPOConfig:
     )
 
 
+def environment(job: JobConfig) -> tuple[EnvParams, StaticEnvParams]:
+    """The env parameters of the job's levels: the config's reward shaping, the engine's physics defaults."""
+    return EnvParams(dense_reward_scale=job.env.dense_reward_scale), StaticEnvParams.for_size(job.split.size)
+
+
 def data_definition(job: JobConfig) -> dict:
     """What defines the dataset's content: the config's data sections, and the engine's physics parameters (set by
     the code, not the config, so that data made by code with other physics is told apart)."""
     data = {section: dataclasses.asdict(getattr(job, section)) for section in DATA_SECTIONS}
-    return data | {"physics": dataclasses.asdict(SimParams())}
+    return data | {"physics": dataclasses.asdict(environment(job)[0].sim)}
 
 
 def data_fingerprint(job: JobConfig) -> str:

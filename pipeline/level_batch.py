@@ -15,8 +15,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from agents import ProgressListener, collect_windows, train_levels, training_progress
-from env import EnvParams, FilterReason, Level, StaticEnvParams, filter_levels, sample_levels
-from pipeline.config import JobConfig, ppo_config
+from env import FilterReason, Level, filter_levels, sample_levels
+from pipeline.config import JobConfig, environment, ppo_config
 from pipeline.writer import KEPT, BatchTrajectories, learning_curves
 
 
@@ -62,10 +62,6 @@ def num_shards(job: JobConfig) -> int:
 
 def batches_per_shard(job: JobConfig) -> int:
     return job.work.levels_per_shard // job.work.levels_per_batch
-
-
-def environment(job: JobConfig) -> tuple[EnvParams, StaticEnvParams]:
-    return EnvParams(dense_reward_scale=job.env.dense_reward_scale), StaticEnvParams.for_size(job.split.size)
 
 
 def sample_batch(job: JobConfig, level_indices: np.ndarray) -> Level:

@@ -32,8 +32,8 @@ from env.level_files import level_to_dict
 from env.pixels import render_image
 from env.play import GIF_FPS, record_episode
 from env.rollout import Policy
-from pipeline.config import ConfigError, EnvSection, load_config
-from pipeline.level_batch import KeyPurpose, environment, level_keys, sample_batch
+from pipeline.config import ConfigError, EnvSection, environment, load_config
+from pipeline.level_batch import KeyPurpose, level_keys, sample_batch
 
 LEVELS_DIR = Path("outputs") / "levels"
 """Default parent folder of written levels and previews."""

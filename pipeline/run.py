@@ -14,10 +14,19 @@ from pathlib import Path
 from tqdm import tqdm
 
 from env import ActionType
-from pipeline.config import ConfigError, JobConfig, data_definition, data_fingerprint, load_config, scale_names, to_yaml
+from pipeline.config import (
+    ConfigError,
+    JobConfig,
+    data_definition,
+    data_fingerprint,
+    environment,
+    load_config,
+    scale_names,
+    to_yaml,
+)
 from pipeline.coordinator import Coordinator
 from pipeline.layout import DatasetError, make_layout
-from pipeline.level_batch import batches_per_shard, environment, num_shards
+from pipeline.level_batch import batches_per_shard, num_shards
 from pipeline.manifest import iter_records
 from pipeline.shard_store import DatasetSpec, Geometry, create_dataset, open_dataset
 from pipeline.tracking import start_tracking

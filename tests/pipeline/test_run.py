@@ -22,6 +22,7 @@ from pipeline_test_helpers import run_in_process, tiny_job
 
 import pipeline.config
 from engine import SimParams
+from env import EnvParams
 from pipeline.config import to_yaml
 from pipeline.level_batch import run_level_batch
 from pipeline.manifest import committed_batches, iter_records
@@ -97,7 +98,7 @@ def test_a_config_that_changes_the_data_is_refused(tmp_path):
 def test_a_dataset_made_with_other_physics_is_refused(tmp_path, monkeypatch):
     prepare_output(tiny_job(tmp_path))
     stiffer = dataclasses.replace(SimParams(), joint_hertz=SimParams().joint_hertz + 15.0)
-    monkeypatch.setattr(pipeline.config, "SimParams", lambda: stiffer)  # code whose engine defaults differ
+    monkeypatch.setattr(pipeline.config, "EnvParams", lambda **kwargs: EnvParams(sim=stiffer, **kwargs))  # other code
     with pytest.raises(ResumeRefused, match=r"physics\.joint_hertz \("):
         prepare_output(tiny_job(tmp_path))
 
