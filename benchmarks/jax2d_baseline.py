@@ -159,8 +159,8 @@ def make_rollout(static: StaticSimParams, n_steps: int):
     return rollout
 
 
-def measure(size: str, batch: int, n_steps: int = 50, repeats: int = 3) -> dict:
-    """Compile time and best-of-`repeats` throughput of `n_steps` batched Jax2D steps."""
+def compile_rollout(size: str, batch: int, n_steps: int):
+    """(call, compile seconds): `call()` runs `n_steps` batched Jax2D steps of the compiled rollout."""
     states, static = build_batch(size, batch)
     params = SimParams()
     actions = jnp.ones(static.num_joints + static.num_thrusters)
@@ -168,12 +168,17 @@ def measure(size: str, batch: int, n_steps: int = 50, repeats: int = 3) -> dict:
     start = time.perf_counter()
     compiled = jax.jit(make_rollout(static, n_steps)).lower(states, params, actions).compile()
     compile_seconds = time.perf_counter() - start
+    return (lambda: compiled(states, params, actions)), compile_seconds
 
-    jax.block_until_ready(compiled(states, params, actions))  # warm-up
+
+def measure(size: str, batch: int, n_steps: int = 50, repeats: int = 3) -> dict:
+    """Compile time and best-of-`repeats` throughput of `n_steps` batched Jax2D steps."""
+    call, compile_seconds = compile_rollout(size, batch, n_steps)
+    jax.block_until_ready(call())  # warm-up
     best_seconds = float("inf")
     for _ in range(repeats):
         start = time.perf_counter()
-        jax.block_until_ready(compiled(states, params, actions))
+        jax.block_until_ready(call())
         best_seconds = min(best_seconds, time.perf_counter() - start)
 
     return {
