@@ -9,6 +9,8 @@ Usage: python benchmarks/jax2d_baseline.py --sizes s m l --batches 1 256
 """
 
 import argparse
+import os
+import sys
 import time
 from functools import partial
 
@@ -18,6 +20,10 @@ import numpy as np
 from jax2d import scene
 from jax2d.engine import PhysicsEngine, create_empty_sim
 from jax2d.sim_state import SimParams, SimState, StaticSimParams
+
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+
+from benchmarks.timing import best_time  # noqa: E402
 
 # Kinetix sizes: (polygons incl. the 4 static floor/wall/ceiling slots, circles, joints, thrusters).
 SIZES = {"s": (5, 2, 1, 1), "m": (6, 3, 2, 2), "l": (12, 4, 6, 2)}
@@ -174,12 +180,7 @@ def compile_rollout(size: str, batch: int, n_steps: int):
 def measure(size: str, batch: int, n_steps: int = 50, repeats: int = 3) -> dict:
     """Compile time and best-of-`repeats` throughput of `n_steps` batched Jax2D steps."""
     call, compile_seconds = compile_rollout(size, batch, n_steps)
-    jax.block_until_ready(call())  # warm-up
-    best_seconds = float("inf")
-    for _ in range(repeats):
-        start = time.perf_counter()
-        jax.block_until_ready(call())
-        best_seconds = min(best_seconds, time.perf_counter() - start)
+    best_seconds = best_time(call, repeats)[0]
 
     return {
         "engine": "jax2d",
