@@ -12,8 +12,7 @@ from agents import policy
 from agents.batching import ACTION_TYPE, check_level_keys, num_levels
 from agents.config import PPOConfig
 from agents.networks import make_network
-from env import EnvParams, EnvState, Level, StaticEnvParams, action_mask, reset, step
-from env.observations import observe
+from env import EnvParams, EnvState, Level, StaticEnvParams, action_mask, observe, reset, step
 
 WINDOW_STEPS = 256
 """Env steps per stored trajectory (one Kinetix episode length)."""

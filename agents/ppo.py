@@ -36,8 +36,18 @@ from agents.config import PPOConfig
 from agents.evaluate import level_episodes
 from agents.networks import make_network
 from agents.progress import report_updates
-from env import EnvParams, EnvState, Level, StaticEnvParams, StepResult, action_mask, advance, reset
-from env.observations import observation_shape, observe
+from env import (
+    EnvParams,
+    EnvState,
+    Level,
+    StaticEnvParams,
+    StepResult,
+    action_mask,
+    advance,
+    observation_shape,
+    observe,
+    reset,
+)
 
 ADVANTAGE_NORM_EPS = 1e-8
 """Added to the minibatch advantage standard deviation before dividing by it."""

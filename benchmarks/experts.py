@@ -2,8 +2,8 @@
 
 Two level sets: the first `--levels` levels of split 1M/s (the pipeline's level keys, so level i here is level i of
 that split) and the 10 hand-designed s levels in ../shared/levels/kinetix/s/*.json (beside the checkout). Each level
-gets one expert per budget in `--budgets`, trained and rolled out exactly as pipeline/level_batch.py does (its env,
-PPO and collection settings and per-level keys). Per set and budget it prints:
+gets one expert per budget in `--budgets`, trained and rolled out exactly as pipeline/generation/level_batch.py does
+(its env, PPO and collection settings and per-level keys). Per set and budget it prints:
 
 - window success: the share of levels whose expert window is successful (the pipeline's definition: a 256-step
   window from the level's start with auto-reset in which at least one episode ends and every ending is a success,
@@ -55,13 +55,13 @@ from agents import collect_windows, evaluate, train_levels, training_progress  #
 from benchmarks.env import REPO_ROOT  # noqa: E402
 from benchmarks.machine import describe_machine  # noqa: E402
 from env import FilterReason, Level, StaticEnvParams, filter_levels, load_level  # noqa: E402
-from pipeline.config import (  # noqa: E402
+from pipeline.generation.config import (  # noqa: E402
     JobConfig,
     environment,  # noqa: E402
     load_config,
     ppo_config,
 )
-from pipeline.level_batch import KeyPurpose, level_key, level_keys, sample_batch  # noqa: E402
+from pipeline.generation.level_batch import KeyPurpose, level_key, level_keys, sample_batch  # noqa: E402
 
 SPLIT_CONFIG = REPO_ROOT / "configs" / "splits" / "1M" / "s.yaml"
 """The split whose levels, env, filter, PPO and collection settings are used (its budget is replaced)."""
@@ -102,7 +102,8 @@ def hand_range(first: int, count: int | None, available: int, error) -> tuple[in
 
 def sample_split_levels(job: JobConfig, first: int, count: int) -> Level:
     """The split's levels first, ..., first + count - 1, sampled in the pipeline's batches (`work.levels_per_batch`
-    levels per call, aligned as in pipeline/level_batch.py, since XLA may round differently for another shape)."""
+    levels per call, aligned as in pipeline/generation/level_batch.py, since XLA may round differently for another
+    shape)."""
     batch = job.work.levels_per_batch
     aligned = first - first % batch
     chunks = [sample_batch(job, np.arange(start, start + batch)) for start in range(aligned, first + count, batch)]

@@ -5,7 +5,7 @@ per-step state (the bulk of a dataset) under lossless variants, each field compr
 as the shard files do (payload only: no chunk index, checksum or per-level fields):
 
     raw values             the float / int values as they are, Blosc-zstd 5 with byte shuffle
-    order-1 (stored)       the dataset's coding (pipeline.state_codec): residuals against the previous step
+    order-1 (stored)       the dataset's coding (pipeline.storage.state_codec): residuals against the previous step
     order-1, zstd 9        the same residuals at Blosc's highest zstd level
     order-1, bitshuffle    the same residuals with Blosc's bit shuffle
     order-1, xz            the same residuals byte-shuffled, then LZMA preset 9 (slow; a bound, not an option)
@@ -34,9 +34,9 @@ from numcodecs import Blosc
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
-from pipeline.layout import DONE, VALID  # noqa: E402
-from pipeline.shard_store import BLOSC_LEVEL, DATA_DIR, open_dataset  # noqa: E402
-from pipeline.state_codec import encode, is_coded  # noqa: E402
+from pipeline.storage.layout import DONE, VALID  # noqa: E402
+from pipeline.storage.shard_store import BLOSC_LEVEL, DATA_DIR, open_dataset  # noqa: E402
+from pipeline.storage.state_codec import encode, is_coded  # noqa: E402
 
 
 def _blosc(level: int = BLOSC_LEVEL, shuffle: int = Blosc.SHUFFLE) -> Callable[[np.ndarray], int]:

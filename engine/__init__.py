@@ -3,15 +3,32 @@
 Public surface: state and parameter types, the scene builder, and `step`.
 """
 
+from engine.collision import manifolds, world_geometry
+from engine.collision_filter import joint_collision_matrix, modes_collide
+from engine.geometry import (
+    CONVEXITY_TOLERANCE,
+    MIN_POLYGON_AREA,
+    circle_mass_properties,
+    cross2,
+    polygon_mass_properties,
+    rotate,
+    rotate_host,
+)
 from engine.pairs import PairLayout, pair_layout
 from engine.params import KINETIX_SIZES, MAX_POLYGON_VERTICES, SimParams, StaticSimParams
 from engine.physics_step import StepInfo, step
-from engine.scene import SceneBuilder
-from engine.state import Bodies, ContactCache, Joints, SimState, Thrusters, empty_state
+from engine.render import write_gif
+from engine.scene import ARENA_SIZE, FLOOR_TOP, SceneBuilder
+from engine.state import NO_FEATURE, Bodies, ContactCache, Joints, SimState, Thrusters, empty_state
 
 __all__ = [
+    "ARENA_SIZE",
+    "CONVEXITY_TOLERANCE",
+    "FLOOR_TOP",
     "KINETIX_SIZES",
     "MAX_POLYGON_VERTICES",
+    "MIN_POLYGON_AREA",
+    "NO_FEATURE",
     "Bodies",
     "ContactCache",
     "Joints",
@@ -22,7 +39,17 @@ __all__ = [
     "StaticSimParams",
     "StepInfo",
     "Thrusters",
+    "circle_mass_properties",
+    "cross2",
     "empty_state",
+    "joint_collision_matrix",
+    "manifolds",
+    "modes_collide",
     "pair_layout",
+    "polygon_mass_properties",
+    "rotate",
+    "rotate_host",
     "step",
+    "world_geometry",
+    "write_gif",
 ]

@@ -15,19 +15,23 @@ from env.actions import (
 )
 from env.environment import Environment
 from env.episode import StepResult, advance, reset, step
-from env.gif import write_state_gif
+from env.gif import GIF_RESOLUTION, write_state_gif
+from env.kinetix_state import KinetixStateError, kinetix_leaf_specs, state_from_kinetix, state_to_kinetix
 from env.level_builder import build_level
 from env.level_files import LevelFileError, LoadedLevel, level_to_dict, load_level, save_level
 from env.level_filter import FilterReason, FilterResult, filter_levels
 from env.observations import EntityObservation, ObservationType, observation_shape, observe
 from env.params import NUM_ACTION_SLOTS, NUM_MOTOR_BINDINGS, NUM_THRUSTER_BINDINGS, EnvParams, StaticEnvParams
 from env.pixels import PIXEL_OBSERVATION_RESOLUTION, PixelObservation, pixel_observation, render_image
+from env.play import GIF_FPS, record_episode
 from env.rewards import goal_reward, green_blue_distance
 from env.rollout import Outcome, Policy, RolloutResult, first_episode_outcomes
 from env.sampler import sample_level, sample_levels
 from env.state import NO_DISTANCE, NUM_ROLES, EnvState, Level, Role, Task, empty_task, initial_state
 
 __all__ = [
+    "GIF_FPS",
+    "GIF_RESOLUTION",
     "MULTI_DISCRETE_SIZES",
     "NO_DISTANCE",
     "NUM_ACTION_SLOTS",
@@ -43,6 +47,7 @@ __all__ = [
     "Environment",
     "FilterReason",
     "FilterResult",
+    "KinetixStateError",
     "Level",
     "LevelFileError",
     "LoadedLevel",
@@ -65,6 +70,7 @@ __all__ = [
     "goal_reward",
     "green_blue_distance",
     "initial_state",
+    "kinetix_leaf_specs",
     "level_to_dict",
     "load_level",
     "noop_action",
@@ -72,11 +78,14 @@ __all__ = [
     "observe",
     "pixel_observation",
     "random_action",
+    "record_episode",
     "render_image",
     "reset",
     "sample_level",
     "sample_levels",
     "save_level",
+    "state_from_kinetix",
+    "state_to_kinetix",
     "step",
     "write_state_gif",
 ]

@@ -8,7 +8,7 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from engine.render import write_gif
+from engine import write_gif
 from env.params import StaticEnvParams
 from env.pixels import render_image
 from env.state import EnvState

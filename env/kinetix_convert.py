@@ -26,9 +26,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from engine import SimParams, SimState, StaticSimParams, empty_state
-from engine.collision_filter import joint_collision_matrix
-from engine.geometry import rotate_host
+from engine import SimParams, SimState, StaticSimParams, empty_state, joint_collision_matrix, rotate_host
 from env.params import EnvParams, StaticEnvParams
 from env.state import Level, Task
 

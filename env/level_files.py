@@ -20,7 +20,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from engine.geometry import CONVEXITY_TOLERANCE, MIN_POLYGON_AREA, cross2
+from engine import CONVEXITY_TOLERANCE, MIN_POLYGON_AREA, cross2
 from env.kinetix_convert import (
     ENV_PARAM_ORDER,
     KINETIX_UNMODELLED_ENV_PARAMS,

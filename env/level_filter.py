@@ -14,9 +14,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from engine import pair_layout
-from engine.collision import manifolds, world_geometry
-from engine.collision_filter import modes_collide
+from engine import manifolds, modes_collide, pair_layout, world_geometry
 from env.params import EnvParams, StaticEnvParams
 from env.rollout import Outcome, Policy, first_episode_outcomes
 from env.state import Level, Role

@@ -31,8 +31,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from engine import empty_state, pair_layout
-from engine.state import NO_FEATURE
+from engine import NO_FEATURE, empty_state, pair_layout
 from env.params import NUM_MOTOR_BINDINGS, NUM_THRUSTER_BINDINGS, StaticEnvParams
 from env.pixels import GRAVITY_SCALE, pixel_observation
 from env.state import NUM_ROLES, EnvState, Level, empty_task, initial_state

@@ -17,7 +17,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from engine.scene import ARENA_SIZE
+from engine import ARENA_SIZE
 from env.params import StaticEnvParams
 from env.state import EnvState
 

@@ -15,8 +15,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from engine import KINETIX_SIZES, SceneBuilder
-from engine.collision_filter import joint_collision_matrix
+from engine import KINETIX_SIZES, SceneBuilder, joint_collision_matrix
 from env.params import StaticEnvParams
 from env.sampler_shapes import (
     HIDDEN_PENALTY,

@@ -12,10 +12,15 @@ import math
 import jax.numpy as jnp
 from flax import struct
 
-from engine.collision_filter import modes_collide
-from engine.geometry import circle_mass_properties, polygon_mass_properties, rotate
-from engine.params import MAX_POLYGON_VERTICES
-from engine.scene import ARENA_SIZE, FLOOR_TOP
+from engine import (
+    ARENA_SIZE,
+    FLOOR_TOP,
+    MAX_POLYGON_VERTICES,
+    circle_mass_properties,
+    modes_collide,
+    polygon_mass_properties,
+    rotate,
+)
 from env.params import NUM_MOTOR_BINDINGS, NUM_THRUSTER_BINDINGS, StaticEnvParams
 from env.state import Level, Role
 

@@ -24,7 +24,7 @@ import time
 from collections.abc import Sequence
 from pathlib import Path
 
-from pipeline.config import ConfigError, load_config
+from pipeline.generation import ConfigError, load_config
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 """The checkout this module belongs to: the default working dir of submitted jobs."""

@@ -9,7 +9,8 @@ WANDB_DIR_VARIABLES = ("WANDB_DIR", "WANDB_CONFIG_DIR", "WANDB_CACHE_DIR", "WAND
 
 @pytest.fixture(autouse=True, scope="session")
 def wandb_disabled(tmp_path_factory):
-    """WANDB_MODE=disabled (it overrides `tracking.wandb`, see pipeline/tracking.py) and wandb's folders in tmp."""
+    """WANDB_MODE=disabled (it overrides `tracking.wandb`, see pipeline/generation/tracking.py) and wandb's folders
+    in tmp."""
     directory = tmp_path_factory.mktemp("wandb")
     with pytest.MonkeyPatch.context() as patch:
         patch.setenv("WANDB_MODE", "disabled")

@@ -11,7 +11,7 @@ import pytest
 from engine_test_helpers import (
     PARAMS,
     ROLLOUT_STEPS,
-    STATIC_M,
+    SIZE_M,
     python_loop,
     random_actions,
     random_scene,
@@ -36,7 +36,7 @@ EAGER_STEPS = 3
 
 
 def _stack_scene():
-    b = SceneBuilder(STATIC_M)
+    b = SceneBuilder(SIZE_M)
     b.add_box((2.5, 0.65), (0.6, 0.5), friction=0.8)
     b.add_box((2.55, 1.16), (0.4, 0.5), rotation=0.05)
     b.add_circle((2.5, 1.7), 0.15, restitution=0.3)
@@ -44,7 +44,7 @@ def _stack_scene():
 
 
 def _pendulum_scene():
-    b = SceneBuilder(STATIC_M)
+    b = SceneBuilder(SIZE_M)
     link1 = b.add_box((3.0, 4.0), (1.0, 0.1), rotation=0.0)
     link2 = b.add_box((3.5, 3.5), (0.1, 1.0))
     b.add_revolute_joint(3, link1, (2.5, 4.0))  # hinge on the ceiling
@@ -53,7 +53,7 @@ def _pendulum_scene():
 
 
 def _thruster_scene():
-    b = SceneBuilder(STATIC_M)
+    b = SceneBuilder(SIZE_M)
     box = b.add_box((1.0, 0.6), (0.4, 0.4), friction=0.3)
     ball = b.add_circle((3.0, 2.0), 0.2)
     b.add_thruster(box, (1.1, 0.6), np.pi / 2 + 0.3, 2.0)
@@ -63,7 +63,7 @@ def _thruster_scene():
 
 def _vehicle_scene():
     """Motorised wheels on the floor, a thruster on the chassis, and a triangle falling onto it: every feature."""
-    b = SceneBuilder(STATIC_M)
+    b = SceneBuilder(SIZE_M)
     chassis = b.add_box((2.0, 0.9), (1.0, 0.2))
     wheel_a = b.add_circle((1.6, 0.65), 0.25, friction=1.0)
     wheel_b = b.add_circle((2.4, 0.65), 0.25, friction=1.0)
@@ -77,7 +77,7 @@ def _vehicle_scene():
 
 
 def _circles_scene():
-    b = SceneBuilder(STATIC_M)
+    b = SceneBuilder(SIZE_M)
     b.add_circle((1.0, 1.0), 0.2, velocity=(3.0, 0.0), restitution=1.0)
     b.add_circle((2.0, 1.05), 0.3, velocity=(-1.0, 0.5), restitution=0.5)
     b.add_circle((4.0, 3.0), 0.15, velocity=(-2.0, -3.0), friction=0.0)
@@ -93,8 +93,8 @@ def _scenes():
         "thrusters": _thruster_scene(),
         "vehicle": _vehicle_scene(),
         "circles": _circles_scene(),
-        "empty_arena": SceneBuilder(STATIC_M).build(),
-        "empty": SceneBuilder(STATIC_M, boundaries=False).build(),
+        "empty_arena": SceneBuilder(SIZE_M).build(),
+        "empty": SceneBuilder(SIZE_M, boundaries=False).build(),
         "random": random_scene(rng, overlapping=True),
     }
 
@@ -104,7 +104,7 @@ def batch():
     scenes = _scenes()
     names = list(scenes)
     states = [scenes[k] for k in names]
-    motors, thrusters = random_actions(np.random.default_rng(3), STATIC_M, batch=len(states))
+    motors, thrusters = random_actions(np.random.default_rng(3), SIZE_M, batch=len(states))
     final, traj = run_batch(states, motors, thrusters)
     return dict(names=names, states=states, motors=motors, thrusters=thrusters, final=final, traj=traj)
 
@@ -145,7 +145,7 @@ def test_vmap_equals_python_loop(batch):
         worst, first_bad = {}, None
         for k in range(COMPARE_STEPS):
             motors, thrusters = jnp.asarray(batch["motors"][i, k]), jnp.asarray(batch["thrusters"][i, k])
-            state, info = engine.step(_state_before(batch, i, k), PARAMS, motors, thrusters, static=STATIC_M)
+            state, info = engine.step(_state_before(batch, i, k), PARAMS, motors, thrusters, static=SIZE_M)
             pairs = {
                 f"bodies.{f}": (traj_f[i, k], loop_f)
                 for f, traj_f, loop_f in (
@@ -199,13 +199,13 @@ def test_batches_larger_than_a_chunk_equal_single_steps(batch):
     picks = [k % len(batch["states"]) for k in range(count)]
     states = stack_states([batch["states"][k] for k in picks])
     motors, thrusters = batch["motors"][picks, 0], batch["thrusters"][picks, 0]
-    stepped, info = jax.jit(jax.vmap(lambda s, m, t: engine.step(s, PARAMS, m, t, static=STATIC_M)))(
+    stepped, info = jax.jit(jax.vmap(lambda s, m, t: engine.step(s, PARAMS, m, t, static=SIZE_M)))(
         states, motors, thrusters
     )
     scenes = len(batch["states"])
     for k in range(scenes):
         alone, alone_info = engine.step(
-            batch["states"][k], PARAMS, jnp.asarray(motors[k]), jnp.asarray(thrusters[k]), static=STATIC_M
+            batch["states"][k], PARAMS, jnp.asarray(motors[k]), jnp.asarray(thrusters[k]), static=SIZE_M
         )
         for index in (k, k + scenes * ((count - 1 - k) // scenes)):  # its copies in the first and the last chunk
             for field, expected in _dynamic_fields(alone.bodies).items():
@@ -268,27 +268,27 @@ def _counted_step(state, params, motor_actions, thruster_actions, static):
 
 def test_no_retrace_for_new_scenes_of_the_same_size(batch):
     """Different scenes, step outputs fed back, and new parameter values all reuse the compiled step."""
-    zeros_m, zeros_t = jnp.zeros(STATIC_M.num_joints), jnp.zeros(STATIC_M.num_thrusters)
+    zeros_m, zeros_t = jnp.zeros(SIZE_M.num_joints), jnp.zeros(SIZE_M.num_thrusters)
     states = batch["states"]
     if hasattr(engine.step, "_cache_size"):
         call, count = engine.step, engine.step._cache_size
     else:  # pragma: no cover - fallback when JAX removes the private counter
         call, count = _counted_step, lambda: len(_traces)
-    first, _ = call(states[0], PARAMS, zeros_m, zeros_t, static=STATIC_M)
+    first, _ = call(states[0], PARAMS, zeros_m, zeros_t, static=SIZE_M)
     before = count()
-    after_step, _ = call(first, PARAMS, zeros_m, zeros_t, static=STATIC_M)
+    after_step, _ = call(first, PARAMS, zeros_m, zeros_t, static=SIZE_M)
     for state in states[1:]:
-        call(state, PARAMS, zeros_m, zeros_t, static=STATIC_M)
-    fresh = SceneBuilder(STATIC_M)
+        call(state, PARAMS, zeros_m, zeros_t, static=SIZE_M)
+    fresh = SceneBuilder(SIZE_M)
     fresh.add_circle((1.0, 1.0), 0.3)
-    call(fresh.build(), PARAMS, zeros_m, zeros_t, static=STATIC_M)
+    call(fresh.build(), PARAMS, zeros_m, zeros_t, static=SIZE_M)
     # Same array types as before (strong float32), new values; parameters are traced floats.
-    half = jnp.asarray(np.full(STATIC_M.num_thrusters, 0.5, np.float32))
+    half = jnp.asarray(np.full(SIZE_M.num_thrusters, 0.5, np.float32))
     call(
         after_step,
         SimParams(dt=1.0 / 120.0, base_friction=0.7),
-        jnp.ones(STATIC_M.num_joints, jnp.float32),
+        jnp.ones(SIZE_M.num_joints, jnp.float32),
         half,
-        static=STATIC_M,
+        static=SIZE_M,
     )
     assert count() == before, f"step was retraced: cache size {before} -> {count()}"

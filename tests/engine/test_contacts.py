@@ -10,20 +10,20 @@ import math
 
 import numpy as np
 import pytest
-
-from engine import SceneBuilder, SimParams
-from tests.engine.physics_helpers import (
+from engine_test_helpers import (
     SIZE_L,
     SIZE_M,
     SIZE_S,
     G,
     pair_index,
-    rotate_np,
+    rotate,
     run,
     speed,
     world_vertices,
     zero_gravity,
 )
+
+from engine import SceneBuilder, SimParams
 
 PARAMS = SimParams()
 DT = PARAMS.dt
@@ -425,7 +425,7 @@ def test_circle_centre_inside_box_separates():
     box = builder.add_box((2.5, 2.0), (0.4, 0.4))
     circle = builder.add_circle((2.55, 2.02), 0.1)
     _, traj = run(zero_gravity(builder.build()), SIZE_S, 100)
-    local = rotate_np(-traj.rotation[:, box, None], (traj.position[:, circle] - traj.position[:, box])[:, None])[:, 0]
+    local = rotate(-traj.rotation[:, box, None], (traj.position[:, circle] - traj.position[:, box])[:, None])[:, 0]
     separation = _box_signed_distance(local, np.array([0.2, 0.2])) - 0.1
     separated = np.flatnonzero(separation < -SLOP)
     steps_to_separate = int(separated[-1]) + 1 if separated.size else 0

@@ -9,14 +9,14 @@ from __future__ import annotations
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from engine_test_helpers import PARAMS, STATIC_M, cross, rotate, run_batch
+from engine_test_helpers import PARAMS, SIZE_M, cross, rotate, run_batch
 
 import engine
 from engine import SceneBuilder
 
 RTOL = 1e-5
 CHECK_STEPS = 30
-H = PARAMS.dt / STATIC_M.num_substeps
+H = PARAMS.dt / SIZE_M.num_substeps
 G = -9.81
 
 
@@ -32,13 +32,13 @@ def _assert_close(got, expected, scale):
 @pytest.fixture(scope="module")
 def scenes():
     """Gravity scene and zero-gravity scene (no boundaries, bodies far apart), with junk in inactive slots."""
-    b = SceneBuilder(STATIC_M, boundaries=False)
+    b = SceneBuilder(SIZE_M, boundaries=False)
     fall = b.add_box((1.0, 4.0), (0.3, 0.2), rotation=0.3, velocity=(0.0, 1.0))
     projectile = b.add_circle((4.0, 2.0), 0.1, velocity=(-2.5, 3.0), angular_velocity=1.5)
     spinner = b.add_box((-3.0, 3.0), (0.5, 0.1), angular_velocity=2.0)
     gravity_state = b.build()
 
-    b = SceneBuilder(STATIC_M, boundaries=False)
+    b = SceneBuilder(SIZE_M, boundaries=False)
     spin = b.add_box((1.0, 1.0), (0.6, 0.2), rotation=0.2, angular_velocity=3.7)
     glide = b.add_circle((-4.0, -2.0), 0.2, velocity=(0.8, -0.3), angular_velocity=-5.0)
     zero_g = b.build().replace(gravity=jnp.zeros(2))
@@ -83,7 +83,7 @@ def test_free_fall_matches_discrete_closed_form(scenes):
     traj = scenes["traj"].bodies
     i = scenes["fall"]
     steps = np.arange(1, CHECK_STEPS + 1)
-    y, vy = _closed_form(4.0, 1.0, G, STATIC_M.num_substeps * steps)
+    y, vy = _closed_form(4.0, 1.0, G, SIZE_M.num_substeps * steps)
     got_y = traj.position[0, :CHECK_STEPS, i, 1]
     got_vy = traj.velocity[0, :CHECK_STEPS, i, 1]
     _assert_close(got_y, y, scale=4.0)
@@ -100,10 +100,10 @@ def test_free_fall_does_not_depend_on_the_other_bodies(scenes):
     traj = scenes["traj"].bodies
     i = scenes["spinner"]
     steps = np.arange(1, CHECK_STEPS + 1)
-    y, vy = _closed_form(3.0, 0.0, G, STATIC_M.num_substeps * steps)
+    y, vy = _closed_form(3.0, 0.0, G, SIZE_M.num_substeps * steps)
     _assert_close(traj.position[0, :CHECK_STEPS, i, 1], y, scale=3.0)
     _assert_close(traj.velocity[0, :CHECK_STEPS, i, 1], vy, scale=abs(G) * CHECK_STEPS * PARAMS.dt)
-    theta, _ = _closed_form(0.0, 2.0, 0.0, STATIC_M.num_substeps * steps)
+    theta, _ = _closed_form(0.0, 2.0, 0.0, SIZE_M.num_substeps * steps)
     _assert_close(traj.rotation[0, :CHECK_STEPS, i], theta, scale=2.0)
 
 
@@ -111,7 +111,7 @@ def test_projectile(scenes):
     traj = scenes["traj"].bodies
     i = scenes["projectile"]
     steps = np.arange(1, CHECK_STEPS + 1)
-    substeps = STATIC_M.num_substeps * steps
+    substeps = SIZE_M.num_substeps * steps
     x, vx = _closed_form(4.0, -2.5, 0.0, substeps)
     y, vy = _closed_form(2.0, 3.0, G, substeps)
     _assert_close(traj.position[0, :CHECK_STEPS, i, 0], x, scale=4.0)
@@ -132,7 +132,7 @@ def test_spin_in_zero_gravity_keeps_angular_velocity(scenes):
         np.testing.assert_allclose(
             traj.position[1, :, i], np.broadcast_to(position, traj.position[1, :, i].shape), rtol=1e-6
         )
-        theta, _ = _closed_form(theta0, omega, 0.0, STATIC_M.num_substeps * np.arange(1, CHECK_STEPS + 1))
+        theta, _ = _closed_form(theta0, omega, 0.0, SIZE_M.num_substeps * np.arange(1, CHECK_STEPS + 1))
         _assert_close(traj.rotation[1, :CHECK_STEPS, i], theta, scale=abs(theta0) + abs(omega))
 
 
@@ -144,8 +144,8 @@ def test_constant_velocity_in_zero_gravity(scenes):
     )
     np.testing.assert_allclose(traj.angular_velocity[1, :, i], -5.0, rtol=1e-6)
     steps = np.arange(1, CHECK_STEPS + 1)
-    x, _ = _closed_form(-4.0, 0.8, 0.0, STATIC_M.num_substeps * steps)
-    y, _ = _closed_form(-2.0, -0.3, 0.0, STATIC_M.num_substeps * steps)
+    x, _ = _closed_form(-4.0, 0.8, 0.0, SIZE_M.num_substeps * steps)
+    y, _ = _closed_form(-2.0, -0.3, 0.0, SIZE_M.num_substeps * steps)
     _assert_close(traj.position[1, :CHECK_STEPS, i, 0], x, scale=4.0)
     _assert_close(traj.position[1, :CHECK_STEPS, i, 1], y, scale=2.0)
 
@@ -164,7 +164,7 @@ def test_inactive_slots_do_not_move(scenes):
 # --------------------------------------------------------------------------- thrusters, one step
 @pytest.fixture(scope="module")
 def thruster_scene():
-    b = SceneBuilder(STATIC_M, boundaries=False)
+    b = SceneBuilder(SIZE_M, boundaries=False)
     box_rotation = 0.4
     box = b.add_box((1.0, 2.0), (0.4, 0.2), rotation=box_rotation, density=2.0)
     circle = b.add_circle((3.0, 3.0), 0.25, density=0.7)
@@ -177,7 +177,7 @@ def thruster_scene():
 
 def _one_step(state, thruster_actions):
     return engine.step(
-        state, PARAMS, jnp.zeros(STATIC_M.num_joints), jnp.asarray(thruster_actions, jnp.float32), static=STATIC_M
+        state, PARAMS, jnp.zeros(SIZE_M.num_joints), jnp.asarray(thruster_actions, jnp.float32), static=SIZE_M
     )
 
 
@@ -190,7 +190,7 @@ def test_thruster_one_step_offset(thruster_scene):
     force = PARAMS.base_thruster_power * 1.5 * action * np.array([np.cos(1.1), np.sin(1.1)])
     torque = float(cross(lever, force))
     dt = PARAMS.dt
-    n = STATIC_M.num_substeps
+    n = SIZE_M.num_substeps
     np.testing.assert_allclose(np.asarray(new.bodies.velocity[box]), force * dt / mass, rtol=RTOL)
     np.testing.assert_allclose(float(new.bodies.angular_velocity[box]), torque * dt / inertia, rtol=RTOL)
     # Positions follow the same semi-implicit closed form with the force held over the step.

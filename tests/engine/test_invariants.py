@@ -14,7 +14,7 @@ import pytest
 from engine_test_helpers import (
     BATCH,
     PARAMS,
-    STATIC_M,
+    SIZE_M,
     bounding_radius,
     kinetic_energy,
     masses,
@@ -40,7 +40,7 @@ ENERGY_GROWTH_PER_STEP = 0.01
 def fuzz():
     rng = np.random.default_rng(2024)
     states = [random_scene(rng, overlapping=i < NUM_OVERLAPPING) for i in range(BATCH)]
-    motors, thrusters = random_actions(rng, STATIC_M, batch=BATCH)
+    motors, thrusters = random_actions(rng, SIZE_M, batch=BATCH)
     final, traj = run_batch(states, motors, thrusters)
     return dict(
         states=states,
@@ -57,8 +57,8 @@ def test_fuzz_scenes_are_rich(fuzz):
     initial, traj = fuzz["initial"], fuzz["traj"]
     assert initial.joints.active.sum() >= BATCH // 2
     assert initial.thrusters.active.sum() >= BATCH // 2
-    extra_static = initial.bodies.active[:, STATIC_M.num_reserved_static :] & (
-        initial.bodies.inverse_mass[:, STATIC_M.num_reserved_static :] == 0
+    extra_static = initial.bodies.active[:, SIZE_M.num_reserved_static :] & (
+        initial.bodies.inverse_mass[:, SIZE_M.num_reserved_static :] == 0
     )
     assert extra_static.sum() >= 2
     assert traj.info.touching.any(axis=(1, 2)).sum() >= BATCH // 2
@@ -81,7 +81,7 @@ def test_step_info_has_no_nan_or_negative_infinity(fuzz):
     """StepInfo.separation is finite or +inf ("no contact points"); NaN or -inf (infinitely deep) would poison
     any reduction over pairs. Pairs with an inactive slot have no contact points."""
     separation = fuzz["traj"].info.separation
-    layout = pair_layout(STATIC_M)
+    layout = pair_layout(SIZE_M)
     active = fuzz["initial"].bodies.active
     pair_active = np.broadcast_to((active[:, layout.body_a] & active[:, layout.body_b])[:, None, :], separation.shape)
     problems = []
@@ -101,7 +101,7 @@ def test_step_info_has_no_nan_or_negative_infinity(fuzz):
 def test_static_bodies_bitwise_unchanged(fuzz):
     initial, traj = fuzz["initial"].bodies, fuzz["traj"].bodies
     static = initial.active & (initial.inverse_mass == 0)
-    assert static[:, : STATIC_M.num_reserved_static].all()
+    assert static[:, : SIZE_M.num_reserved_static].all()
     for field in ("position", "rotation", "velocity", "angular_velocity"):
         start = np.asarray(getattr(initial, field))[:, None]
         got = np.asarray(getattr(traj, field))
@@ -140,7 +140,7 @@ def test_state_within_clips(fuzz):
 # --------------------------------------------------------------------------- inactive junk
 def _with_junk(state, rng):
     """Fill every inactive body, joint and thruster slot (and their contact cache rows) with random finite data."""
-    n, p = STATIC_M.num_bodies, STATIC_M.num_polygons
+    n, p = SIZE_M.num_bodies, SIZE_M.num_polygons
     b, j, t = state.bodies, state.joints, state.thrusters
     off = ~np.asarray(b.active)
     box = lambda w, h: np.array([[-w, -h], [w, -h], [w, h], [-w, h]]) / 2  # noqa: E731
@@ -167,7 +167,7 @@ def _with_junk(state, rng):
         vertices=fill(b.vertices, np.where(is_polygon[:, None, None], vertices, 0.0), off),
         radius=fill(b.radius, np.where(is_polygon, 0.0, rng.uniform(0.1, 0.5, n)), off),
     )
-    nj, nt = STATIC_M.num_joints, STATIC_M.num_thrusters
+    nj, nt = SIZE_M.num_joints, SIZE_M.num_thrusters
     j_off, t_off = ~np.asarray(j.active), ~np.asarray(t.active)
     joints = j.replace(
         body_a=fill(j.body_a, rng.integers(0, n, nj), j_off),
@@ -193,7 +193,7 @@ def _with_junk(state, rng):
         angle=fill(t.angle, rng.uniform(-3, 3, nt), t_off),
         power=fill(t.power, rng.uniform(0.5, 3, nt), t_off),
     )
-    layout = pair_layout(STATIC_M)
+    layout = pair_layout(SIZE_M)
     k = layout.num_pairs
     pair_off = off[layout.body_a] | off[layout.body_b]
     c = state.contacts
@@ -226,7 +226,7 @@ def test_inactive_junk_changes_nothing(fuzz):
         diff = np.where(joint_active, diff, 0.0)
         if diff.max() > JUNK_ATOL:
             failures.append(f"joints.{field}: max diff {diff.max():.3g}")
-    layout = pair_layout(STATIC_M)
+    layout = pair_layout(SIZE_M)
     pair_active = (active[:, layout.body_a] & active[:, layout.body_b])[:, None, :]
     if np.any((traj.info.touching != junk_traj.info.touching) & pair_active):
         failures.append("info.touching differs for active pairs")
@@ -254,7 +254,7 @@ def test_penetration_bounded_after_first_contact(fuzz):
     pair was already that deep a step earlier and is being pushed out (penetration not growing)."""
     initial, traj = fuzz["initial"], fuzz["traj"]
     scenes = np.arange(NUM_OVERLAPPING, BATCH)
-    layout = pair_layout(STATIC_M)
+    layout = pair_layout(SIZE_M)
     a, b = layout.body_a, layout.body_b
     bodies = initial.bodies
     enabled = (
@@ -298,7 +298,7 @@ def test_penetration_bounded_after_first_contact(fuzz):
 # --------------------------------------------------------------------------- zero gravity, no statics
 def _zero_g_scene(rng):
     """Two boxes and three circles (no boundaries, no statics), apart, moving towards a common centre."""
-    builder = SceneBuilder(STATIC_M, boundaries=False)
+    builder = SceneBuilder(SIZE_M, boundaries=False)
     placed = []
     shapes = [("box", rng.uniform(0.2, 0.5, 2)) for _ in range(2)] + [
         ("circle", rng.uniform(0.1, 0.3)) for _ in range(3)

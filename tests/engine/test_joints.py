@@ -11,9 +11,9 @@ import math
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from engine_test_helpers import SIZE_L, G, crossings, elliptic_k, joint_anchor_error, rotate, run
 
 from engine import SceneBuilder, SimParams
-from tests.engine.physics_helpers import SIZE_L, G, crossings, elliptic_k, joint_anchor_error, rotate_np, run
 
 STATIC = SIZE_L
 PARAMS = SimParams()
@@ -170,12 +170,12 @@ def test_fixed_joint_cantilever_holds_relative_angle():
     builder = SceneBuilder(STATIC, boundaries=False)
     wall_angle, beam_angle, load_angle = 0.2, -0.3, 0.7
     wall = builder.add_box(PIVOT, (0.2, 1.0), rotation=wall_angle, static=True, slot=0)
-    root = PIVOT + rotate_np(wall_angle, np.array([0.1, 0.0]))
-    beam_dir = rotate_np(beam_angle, np.array([1.0, 0.0]))
+    root = PIVOT + rotate(wall_angle, np.array([0.1, 0.0]))
+    beam_dir = rotate(beam_angle, np.array([1.0, 0.0]))
     beam = builder.add_box(root + 0.5 * beam_dir, (1.0, 0.1), rotation=beam_angle)
     tip = root + beam_dir
     load = builder.add_box(
-        tip + rotate_np(load_angle, np.array([0.1, 0.0])), (0.2, 0.2), rotation=load_angle, density=10.0
+        tip + rotate(load_angle, np.array([0.1, 0.0])), (0.2, 0.2), rotation=load_angle, density=10.0
     )
     builder.add_fixed_joint(wall, beam, root)
     builder.add_fixed_joint(beam, load, tip)

@@ -17,14 +17,14 @@ import pytest
 
 from engine import SceneBuilder
 from env import ActionType, EnvParams, Role, StaticEnvParams, build_level, random_action, reset, step
-from pipeline.config import load_config
-from pipeline.coordinator import Coordinator
-from pipeline.layout import make_layout
-from pipeline.level_batch import batches_per_shard, num_shards
-from pipeline.run import prepare_output
-from pipeline.shard_store import DatasetSpec, Geometry, create_dataset
-from pipeline.worker import Worker
-from pipeline.writer import KEPT, BatchTrajectories, write_level_batch
+from pipeline.generation.config import load_config
+from pipeline.generation.coordinator import Coordinator
+from pipeline.generation.level_batch import batches_per_shard, num_shards
+from pipeline.generation.run import prepare_output
+from pipeline.generation.worker import Worker
+from pipeline.storage.layout import make_layout
+from pipeline.storage.shard_store import DatasetSpec, Geometry, create_dataset
+from pipeline.storage.writer import KEPT, BatchTrajectories, write_level_batch
 
 # Test modules import these helpers as `pipeline_test_helpers` (works under every pytest import mode).
 sys.modules["pipeline_test_helpers"] = sys.modules[__name__]

@@ -10,8 +10,9 @@ from pathlib import Path
 import pytest
 from omegaconf import OmegaConf
 
-from pipeline.config import ConfigError, JobConfig, PPOSection, load_config, to_yaml
-from pipeline.run import main as run_main
+from agents import PPOConfig
+from pipeline.cli.run import main as run_main
+from pipeline.generation.config import ConfigError, JobConfig, PPOSection, load_config, ppo_config, to_yaml
 
 SPLITS_DIR = Path(__file__).resolve().parents[2] / "configs" / "splits"
 
@@ -174,3 +175,17 @@ def test_run_print_config_prints_the_resolved_config_and_runs_nothing(tmp_path, 
     assert capsys.readouterr().out == expected
     assert "greedy: true" in expected
     assert not (tmp_path / "outputs").exists()
+
+
+def test_the_ppo_section_defaults_are_the_agents_defaults():
+    job = load_config("1M/s")
+    defaults = PPOConfig(env_steps_per_level=job.split.expert_budget)
+    assert ppo_config(job) == defaults
+    assert set(dataclasses.asdict(job.ppo)) <= {field.name for field in dataclasses.fields(PPOConfig)}
+
+
+def test_a_split_is_named_like_the_release_or_given_as_a_file(tmp_path):
+    by_name, by_file = load_config("10M/m"), load_config(split_file("10M/m"))
+    assert by_name == by_file and by_name.split.name == "10M/m"
+    with pytest.raises(ConfigError, match=r"config '3M/s': no such file, and not a split name \(splits: 10M/m, "):
+        load_config("3M/s")

@@ -24,9 +24,9 @@ import yaml
 from pipeline_test_helpers import TINY_JOB
 
 from jobs.submit import REPO_ROOT, UPLOAD_EXCLUDES, build_submission, parse_env_vars
-from pipeline.config import ConfigError
-from pipeline.manifest import committed_batches
-from pipeline.verify import verify_dataset
+from pipeline.generation.config import ConfigError
+from pipeline.storage.manifest import committed_batches
+from pipeline.storage.verify import verify_dataset
 from tests.pipeline.test_tracking import wandb_history
 
 SPLIT_CONFIG = "configs/splits/1M/s.yaml"

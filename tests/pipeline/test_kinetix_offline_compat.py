@@ -23,10 +23,10 @@ import pytest
 
 from benchmarks.env import DEFAULT_KINETIX_VENV, kinetix_python
 from env import initial_state, load_level
-from pipeline.kinetix_export import export_kinetix, kept_trajectories
-from pipeline.kinetix_import import load_kinetix_levels
-from pipeline.layout import ACTION, ACTION_MASK, DONE, STATE_PREFIX, flatten_state
-from pipeline.loader import TrajectoryDatasetManager
+from pipeline.kinetix.export import export_kinetix, kept_trajectories
+from pipeline.kinetix.importer import load_kinetix_levels
+from pipeline.reading.loader import TrajectoryDatasetManager
+from pipeline.storage.layout import ACTION, ACTION_MASK, DONE, STATE_PREFIX, flatten_state
 
 KINETIX_VENV_VARIABLE = "KFORGE_KINETIX_VENV"
 """Environment variable naming an existing virtualenv with kinetix-env 3.0.2 (default: build `.venv-kinetix`)."""

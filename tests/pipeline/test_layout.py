@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 
 from env import ActionType, StaticEnvParams
-from pipeline.layout import DYNAMIC_STATE_FIELDS, DatasetError, FieldSpec, Layout, check_layout, make_layout
+from pipeline.storage.layout import DYNAMIC_STATE_FIELDS, DatasetError, FieldSpec, Layout, check_layout, make_layout
 
 SIZE_S = StaticEnvParams.for_size("s")  # 5 polygons + 2 circles = 7 bodies, 1 joint, 1 thruster
 

@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 from pipeline_test_helpers import tiny_job
 
-from pipeline.config import ppo_config
-from pipeline.level_batch import (
+from pipeline.generation.config import ppo_config
+from pipeline.generation.level_batch import (
     FILTERED_PREFIX,
     PADDING,
     UNSOLVED,
@@ -16,7 +16,7 @@ from pipeline.level_batch import (
     run_level_batch,
     sample_batch,
 )
-from pipeline.writer import KEPT, MAX_CURVE_POINTS, learning_curves
+from pipeline.storage.writer import KEPT, MAX_CURVE_POINTS, learning_curves
 
 
 @pytest.fixture(scope="module")

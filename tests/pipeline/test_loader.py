@@ -10,9 +10,9 @@ import pytest
 from pipeline_test_helpers import STATIC
 
 from env import ObservationType, StaticEnvParams, observe
-from pipeline.layout import DatasetError
-from pipeline.loader import TrajectoryDatasetManager
-from pipeline.shard_store import open_dataset
+from pipeline.reading.loader import TrajectoryDatasetManager
+from pipeline.storage.layout import DatasetError
+from pipeline.storage.shard_store import open_dataset
 
 NUM_TRAJECTORIES = 8  # four batches of two kept trajectories
 KEPT_SLOTS = [0, 1, 3, 4, 6, 7, 9, 10]  # slots 3g and 3g + 1 of each level batch g

@@ -2,10 +2,10 @@
 
 from pipeline_test_helpers import tiny_job
 
-from pipeline.coordinator import Coordinator
-from pipeline.level_batch import batches_per_shard, num_shards
-from pipeline.run import _training_summary, prepare_output
-from pipeline.worker import Worker
+from pipeline.generation.coordinator import Coordinator
+from pipeline.generation.level_batch import batches_per_shard, num_shards
+from pipeline.generation.run import _training_summary, prepare_output
+from pipeline.generation.worker import Worker
 
 
 def _coordinator(tmp_path):

@@ -20,17 +20,17 @@ import pytest
 import zarr
 from pipeline_test_helpers import run_in_process, tiny_job
 
-import pipeline.config
+import pipeline.generation.config
 from engine import SimParams
 from env import EnvParams
-from pipeline.config import to_yaml
-from pipeline.level_batch import run_level_batch
-from pipeline.manifest import committed_batches, iter_records
-from pipeline.run import ResumeRefused, prepare_output, run_job
-from pipeline.shard_store import open_dataset
-from pipeline.verify import verify_dataset
-from pipeline.worker import FAULT_INJECTION_ENV
-from pipeline.writer import PROVENANCE, stage_level_batch
+from pipeline.generation.config import to_yaml
+from pipeline.generation.level_batch import run_level_batch
+from pipeline.generation.run import ResumeRefused, prepare_output, run_job
+from pipeline.generation.worker import FAULT_INJECTION_ENV
+from pipeline.storage.manifest import committed_batches, iter_records
+from pipeline.storage.shard_store import open_dataset
+from pipeline.storage.verify import verify_dataset
+from pipeline.storage.writer import PROVENANCE, stage_level_batch
 
 
 def dataset_contents(root):
@@ -98,7 +98,8 @@ def test_a_config_that_changes_the_data_is_refused(tmp_path):
 def test_a_dataset_made_with_other_physics_is_refused(tmp_path, monkeypatch):
     prepare_output(tiny_job(tmp_path))
     stiffer = dataclasses.replace(SimParams(), joint_hertz=SimParams().joint_hertz + 15.0)
-    monkeypatch.setattr(pipeline.config, "EnvParams", lambda **kwargs: EnvParams(sim=stiffer, **kwargs))  # other code
+    other_code = lambda **kwargs: EnvParams(sim=stiffer, **kwargs)  # noqa: E731
+    monkeypatch.setattr(pipeline.generation.config, "EnvParams", other_code)
     with pytest.raises(ResumeRefused, match=r"physics\.joint_hertz \("):
         prepare_output(tiny_job(tmp_path))
 

@@ -1,5 +1,5 @@
-"""Predictive coding of per-step state (`pipeline.state_codec`): bit-exact round trips on any values and done flags,
-empty slots decoding to the fill value, and residuals that are small where physics makes them small."""
+"""Predictive coding of per-step state (`pipeline.storage.state_codec`): bit-exact round trips on any values and done
+flags, empty slots decoding to the fill value, and residuals that are small where physics makes them small."""
 
 from __future__ import annotations
 
@@ -11,8 +11,8 @@ from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
 from env import ActionType, StaticEnvParams
-from pipeline.layout import DONE, VALID, FieldSpec, make_layout
-from pipeline.state_codec import decode, decode_arrays, encode, encode_arrays, is_coded, stored_dtype
+from pipeline.storage.layout import DONE, VALID, FieldSpec, make_layout
+from pipeline.storage.state_codec import decode, decode_arrays, encode, encode_arrays, is_coded, stored_dtype
 
 FLOAT_FIELD = FieldSpec("env_state/sim/bodies/position", (3, 2), "float32", True)
 INT_FIELD = FieldSpec("env_state/sim/contacts/feature", (2,), "int32", True)

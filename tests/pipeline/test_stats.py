@@ -18,10 +18,11 @@ import pytest
 from PIL import Image
 from pipeline_test_helpers import run_in_process, tiny_job
 
-from pipeline.layout import VALID
-from pipeline.manifest import iter_records
-from pipeline.shard_store import open_dataset
-from pipeline.stats import CARD_FILE, FIGURES_DIR, PLOTS, SHARDS_FILE, collect_stats, main, write_card
+from pipeline.cli.stats import main
+from pipeline.reading.stats import CARD_FILE, FIGURES_DIR, PLOTS, SHARDS_FILE, collect_stats, write_card
+from pipeline.storage.layout import VALID
+from pipeline.storage.manifest import iter_records
+from pipeline.storage.shard_store import open_dataset
 
 DATASET_OVERRIDES = ("split.seed=7", "filter.noop_steps=1")
 WINDOW_STEPS = 24  # [env steps] collect.window_steps of the test job

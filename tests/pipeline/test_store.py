@@ -12,10 +12,10 @@ import pytest
 from pipeline_test_helpers import ACTION_TYPE, GEOMETRY, PARAMS, STATIC, batch_result, dataset_spec
 
 from env import step
-from pipeline.layout import DatasetError, flatten_state, unflatten_state
-from pipeline.manifest import committed_batches, read_record, record_path
-from pipeline.shard_store import create_dataset, open_dataset
-from pipeline.writer import KEPT, LOCK_SUFFIX, clean_uncommitted, stored_arrays, write_level_batch
+from pipeline.storage.layout import DatasetError, flatten_state, unflatten_state
+from pipeline.storage.manifest import committed_batches, read_record, record_path
+from pipeline.storage.shard_store import create_dataset, open_dataset
+from pipeline.storage.writer import KEPT, LOCK_SUFFIX, clean_uncommitted, stored_arrays, write_level_batch
 
 SHARD, BATCH = 1, 0
 SLOTS = GEOMETRY.slots(SHARD, BATCH)  # slots 6, 7, 8: levels 0 and 1 kept, level 2 empty

@@ -7,8 +7,9 @@ import shutil
 import pytest
 from pipeline_test_helpers import GEOMETRY
 
-from pipeline.shard_store import open_dataset
-from pipeline.verify import main, verify_dataset
+from pipeline.cli.verify import main
+from pipeline.storage.shard_store import open_dataset
+from pipeline.storage.verify import verify_dataset
 
 
 @pytest.fixture

@@ -9,8 +9,8 @@ import numcodecs
 import numpy as np
 import pytest
 
-from pipeline.layout import DatasetError
-from pipeline.zarr_v2 import RecordArray, array_names, create_group
+from pipeline.kinetix.zarr_v2 import RecordArray, array_names, create_group
+from pipeline.storage.layout import DatasetError
 
 DTYPE = np.dtype([("a", "<i4", (6,)), ("b", "?"), ("c", "<f4", (2, 2))])
 ITEMSIZE = 6 * 4 + 1 + 4 * 4  # 41 bytes, packed

@@ -24,6 +24,7 @@ import yaml
 from omegaconf import MISSING, DictConfig, OmegaConf
 from omegaconf.errors import ConfigKeyError, MissingMandatoryValue, OmegaConfBaseException, ValidationError
 
+import configs
 from agents import PPOConfig
 from engine import KINETIX_SIZES
 from env import EnvParams, StaticEnvParams
@@ -58,25 +59,25 @@ class FilterConfig:
 
 @dataclasses.dataclass
 class PPOSection:
-    """Specialist PPO settings (see configs/ppo_specialist.yaml for the evidence behind the defaults)."""
+    """Specialist PPO settings; the defaults are `agents.PPOConfig`'s (evidence for them: docs/experts.md)."""
 
-    num_envs: int = 16  # parallel episodes per level
-    num_steps: int = 125  # env steps per env between two updates; split.expert_budget / (num_envs num_steps) updates
-    update_epochs: int = 4  # passes over each rollout
-    num_minibatches: int = 4  # minibatches per epoch; they split the num_envs * num_steps samples (must divide them)
-    learning_rate: float = 3e-4  # Adam step size, constant
-    adam_eps: float = 1e-5  # Adam epsilon (Kinetix)
-    max_grad_norm: float = 1.0  # global-norm gradient clipping before Adam (Kinetix)
-    gamma: float = 0.995  # discount per env step (Kinetix)
-    gae_lambda: float = 0.9  # GAE lambda (Kinetix)
-    clip_eps: float = 0.2  # PPO ratio clip, also the value-clipping range (Kinetix)
-    ent_coef: float = 0.01  # entropy bonus weight (Kinetix)
-    vf_coef: float = 0.5  # value loss weight (Kinetix)
-    hidden_size: int = 64  # units per hidden layer of the actor and of the critic (Kinetix: 128)
-    num_hidden_layers: int = 2  # tanh hidden layers of each MLP (Kinetix: 5)
-    bootstrap_truncation: bool = False  # time-limit ends bootstrap from the final state's value (false: terminal)
-    select_every_updates: int = 50  # evaluate the expert every this many updates and after the last; keep the best
-    select_episodes: int = 16  # episodes from the level's start per evaluation (acting as collect.greedy says)
+    num_envs: int = PPOConfig.num_envs  # parallel episodes per level
+    num_steps: int = PPOConfig.num_steps  # env steps per env between two updates (rollout length)
+    update_epochs: int = PPOConfig.update_epochs  # passes over each rollout
+    num_minibatches: int = PPOConfig.num_minibatches  # minibatches per epoch; must divide num_envs * num_steps
+    learning_rate: float = PPOConfig.learning_rate  # Adam step size, constant
+    adam_eps: float = PPOConfig.adam_eps  # Adam epsilon (Kinetix)
+    max_grad_norm: float = PPOConfig.max_grad_norm  # global-norm gradient clipping before Adam (Kinetix)
+    gamma: float = PPOConfig.gamma  # discount per env step (Kinetix)
+    gae_lambda: float = PPOConfig.gae_lambda  # GAE lambda (Kinetix)
+    clip_eps: float = PPOConfig.clip_eps  # PPO ratio clip, also the value-clipping range (Kinetix)
+    ent_coef: float = PPOConfig.ent_coef  # entropy bonus weight (Kinetix)
+    vf_coef: float = PPOConfig.vf_coef  # value loss weight (Kinetix)
+    hidden_size: int = PPOConfig.hidden_size  # units per hidden layer, actor and critic (Kinetix: 128)
+    num_hidden_layers: int = PPOConfig.num_hidden_layers  # tanh hidden layers of each MLP (Kinetix: 5)
+    bootstrap_truncation: bool = PPOConfig.bootstrap_truncation  # time-limit ends bootstrap from the last value
+    select_every_updates: int = PPOConfig.select_every_updates  # evaluate every this many updates and after the last
+    select_episodes: int = PPOConfig.select_episodes  # episodes per evaluation (acting as collect.greedy says)
 
 
 @dataclasses.dataclass
@@ -110,7 +111,7 @@ TRACKING_MODES = ("offline", "online", "disabled")
 
 @dataclasses.dataclass
 class TrackingConfig:
-    """Experiment tracking of a run (pipeline/tracking.py); none of these change the data."""
+    """Experiment tracking of a run (pipeline/generation/tracking.py); none of these change the data."""
 
     wandb: str = "offline"  # offline: local run files (`wandb sync` uploads them); online: needs a login; disabled
     project: str = "kforge"  # wandb project
@@ -142,12 +143,6 @@ class ConfigError(ValueError):
     """A job config that cannot be used; the message names the key."""
 
 
-CONFIGS_DIR = Path(__file__).resolve().parents[1] / "configs"
-"""The repository's config folder: release splits in splits/, scale presets in scales/."""
-
-SCALES_DIR = CONFIGS_DIR / "scales"
-"""Scale presets: `--scale NAME` reads SCALES_DIR/NAME.yaml."""
-
 DEFAULT_OUTPUT_ROOT = "outputs"
 """Folder of the default output_dir, `outputs/<split name, '/' as '-'>-<scale>` (e.g. outputs/1M-s-tiny)."""
 
@@ -164,6 +159,7 @@ def load_config(path: str | Path | None = None, overrides: list[str] = (), scale
     """
     layers = []
     if path is not None:
+        path = config_path(path)
         layers.append((str(path), _load_yaml(path)))
     if scale is not None:
         layers.append((str(scale_path(scale)), _load_yaml(scale_path(scale))))
@@ -189,17 +185,27 @@ def load_config(path: str | Path | None = None, overrides: list[str] = (), scale
     return job
 
 
-def scale_names() -> list[str]:
-    """Names of the scale presets in configs/scales."""
-    return sorted(path.stem for path in SCALES_DIR.glob("*.yaml"))
-
-
 def scale_path(scale: str) -> Path:
-    """The YAML file of a scale: a preset name (see `scale_names`) or a path ending in .yaml."""
-    path = Path(scale) if scale.endswith((".yaml", ".yml")) else SCALES_DIR / f"{scale}.yaml"
-    if not path.is_file():
-        raise ConfigError(f"scale {scale!r}: expected one of {', '.join(scale_names())} or a path to a YAML file")
+    """The YAML file of a scale: a preset name (see `configs.scale_names`) or a path ending in .yaml."""
+    path = Path(scale) if scale.endswith(configs.YAML_SUFFIXES) else configs.scale_path(scale)
+    if path is None or not path.is_file():
+        raise ConfigError(
+            f"scale {scale!r}: expected one of {', '.join(configs.scale_names())} or a path to a YAML file"
+        )
     return path
+
+
+def config_path(config: str | Path) -> Path:
+    """The job YAML of CONFIG: an existing file, or a release split's name such as "1M/s" (`configs.split_names`)."""
+    path = Path(config)
+    if path.is_file():
+        return path
+    split = configs.split_path(str(config))
+    if split is not None:
+        return split
+    raise ConfigError(
+        f"config {str(config)!r}: no such file, and not a split name (splits: {', '.join(configs.split_names())})"
+    )
 
 
 def default_output_dir(split_name: str, scale: str | None) -> str:

@@ -15,10 +15,9 @@ from typing import NamedTuple
 
 import numpy as np
 
-from env import EnvState, Level, StaticEnvParams
-from env.kinetix_state import KinetixStateError, state_from_kinetix
-from pipeline.layout import STATE_PREFIX, DatasetError
-from pipeline.zarr_v2 import ARRAY_FILE, GROUP_FILE, RecordArray, array_names
+from env import EnvState, KinetixStateError, Level, StaticEnvParams, state_from_kinetix
+from pipeline.kinetix.zarr_v2 import ARRAY_FILE, GROUP_FILE, RecordArray, array_names
+from pipeline.storage import STATE_PREFIX, DatasetError
 
 RECORD_NDIM = 3
 """Kinetix-Offline trajectory shards hold records of shape (trajectories, steps, 1)."""

@@ -28,7 +28,7 @@ from pathlib import Path
 import numcodecs
 import numpy as np
 
-from pipeline.layout import DatasetError
+from pipeline.storage import DatasetError
 
 ZARR_FORMAT = 2
 GROUP_FILE = ".zgroup"

@@ -18,11 +18,10 @@ from collections.abc import Iterable, Sequence
 from pathlib import Path
 
 from env import FilterReason
-from pipeline.config import TRACKING_MODES, ConfigError, JobConfig, data_fingerprint
-from pipeline.coordinator import Commit
-from pipeline.level_batch import FAILED, FILTERED_PREFIX, PADDING, UNSOLVED, batches_per_shard
-from pipeline.manifest import read_record
-from pipeline.writer import KEPT, PROVENANCE
+from pipeline.generation.config import TRACKING_MODES, ConfigError, JobConfig, data_fingerprint
+from pipeline.generation.coordinator import Commit
+from pipeline.generation.level_batch import batches_per_shard
+from pipeline.storage import FAILED, FILTERED_PREFIX, KEPT, PADDING, PROVENANCE, UNSOLVED, read_record
 
 WANDB_MODE_ENV = "WANDB_MODE"
 """Environment variable that overrides `tracking.wandb` when set (wandb's own name for it)."""
@@ -102,7 +101,7 @@ def batch_metrics(records: Sequence[dict], job: JobConfig) -> dict[str, float]:
 
 
 def summary_metrics(summary: dict, prefix: str = "run/") -> dict[str, float]:
-    """A run summary (`pipeline.run.run_job`) as flat numbers: nested dicts become `a/b`, lists their length."""
+    """A run summary (`run_job`) as flat numbers: nested dicts become `a/b`, lists their length."""
     flat = {}
     for key, value in summary.items():
         name = prefix + outcome_key(str(key))

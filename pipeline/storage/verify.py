@@ -1,4 +1,4 @@
-"""`kforge verify <dir>`: check every shard of a dataset against its manifest and report each bad shard.
+"""Verification of a dataset (`kforge verify`): every shard checked against its commit records, each bad one named.
 
 Per committed level batch: the data files exist and match their recorded sha256, decode (crc32c on every chunk),
 match the recorded content digests, and hold what the record says (kept levels, ids, seeds, episode lengths); kept
@@ -8,15 +8,13 @@ each end; empty slots hold only fill values. Shards with uncommitted level batch
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import os
-import sys
 from collections.abc import Sequence
 
 import numpy as np
 
-from pipeline.layout import (
+from pipeline.storage.layout import (
     DONE,
     EPISODE_LENGTHS,
     LEVEL_ID,
@@ -27,9 +25,9 @@ from pipeline.layout import (
     VALID,
     DatasetError,
 )
-from pipeline.manifest import committed_batches, read_record, shard_name, temp_records
-from pipeline.shard_store import Dataset, array_digest, file_digest, open_dataset
-from pipeline.writer import LOCK_SUFFIX, episode_lengths
+from pipeline.storage.manifest import committed_batches, read_record, shard_name, temp_records
+from pipeline.storage.shard_store import Dataset, array_digest, file_digest, open_dataset
+from pipeline.storage.writer import LOCK_SUFFIX, episode_lengths
 
 TIMESTEP = f"{STATE_PREFIX}/timestep"
 
@@ -177,23 +175,3 @@ def format_report(reports: Sequence[ShardReport]) -> str:
     total = sum(report.num_kept for report in reports)
     lines.append(f"{len(reports)} shards, {total} trajectories verified; bad shards: {', '.join(bad) or 'none'}")
     return "\n".join(lines)
-
-
-def main(argv: Sequence[str] | None = None, prog: str | None = None) -> None:
-    """`kforge verify <dir> [--allow-incomplete]`: print the report; exit 1 naming each bad shard."""
-    parser = argparse.ArgumentParser(prog=prog, description=__doc__.splitlines()[0])
-    parser.add_argument("dir", help="dataset directory (holds data/ and manifest/)")
-    parser.add_argument(
-        "--allow-incomplete", action="store_true", help="uncommitted level batches are notes, not problems"
-    )
-    args = parser.parse_args(argv)
-    try:
-        reports = verify_dataset(args.dir, allow_incomplete=args.allow_incomplete)
-    except DatasetError as error:
-        print(f"error: {error}", file=sys.stderr)
-        raise SystemExit(1) from error
-    print(format_report(reports))
-    bad = [shard_name(report.shard) for report in reports if not report.ok]
-    if bad:
-        print(f"verify failed: bad shards {', '.join(bad)}", file=sys.stderr)
-        raise SystemExit(1)

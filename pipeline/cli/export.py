@@ -7,8 +7,8 @@ import json
 import sys
 from collections.abc import Sequence
 
-from pipeline.kinetix_export import DEFAULT_TRAJECTORIES_PER_SHARD, export_kinetix
-from pipeline.layout import DatasetError
+from pipeline.kinetix import DEFAULT_TRAJECTORIES_PER_SHARD, export_kinetix
+from pipeline.storage import DatasetError
 
 FORMATS = {"kinetix": export_kinetix}
 """Format name -> exporter(dataset_dir, out_dir, seed, trajectories_per_shard, show_progress)."""

@@ -26,13 +26,20 @@ import numcodecs
 import numpy as np
 from tqdm import tqdm
 
-from env import EnvState, StaticEnvParams
-from env.kinetix_state import kinetix_leaf_specs, state_to_kinetix
-from pipeline.layout import ACTION, ACTION_MASK, DONE, STATE_PREFIX, DatasetError, Layout, static_to_json
-from pipeline.loader import TrajectoryDatasetManager
-from pipeline.manifest import iter_records
-from pipeline.shard_store import open_dataset
-from pipeline.zarr_v2 import RecordArray, create_group
+from env import EnvState, StaticEnvParams, kinetix_leaf_specs, state_to_kinetix
+from pipeline.kinetix.zarr_v2 import RecordArray, create_group
+from pipeline.reading import TrajectoryDatasetManager
+from pipeline.storage import (
+    ACTION,
+    ACTION_MASK,
+    DONE,
+    STATE_PREFIX,
+    DatasetError,
+    Layout,
+    iter_records,
+    open_dataset,
+    static_to_json,
+)
 
 EXPORT_ATTRIBUTE = "kforge_export"
 """Key of this exporter's metadata in the group's and each shard's zarr attributes (Kinetix ignores attributes)."""

@@ -1,12 +1,9 @@
-"""`kforge run`: generate a split's dataset with Ray workers; re-running on the same directory resumes it."""
+"""Generating a split's dataset with Ray workers (`kforge run`); re-running on the same directory resumes it."""
 
 from __future__ import annotations
 
-import argparse
 import collections
-import json
 import os
-import sys
 import time
 import warnings
 from pathlib import Path
@@ -14,26 +11,26 @@ from pathlib import Path
 from tqdm import tqdm
 
 from env import ActionType
-from pipeline.config import (
-    ConfigError,
+from pipeline.generation.config import (
     JobConfig,
     data_definition,
     data_fingerprint,
     environment,
-    load_config,
-    scale_names,
     to_yaml,
 )
-from pipeline.coordinator import Coordinator
-from pipeline.layout import DatasetError, make_layout
-from pipeline.level_batch import batches_per_shard, num_shards
-from pipeline.manifest import iter_records
-from pipeline.shard_store import DatasetSpec, Geometry, create_dataset, open_dataset
-from pipeline.tracking import start_tracking
-from pipeline.worker import Worker
-
-CONFIG_FILE = "config.yaml"
-"""The resolved config of the latest run, saved in the dataset directory."""
+from pipeline.generation.coordinator import Coordinator
+from pipeline.generation.level_batch import batches_per_shard, num_shards
+from pipeline.generation.tracking import start_tracking
+from pipeline.generation.worker import Worker
+from pipeline.storage import (
+    CONFIG_FILE,
+    DatasetSpec,
+    Geometry,
+    create_dataset,
+    iter_records,
+    make_layout,
+    open_dataset,
+)
 
 RAY_NAMESPACE = "kforge"
 PROGRESS_POLL_SECONDS = 2.0
@@ -187,30 +184,3 @@ def summarize(root) -> dict:
         outcomes.update(level["outcome"] for level in record["levels"])
     levels = sum(count for outcome, count in outcomes.items() if outcome != "padding")
     return {"committed_batches": batches, "levels": levels, "outcomes": dict(sorted(outcomes.items()))}
-
-
-def main(argv=None, prog: str | None = None) -> None:
-    """Run CONFIG (a job YAML, e.g. configs/splits/1M/s.yaml) at a --scale with `key=value` overrides; resumes in
-    output_dir."""
-    parser = argparse.ArgumentParser(prog=prog, description=main.__doc__)
-    parser.add_argument("config", help="job YAML file, e.g. a release split: configs/splits/1M/s.yaml")
-    parser.add_argument("overrides", nargs="*", help="dotlist overrides, e.g. split.num_levels=32 ray.num_workers=2")
-    parser.add_argument("--scale", help=f"scale preset applied over CONFIG: {', '.join(scale_names())}, or a YAML path")
-    parser.add_argument(
-        "--print-config", action="store_true", help="print the resolved config (each key's type and meaning) and exit"
-    )
-    parser.add_argument("--max-batches", type=int, help="stop after this many level batches (resume later)")
-    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
-    args = parser.parse_intermixed_args(argv)  # overrides may follow the options
-    try:
-        job = load_config(args.config, args.overrides, scale=args.scale)
-        if args.print_config:
-            print(to_yaml(job), end="")
-            return
-        summary = run_job(job, max_batches=args.max_batches, show_progress=not args.no_progress)
-    except (ConfigError, ResumeRefused, DatasetError) as error:
-        print(f"error: {error}", file=sys.stderr)
-        raise SystemExit(2) from error
-    print(json.dumps(summary, indent=1))
-    if summary["abandoned_shards"]:
-        raise SystemExit(1)

@@ -16,8 +16,8 @@ import numpy as np
 
 from agents import ProgressListener, collect_windows, train_levels, training_progress
 from env import FilterReason, Level, filter_levels, sample_levels
-from pipeline.config import JobConfig, environment, ppo_config
-from pipeline.writer import KEPT, BatchTrajectories, learning_curves
+from pipeline.generation.config import JobConfig, environment, ppo_config
+from pipeline.storage import FAILED, FILTERED_PREFIX, KEPT, PADDING, UNSOLVED, BatchTrajectories, learning_curves
 
 
 class KeyPurpose(enum.IntEnum):
@@ -26,19 +26,6 @@ class KeyPurpose(enum.IntEnum):
     SAMPLE = 0
     TRAIN = 1
     COLLECT = 2
-
-
-PADDING = "padding"
-"""Outcome of a slot past `split.num_levels` in the last shard."""
-
-FILTERED_PREFIX = "filtered:"
-"""Outcome prefix of a level dropped by the trivial-level filter, followed by the reason's name."""
-
-UNSOLVED = "unsolved"
-"""Outcome of a trained level whose expert window was not successful."""
-
-FAILED = "failed"
-"""Outcome of a level whose training or rollout produced non-finite values (contained to that level)."""
 
 
 def level_key(split_seed: int, level_index: int, purpose: KeyPurpose) -> jax.Array:

@@ -7,10 +7,9 @@ import os
 import time
 from pathlib import Path
 
-from pipeline.config import JobConfig
-from pipeline.level_batch import run_level_batch
-from pipeline.shard_store import open_dataset
-from pipeline.writer import PROVENANCE, clean_uncommitted, stage_level_batch
+from pipeline.generation.config import JobConfig
+from pipeline.generation.level_batch import run_level_batch
+from pipeline.storage import PROVENANCE, clean_uncommitted, open_dataset, stage_level_batch
 
 FAULT_INJECTION_ENV = "KFORGE_WORKER_FAULT"
 """Fault drill: "N:PATH" makes the first worker that finds no file at PATH create it and kill its own process

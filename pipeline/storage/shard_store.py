@@ -5,12 +5,12 @@ Directory of a dataset:
     <root>/data/                      zarr v3 group; its attributes hold the `DatasetSpec` (layout, geometry, split)
     <root>/data/<field>/zarr.json     one array per field, shape (num_slots, [num_steps,] *field shape)
     <root>/data/<field>/c/<g>/0/...   the shard file of global level batch g (absent when the batch kept nothing)
-    <root>/manifest/                  commit records (`pipeline.manifest`)
+    <root>/manifest/                  commit records (`pipeline.storage.manifest`)
 
 Slot s of every array holds one level's trajectory; level batch g owns slots [g L, (g + 1) L) and is exactly one
 shard file per array, so every file has one writer, is written once per attempt, and a retry overwrites it.
 
-Per-step state fields are stored as uint32 prediction residuals (`pipeline.state_codec`); `Dataset.write_batch`
+Per-step state fields are stored as uint32 prediction residuals (`pipeline.storage.state_codec`); `Dataset.write_batch`
 and `Dataset.read` encode and decode them, so callers see the state's own dtypes and values.
 """
 
@@ -30,16 +30,18 @@ import tensorstore as ts
 import zarr
 from zarr.codecs import BloscCodec, Crc32cCodec, TransposeCodec
 
-from pipeline.layout import DONE, VALID, DatasetError, FieldSpec, Layout, check_layout
-from pipeline.state_codec import decode_arrays, encode_arrays, is_coded, stored_dtype
+from pipeline.storage.layout import DONE, VALID, DatasetError, FieldSpec, Layout, check_layout
+from pipeline.storage.state_codec import decode_arrays, encode_arrays, is_coded, stored_dtype
 
 FORMAT_VERSION = 2
 """Version of the on-disk format written by this code; a dataset of another version is refused.
 
-2: per-step state fields stored as prediction residuals (`pipeline.state_codec`)."""
+2: per-step state fields stored as prediction residuals (`pipeline.storage.state_codec`)."""
 
 DATA_DIR = "data"
 MANIFEST_DIR = "manifest"
+CONFIG_FILE = "config.yaml"
+"""The resolved config of the latest run, saved in the dataset directory."""
 SPEC_ATTRIBUTE = "kforge_dataset"
 """Key of the `DatasetSpec` in the zarr group's attributes."""
 
@@ -272,8 +274,8 @@ class Dataset:
     def write_batch(self, global_batch: int, arrays: Mapping[str, np.ndarray]) -> None:
         """Write whole shard files of one level batch: `arrays[name]` has shape (levels_per_batch, ...) per field.
 
-        Per-step state fields are stored coded (`pipeline.state_codec`), which needs `done` and `meta/valid` among
-        `arrays`.
+        Per-step state fields are stored coded (`pipeline.storage.state_codec`), which needs `done` and
+        `meta/valid` among `arrays`.
         """
         start = global_batch * self.geometry.levels_per_batch
         stop = start + self.geometry.levels_per_batch

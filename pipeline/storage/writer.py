@@ -12,7 +12,7 @@ import jax
 import numpy as np
 
 from env import EnvState, action_mask
-from pipeline.layout import (
+from pipeline.storage.layout import (
     ACTION,
     ACTION_MASK,
     DONE,
@@ -28,14 +28,12 @@ from pipeline.layout import (
     flatten_state,
     unflatten_state,
 )
-from pipeline.manifest import committed_batches, remove_record, temp_records, write_record
-from pipeline.shard_store import Dataset, array_digest, file_digest, open_dataset
+from pipeline.storage.manifest import committed_batches, remove_record, temp_records, write_record
+from pipeline.storage.records import KEPT, PROVENANCE
+from pipeline.storage.shard_store import Dataset, array_digest, file_digest, open_dataset
 
 LOCK_SUFFIX = ".__lock"
 """Suffix of the file tensorstore writes before renaming it over the key; left behind only by a crash."""
-
-KEPT = "kept"
-"""Outcome of a level whose trajectory is stored."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -246,10 +244,6 @@ def stage_level_batch(dataset: Dataset, shard: int, batch: int, result: BatchTra
     if result.seconds:
         record[PROVENANCE] = {"seconds": dict(result.seconds)}
     return record
-
-
-PROVENANCE = "provenance"
-"""Record key of how a batch was made (wall times, worker); it varies between runs and is not part of the data."""
 
 
 def _expert_env_steps_entry(env_steps: np.ndarray | None, level: int) -> dict:

@@ -13,8 +13,8 @@ import uuid
 from collections.abc import Iterator
 from pathlib import Path
 
-from pipeline.layout import DatasetError
-from pipeline.shard_store import MANIFEST_DIR
+from pipeline.storage.layout import DatasetError
+from pipeline.storage.shard_store import MANIFEST_DIR
 
 RECORD_VERSION = 1
 """Version of the record format written by this code."""

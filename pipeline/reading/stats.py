@@ -8,26 +8,33 @@ gets a card of what it holds so far.
 
 from __future__ import annotations
 
-import argparse
 import collections
 import csv
 import dataclasses
 import os
-import sys
 import warnings
-from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
 from omegaconf import OmegaConf
 from tqdm import tqdm
 
-from pipeline.layout import DatasetError
-from pipeline.level_batch import FAILED, FILTERED_PREFIX, PADDING, UNSOLVED
-from pipeline.manifest import committed_batches, read_record, recorded_shards
-from pipeline.run import CONFIG_FILE
-from pipeline.shard_store import DATA_DIR, MANIFEST_DIR, open_dataset
-from pipeline.writer import KEPT, PROVENANCE
+from pipeline.storage import (
+    CONFIG_FILE,
+    DATA_DIR,
+    FAILED,
+    FILTERED_PREFIX,
+    KEPT,
+    MANIFEST_DIR,
+    PADDING,
+    PROVENANCE,
+    UNSOLVED,
+    DatasetError,
+    committed_batches,
+    open_dataset,
+    read_record,
+    recorded_shards,
+)
 
 CARD_FILE = "card.md"
 """Name of the card in the output folder."""
@@ -515,20 +522,3 @@ def write_card(stats: DatasetStats, out_dir: str | os.PathLike) -> Path:
     path = out_dir / CARD_FILE
     path.write_text(card_markdown(stats, figures))
     return path
-
-
-def main(argv: Sequence[str] | None = None, prog: str | None = None) -> None:
-    """Write a dataset card: level counts (sampled, filtered by reason, trained, solved, kept, failed), bytes on
-    disk, the data fingerprint and key config values, wall times per phase, and PNG plots (outcomes, expert success
-    rates, episode lengths, training curves)."""
-    parser = argparse.ArgumentParser(prog=prog, description=main.__doc__)
-    parser.add_argument("dataset", type=Path, help="dataset directory (holds data/ and manifest/)")
-    parser.add_argument("--out", type=Path, help=f"folder for {CARD_FILE} and {FIGURES_DIR}/*.png (default: DATASET)")
-    parser.add_argument("--no-progress", action="store_true", help="no progress bar while reading commit records")
-    args = parser.parse_args(argv)
-    try:
-        stats = collect_stats(args.dataset, show_progress=not args.no_progress)
-    except DatasetError as error:
-        print(f"error: {error}", file=sys.stderr)
-        raise SystemExit(1) from error
-    print(write_card(stats, args.out or args.dataset))

@@ -1,7 +1,8 @@
 """`kforge levels`: sample, preview, import and export levels as Kinetix level JSON files.
 
 - `sample`: levels START..START+N-1 of a (size, seed) pair: the levels a split with that size and seed trains (level
-  i's key derives from (seed, i) as in pipeline/level_batch.py), so `--seed 0 --size s` gives split 1M/s's levels.
+  i's key derives from (seed, i) as in pipeline/generation/level_batch.py), so `--seed 0 --size s` gives split
+  1M/s's levels.
 - `preview`: a level file, or a sampled level, as a PNG of its start or a GIF of an episode under a simple policy.
 - `import`: check a Kinetix level JSON (each problem names its field), report what it holds and what
   normalisation changed, and write it in the form this project writes (`env.level_files.save_level`), which loads
@@ -26,14 +27,25 @@ from PIL import Image
 from tqdm import tqdm
 
 from engine import KINETIX_SIZES
-from env import EnvParams, Level, LevelFileError, Role, StaticEnvParams, load_level, reset, sample_levels, save_level
-from env.gif import GIF_RESOLUTION, write_state_gif
-from env.level_files import level_to_dict
-from env.pixels import render_image
-from env.play import GIF_FPS, record_episode
-from env.rollout import Policy
-from pipeline.config import ConfigError, EnvSection, environment, load_config
-from pipeline.level_batch import KeyPurpose, level_keys, sample_batch
+from env import (
+    GIF_FPS,
+    GIF_RESOLUTION,
+    EnvParams,
+    Level,
+    LevelFileError,
+    Policy,
+    Role,
+    StaticEnvParams,
+    level_to_dict,
+    load_level,
+    record_episode,
+    render_image,
+    reset,
+    sample_levels,
+    save_level,
+    write_state_gif,
+)
+from pipeline.generation import ConfigError, EnvSection, KeyPurpose, environment, level_keys, load_config, sample_batch
 
 LEVELS_DIR = Path("outputs") / "levels"
 """Default parent folder of written levels and previews."""

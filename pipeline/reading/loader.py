@@ -20,9 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from env import EnvState, StaticEnvParams
-from pipeline.layout import ACTION, ACTION_MASK, DONE, VALID, DatasetError, unflatten_state
-from pipeline.manifest import iter_records
-from pipeline.shard_store import open_dataset
+from pipeline.storage import ACTION, ACTION_MASK, DONE, VALID, DatasetError, iter_records, open_dataset, unflatten_state
 
 
 class ActionEnvStateMask(NamedTuple):

@@ -9,7 +9,7 @@ from __future__ import annotations
 import dataclasses
 import os
 
-from pipeline.manifest import committed_batches, read_record, record_path, write_record
+from pipeline.storage import committed_batches, read_record, record_path, write_record
 
 
 @dataclasses.dataclass(frozen=True)

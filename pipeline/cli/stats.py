@@ -1,0 +1,29 @@
+"""`kforge stats DATASET [--out DIR]`: write a dataset card (markdown, a shard table and PNG plots)."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+
+
+def main(argv: Sequence[str] | None = None, prog: str | None = None) -> None:
+    """Write a dataset card: level counts (sampled, filtered by reason, trained, solved, kept, failed), bytes on
+    disk, the data fingerprint and key config values, wall times per phase, and PNG plots (outcomes, expert success
+    rates, episode lengths, training curves)."""
+    parser = argparse.ArgumentParser(prog=prog, description=main.__doc__)
+    parser.add_argument("dataset", type=Path, help="dataset directory (holds data/ and manifest/)")
+    parser.add_argument("--out", type=Path, help="folder for card.md and card/*.png (default: DATASET)")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar while reading commit records")
+    args = parser.parse_args(argv)
+
+    from pipeline.reading import collect_stats, write_card
+    from pipeline.storage import DatasetError
+
+    try:
+        stats = collect_stats(args.dataset, show_progress=not args.no_progress)
+    except DatasetError as error:
+        print(f"error: {error}", file=sys.stderr)
+        raise SystemExit(1) from error
+    print(write_card(stats, args.out or args.dataset))

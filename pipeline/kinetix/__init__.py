@@ -1,0 +1,15 @@
+"""Interop with Kinetix-Offline: export of a dataset as Kinetix's zarr v2 shards, and loading levels back from them.
+
+Public surface: the exporter and the level loader.
+"""
+
+from pipeline.kinetix.export import DEFAULT_TRAJECTORIES_PER_SHARD, ExportSummary, export_kinetix
+from pipeline.kinetix.importer import KinetixLevels, load_kinetix_levels
+
+__all__ = [
+    "DEFAULT_TRAJECTORIES_PER_SHARD",
+    "ExportSummary",
+    "KinetixLevels",
+    "export_kinetix",
+    "load_kinetix_levels",
+]

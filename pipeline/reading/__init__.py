@@ -1,0 +1,18 @@
+"""Reading a dataset: the batch loader that feeds learners, and the dataset card (counts, bytes, timings, plots).
+
+Public surface: the loader and the card.
+"""
+
+from pipeline.reading.loader import ActionEnvStateMask, TrajectoryDatasetManager
+from pipeline.reading.stats import CARD_FILE, FIGURES_DIR, SHARDS_FILE, DatasetStats, collect_stats, write_card
+
+__all__ = [
+    "CARD_FILE",
+    "FIGURES_DIR",
+    "SHARDS_FILE",
+    "ActionEnvStateMask",
+    "DatasetStats",
+    "TrajectoryDatasetManager",
+    "collect_stats",
+    "write_card",
+]
