@@ -55,9 +55,10 @@ class JointImpulses:
 
 
 def prepare_joints(
-    joints: Joints, pose, response_scale, motor_actions, base_motor_speed, base_motor_power, substep
+    joints: Joints, pose, response_scale, motor_actions, base_motor_speed, base_motor_power, substep, motor_rows
 ) -> JointRows:
-    """Joint constants from start-of-step poses (N+1, 3); `motor_actions` (J,) in [-1, 1]."""
+    """Joint constants from start-of-step poses (N+1, 3); `motor_actions` (J,) in [-1, 1]; motors are solved as
+    rows only where `motor_rows` (the constraint motor law)."""
     a, b = joints.body_a, joints.body_b
     response_a, response_b = response_scale[a], response_scale[b]
     inverse_inertia_sum = response_a[:, 2] + response_b[:, 2]
@@ -77,7 +78,7 @@ def prepare_joints(
         axial_mass=axial_mass,
         solve_point=joints.active & movable,
         solve_angle=joints.active & joints.is_fixed & rotatable,
-        solve_motor=revolute & joints.motor_on & rotatable & (motor_actions != 0.0),  # action 0 = motor off
+        solve_motor=motor_rows & revolute & joints.motor_on & rotatable & (motor_actions != 0.0),  # 0 = motor off
         solve_limits=revolute & joints.has_limits & rotatable,
         reference_angle=joints.reference_angle,
         lower_angle=joints.lower_angle,
@@ -85,6 +86,45 @@ def prepare_joints(
         motor_target=joints.motor_speed * base_motor_speed * jnp.clip(motor_actions, -1.0, 1.0),
         motor_max_impulse=joints.motor_power * base_motor_power * axial_mass * substep,
     )
+
+
+def servo_motor_kick(
+    joints: Joints, bodies_active, velocity, pose, response_scale, motor_actions, params
+) -> jnp.ndarray:
+    """(N+1,) change of angular velocity [rad/s] that the servo motor law (`engine.params.MotorLaw.SERVO`) applies
+    once per step, before the solve; `velocity` and `pose` (N+1, 3) are the bodies' at the start of the step.
+
+    Each motorised revolute joint gives its two bodies opposite angular impulses of
+    base_motor_power x motor_power x dt x axial inertia x tanh(motor_decay x speed error), the speed error being the
+    joint's relative angular velocity minus its target; near an angle limit the impulse fades linearly to zero over
+    `motor_limit_fade` while it drives the joint further towards the limit.
+    """
+    a, b = joints.body_a, joints.body_b
+    action = jnp.clip(motor_actions, -1.0, 1.0)
+    inverse_inertia_a, inverse_inertia_b = response_scale[a, 2], response_scale[b, 2]
+    inverse_sum = inverse_inertia_a + inverse_inertia_b
+    axial_mass = 1.0 / jnp.where(inverse_sum > 0, inverse_sum, 1.0)
+    bound = params.base_motor_power * joints.motor_power * params.dt * axial_mass
+    error = velocity[b, 2] - velocity[a, 2] - joints.motor_speed * action * params.base_motor_speed
+    direction = jnp.tanh(error * params.motor_decay)
+    angle = pose[b, 2] - pose[a, 2] - joints.reference_angle
+    fade = params.motor_limit_fade
+    beyond = angle - jnp.clip(angle, joints.lower_angle + fade, joints.upper_angle - fade)
+    fading = jnp.where((beyond == 0) | ~joints.has_limits, 1.0, jnp.maximum(0.0, 1.0 - jnp.abs(beyond) / fade))
+    fading = jnp.maximum(fading, (jnp.sign(beyond) != jnp.sign(action)).astype(fading.dtype))
+    movable = (response_scale[a, 0] + response_scale[b, 0]) > 0
+    applies = (
+        joints.active
+        & ~joints.is_fixed
+        & joints.motor_on
+        & (action != 0.0)
+        & movable
+        & bodies_active[a]
+        & bodies_active[b]
+    )
+    impulse = jnp.where(applies, bound * direction * fading, 0.0)
+    kick = jnp.zeros(velocity.shape[0], velocity.dtype)
+    return kick.at[a].add(impulse * inverse_inertia_a).at[b].add(-impulse * inverse_inertia_b)
 
 
 def _select(component, mask):

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import enum
 
 from flax import struct
 
@@ -15,6 +16,18 @@ KINETIX_SIZES: dict[str, tuple[int, int, int, int]] = {
     "l": (12, 4, 6, 2),
 }
 """Kinetix env sizes: (polygons, circles, joints, thrusters), reserved boundary polygons included."""
+
+
+class MotorLaw(enum.IntEnum):
+    """How a joint motor drives its joint."""
+
+    SERVO = 0
+    """Kinetix's (Jax2D's): once per step, before the solve, an angular impulse pair of at most
+    base_motor_power x motor_power x dt x axial inertia, scaled by tanh(motor_decay x speed error) and faded near an
+    angle limit; the solve then redistributes it like any other velocity."""
+    CONSTRAINT = 1
+    """A velocity row solved with the contacts and joints in every substep, driving the joint's speed to the target
+    within the same torque bound."""
 
 
 @struct.dataclass
@@ -31,7 +44,7 @@ class SimParams:
     restitution_threshold: float = 1.0  # [m/s] approach speeds below this never bounce
     speculative_distance: float = 0.02  # [m] contacts are created this far before shapes touch
     touch_distance: float = 0.005  # [m] shapes closer than this count as touching
-    base_friction: float = 0.4  # [-] friction of a pair = base_friction * sqrt(2 * f_a * f_b)
+    base_friction: float = 0.4  # [-] friction of a pair = base_friction * sqrt(f_a^2 + f_b^2) (Kinetix's mixing)
 
     # Joints. A soft joint stretches under load by about load / (effective mass x (2 pi joint_hertz)^2), and the
     # effective mass is about the lighter body's, so the stretch grows with the mass ratio across the joint. 75 Hz
@@ -45,6 +58,9 @@ class SimParams:
     base_motor_speed: float = 6.0  # [rad/s] target relative speed per unit of joint motor_speed and action
     base_motor_power: float = 900.0  # [rad/s^2] torque bound per unit motor_power, per unit of axial inertia
     base_thruster_power: float = 10.0  # [N] force per unit of thruster power and action
+    motor_law: int = MotorLaw.SERVO  # `MotorLaw`: Kinetix's servo impulse or a constraint row
+    motor_decay: float = 0.1  # [s/rad] servo: the impulse is tanh(motor_decay x speed error) of its bound
+    motor_limit_fade: float = 0.1  # [rad] servo: the impulse fades to 0 over this angle before a joint limit
 
     # Safety clips applied after every step
     max_position: float = 15.0  # [m] per coordinate

@@ -30,11 +30,12 @@ from engine.joint_solver import (
     JointRows,
     joint_frames,
     prepare_joints,
+    servo_motor_kick,
     solve_joints,
     warm_start_joints,
 )
 from engine.pairs import pair_layout
-from engine.params import SimParams, StaticSimParams
+from engine.params import MotorLaw, SimParams, StaticSimParams
 from engine.softness import Softness, make_softness
 from engine.state import NO_FEATURE, ContactCache, SimState
 
@@ -222,10 +223,13 @@ def prepare_step(
     inverse_masses = jnp.stack([bodies.inverse_mass, bodies.inverse_mass, bodies.inverse_inertia], -1)
     response_scale = jnp.where(movable[:, None], extend(inverse_masses), 0.0)
     acceleration = _external_acceleration(state, params, thruster_actions, movable, response_scale)
+    servo = params.motor_law == MotorLaw.SERVO
+    kick = servo_motor_kick(joints, extend(bodies.active), velocity, pose, response_scale, motor_actions, params)
+    velocity = velocity.at[:, 2].add(jnp.where(servo, kick, 0.0))
 
     # Narrowphase with a speculative margin covering this step's motion.
     a, b = layout.body_a, layout.body_b
-    reach = norm2(bodies.velocity) + jnp.abs(bodies.angular_velocity) * _bounding_radius(bodies)
+    reach = norm2(velocity[:n, :2]) + jnp.abs(velocity[:n, 2]) * _bounding_radius(bodies)
     reach = reach + params.dt * norm2(acceleration[:n, :2])
     margin = params.speculative_distance + params.dt * (reach[a] + reach[b])
     manifold = manifolds(world_geometry(bodies), layout, margin)
@@ -249,7 +253,7 @@ def prepare_step(
         centre=pose[:n, :2],
         velocity=velocity[:n],
         acceleration=acceleration[:n],
-        friction=params.base_friction * jnp.sqrt(2.0 * bodies.friction[a] * bodies.friction[b]),
+        friction=params.base_friction * jnp.sqrt(bodies.friction[a] ** 2 + bodies.friction[b] ** 2),
         restitution=jnp.minimum(bodies.restitution[a], bodies.restitution[b]),
         layout=layout,
         softness=make_softness(params.contact_hertz, params.contact_damping_ratio, substep),
@@ -267,9 +271,9 @@ def prepare_step(
         layout,
     )
 
-    # Joints.
+    # Joints (a servo motor acted above).
     joint_rows = prepare_joints(
-        joints, pose, response_scale, motor_actions, params.base_motor_speed, params.base_motor_power, substep
+        joints, pose, response_scale, motor_actions, params.base_motor_speed, params.base_motor_power, substep, ~servo
     )
     joint_impulses = JointImpulses(
         linear=jnp.where(joints.active[:, None], joints.linear_impulse, 0.0),

@@ -315,8 +315,9 @@ def test_elastic_circles_mass_ratio_one_to_four():
 
 
 # =========================================================================== friction
-def _on_slope(angle_deg: float, shape: str, steps: int = 60):
-    """A body resting on a static slope (8 m x 1 m box rotated by the angle); returns (traj, body, tangent)."""
+def _on_slope(angle_deg: float, shape: str, steps: int = 60, friction: float = 1.0):
+    """A body of `friction` resting on a static slope of friction 1 (8 m x 1 m box rotated by the angle); returns
+    (traj, body, tangent)."""
     angle = math.radians(angle_deg)
     tangent, normal = np.array([math.cos(angle), math.sin(angle)]), np.array([-math.sin(angle), math.cos(angle)])
     centre = np.array([5.0, 3.0])
@@ -324,7 +325,7 @@ def _on_slope(angle_deg: float, shape: str, steps: int = 60):
     builder.add_box(centre, (8.0, 1.0), rotation=angle, static=True, slot=0)
     surface = centre + 0.5 * normal + 2.0 * tangent
     if shape == "box":
-        body = builder.add_box(surface + 0.15 * normal, (0.3, 0.3), rotation=angle)
+        body = builder.add_box(surface + 0.15 * normal, (0.3, 0.3), rotation=angle, friction=friction)
     else:
         body = builder.add_circle(surface + 0.1 * normal, 0.1)
     _, traj = run(builder.build(), SIZE_S, steps)
@@ -353,6 +354,19 @@ def test_box_slides_on_40_degree_slope():
     acceleration = _fitted_acceleration(traj, box, tangent)
     expected = G * (math.sin(angle) - MU * math.cos(angle))
     measured("slope 40 deg slide", acceleration=acceleration, expected=expected, rel_error=acceleration / expected - 1)
+    assert abs(acceleration / expected - 1.0) <= 0.02
+
+
+@pytest.mark.parametrize("friction", [0.0, 0.25])
+def test_pair_friction_mixes_as_kinetix_does(friction):
+    """Kinetix's mixing, base_friction x sqrt(f_a^2 + f_b^2): a box of lower (even zero) friction on a slope of
+    friction 1 slides with that pair friction."""
+    angle = math.radians(40.0)
+    traj, box, tangent = _on_slope(40.0, "box", steps=60, friction=friction)
+    mu = PARAMS.base_friction * math.sqrt(friction**2 + 1.0)
+    expected = G * (math.sin(angle) - mu * math.cos(angle))
+    acceleration = _fitted_acceleration(traj, box, tangent)
+    measured("friction mixing", friction=friction, mu=mu, acceleration=acceleration, expected=expected)
     assert abs(acceleration / expected - 1.0) <= 0.02
 
 

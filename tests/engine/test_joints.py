@@ -13,10 +13,12 @@ import numpy as np
 import pytest
 from engine_test_helpers import SIZE_L, G, crossings, elliptic_k, joint_anchor_error, rotate, run
 
-from engine import SceneBuilder, SimParams
+from engine import MotorLaw, SceneBuilder, SimParams
 
 STATIC = SIZE_L
 PARAMS = SimParams()
+CONSTRAINT_MOTORS = SimParams(motor_law=MotorLaw.CONSTRAINT)
+"""The motor as a constraint row (not Kinetix's law; kept as an option)."""
 DT = PARAMS.dt
 SUBSTEP = DT / STATIC.num_substeps
 PIVOT = np.array([5.0, 4.0])
@@ -238,14 +240,68 @@ def test_revolute_limits_under_gravity_and_release():
     assert abs(drive_right[-1] - 0.5) < 0.05 and abs(drive_left[-1] + 0.5) < 0.05  # now held at the other limits
 
 
-def test_motor_free_wheel_reaches_target_speed():
+def _motor_wheel(motor_speed: float = 1.0, motor_power: float = 1.0):
+    """A disc pinned at its centre to the static pivot by a motorised joint."""
     builder = _builder_with_pivot()
     wheel = builder.add_circle(PIVOT, 0.2)
-    builder.add_revolute_joint(0, wheel, PIVOT, motor_speed=1.0, motor_power=1.0, motor_on=True)
-    state = builder.build()
+    builder.add_revolute_joint(0, wheel, PIVOT, motor_speed=motor_speed, motor_power=motor_power, motor_on=True)
+    return builder.build(), wheel
+
+
+def _motor_actions(value: float = 1.0) -> np.ndarray:
     actions = np.zeros(STATIC.num_joints, np.float32)
-    actions[0] = 1.0
-    _, traj = run(state, STATIC, 100, motor=actions)
+    actions[0] = value
+    return actions
+
+
+@pytest.mark.parametrize("motor_speed", [0.4, 1.0, 3.0])
+def test_servo_motor_free_wheel_follows_kinetix_recurrence(motor_speed):
+    """Kinetix's servo on a free wheel: w' = w - base_power x power x dt x tanh(decay x (w - target)) exactly, as
+    the wheel's own inertia is the axial inertia; it overshoots, then settles on the target."""
+    state, wheel = _motor_wheel(motor_speed)
+    _, traj = run(state, STATIC, 60, motor=_motor_actions())
+    target = motor_speed * PARAMS.base_motor_speed
+    expected = [0.0]
+    for _ in range(60):
+        w = expected[-1]
+        expected.append(w - PARAMS.base_motor_power * DT * math.tanh(PARAMS.motor_decay * (w - target)))
+    omega = traj.angular_velocity[:, wheel]
+    measured("servo motor free wheel", target=target, omega_steps_1_to_5=omega[1:6].round(4).tolist())
+    np.testing.assert_allclose(omega, expected, rtol=1e-4, atol=1e-4)
+    assert np.all(np.abs(omega[30:] / target - 1.0) < 0.01)
+    assert np.all(traj.motor_impulse == 0.0)  # no constraint row, nothing to warm-start
+
+
+def test_servo_motor_holds_a_bar_where_its_impulse_balances_gravity():
+    """A 1 m bar hinged at its end to a static pivot, a weak servo motor driving it up: at rest the motor's angular
+    impulse per step is base_power x power x dt x I x tanh(decay x target speed), so the bar hangs where that
+    balances gravity's, m g (L / 2) cos(angle) dt."""
+    length, height, power = 1.0, 0.1, 0.06
+    builder = _builder_with_pivot()
+    bar = builder.add_box(PIVOT + (length / 2, 0.0), (length, height))
+    builder.add_revolute_joint(0, bar, PIVOT, motor_speed=1.0, motor_power=power, motor_on=True)
+    state = builder.build()
+    mass = 1.0 / float(state.bodies.inverse_mass[bar])
+    inertia = 1.0 / float(state.bodies.inverse_inertia[bar])
+    holding = PARAMS.base_motor_power * power * inertia * math.tanh(PARAMS.motor_decay * PARAMS.base_motor_speed)
+    equilibrium = -math.acos(holding / (mass * G * length / 2))
+    _, traj = run(state, STATIC, 600, motor=_motor_actions())
+    angle = _joint_angle(traj, state, 0)
+    first, last = angle[1:121], angle[-120:]
+    measured(
+        "servo motor under load",
+        mean_angle_last_2s=last.mean(),
+        equilibrium=equilibrium,
+        swing_first_2s=np.ptp(first),
+        swing_last_2s=np.ptp(last),
+    )
+    assert abs(last.mean() - equilibrium) < 0.02
+    assert np.ptp(last) < 0.5 * np.ptp(first)  # the servo damps the swing about the equilibrium
+
+
+def test_constraint_motor_free_wheel_reaches_target_speed():
+    state, wheel = _motor_wheel()
+    _, traj = run(state, STATIC, 100, params=CONSTRAINT_MOTORS, motor=_motor_actions())
     target = 1.0 * PARAMS.base_motor_speed * 1.0
     omega = traj.angular_velocity[:, wheel]
     relative_error = np.abs(omega / target - 1.0)
@@ -264,18 +320,19 @@ def test_motor_free_wheel_reaches_target_speed():
     assert np.all(np.abs(traj.motor_impulse[:, 0]) <= bound * (1 + 1e-5))
 
 
-def test_motor_with_zero_action_is_off_and_the_wheel_spins_freely():
+@pytest.mark.parametrize("params", [PARAMS, CONSTRAINT_MOTORS], ids=["servo", "constraint"])
+def test_motor_with_zero_action_is_off_and_the_wheel_spins_freely(params):
     # Kinetix/Jax2D semantics: a motor acts only while its action is non-zero; action 0 is not a brake.
     builder = _builder_with_pivot()
     wheel = builder.add_circle(PIVOT, 0.2, angular_velocity=3.0)
     builder.add_revolute_joint(0, wheel, PIVOT, motor_speed=1.0, motor_power=1.0, motor_on=True)
     state = builder.build()
-    _, traj = run(state, STATIC, 60, motor=np.zeros(STATIC.num_joints, np.float32))
+    _, traj = run(state, STATIC, 60, params=params, motor=np.zeros(STATIC.num_joints, np.float32))
     np.testing.assert_allclose(traj.angular_velocity[:, wheel], 3.0, rtol=1e-5)
     assert np.all(traj.motor_impulse[:, 0] == 0.0)
 
 
-def test_motor_under_heavy_load_respects_and_saturates_torque_bound():
+def test_constraint_motor_under_heavy_load_respects_and_saturates_torque_bound():
     """A 1 m bar hinged at its end; a weak motor (power 0.02) cannot lift it, so it stays saturated."""
     builder = _builder_with_pivot()
     bar = builder.add_box(PIVOT + (0.5, 0.0), (1.0, 0.1))
@@ -284,9 +341,7 @@ def test_motor_under_heavy_load_respects_and_saturates_torque_bound():
     bound = _motor_bound(state, 0)
     mass = 1.0 / float(state.bodies.inverse_mass[bar])
     assert bound / SUBSTEP < mass * G * 0.5  # the motor torque cannot hold the bar horizontal
-    actions = np.zeros(STATIC.num_joints, np.float32)
-    actions[0] = 1.0
-    _, traj = run(state, STATIC, 300, motor=actions)
+    _, traj = run(state, STATIC, 300, params=CONSTRAINT_MOTORS, motor=_motor_actions())
     impulse = np.abs(traj.motor_impulse[:, 0])
     saturated = impulse >= bound * (1 - 1e-4)
     angle = _joint_angle(traj, state, 0)
