@@ -1,7 +1,7 @@
 """Kinetix's own PPO training throughput, run inside a separate virtualenv holding kinetix-env (see benchmarks/ppo.py).
 
 kinetix-env on PyPI does not ship Kinetix's experiments/ppo.py, so `make_train` below re-states its PureJaxRL loop
-(FLAIROx/Kinetix experiments/ppo.py, reference kinetix-semantics.md section 8) with the package's own pieces:
+(FLAIROx/Kinetix experiments/ppo.py; settings in docs/kinetix.md, PPO settings) with the package's own pieces:
 `make_kinetix_env` with auto-reset wrapped in `LogWrapper`, the network from `make_network_from_config` (symbolic
 flat observations: Dense(width) + ReLU, then separate tanh actor and critic MLPs), `ScannedRNN` carries, a
 `TrainState` with Adam after global-norm clipping. Kept as in ppo.py: one network call per env step giving action,
@@ -57,7 +57,7 @@ KINETIX_MAX_GRAD_NORM = 1.0
 KINETIX_GAMMA, KINETIX_GAE_LAMBDA = 0.995, 0.9
 KINETIX_CLIP_EPS, KINETIX_ENT_COEF, KINETIX_VF_COEF = 0.2, 0.01, 0.5
 ADAM_EPS = 1e-5
-"""Kinetix's PPO settings that do not change the amount of work per env step (reference section 8)."""
+"""Kinetix's PPO settings that do not change the amount of work per env step (docs/kinetix.md, PPO settings)."""
 
 
 class Transition(NamedTuple):

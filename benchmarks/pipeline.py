@@ -4,7 +4,7 @@ For each size it runs the same small job (embedded local Ray, a fresh output dir
 prints: stored transitions per second, expert env steps per second, the share of worker time spent outside
 training and rollout (sampling, filtering, writing, coordination, start-up), overall and after each worker's first
 level batch (which compiles every program), bytes of shard files per stored transition next to Kinetix-Offline's
-(release figures, reference §11) and by field group, the trajectories per second the loader reads back, and whether
+(release figures, docs/kinetix.md) and by field group, the trajectories per second the loader reads back, and whether
 every worker count wrote the same data.
 `--json` prints one JSON document instead.
 
@@ -37,7 +37,7 @@ from pipeline.storage.shard_store import DATA_DIR, open_dataset  # noqa: E402
 from pipeline.storage.writer import PROVENANCE  # noqa: E402
 
 KINETIX_OFFLINE_BYTES_PER_TRANSITION = {"s": 80.4, "m": 110.9, "l": 306.0}
-"""Kinetix-Offline 1M splits: bytes on disk per transition (GB = 1e9), reference kinetix-semantics.md §11."""
+"""Kinetix-Offline 1M splits: bytes on disk per transition (GB = 1e9), docs/kinetix.md, released splits."""
 
 TARGET_SHARE_OF_KINETIX_BYTES = 0.5
 TARGET_OUTSIDE_SHARE = 0.05

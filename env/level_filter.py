@@ -1,6 +1,6 @@
 """Trivial-level filter: levels won at t = 0, levels nothing can control, and levels the no-op policy solves.
 
-Kinetix down-weights levels a 64-step no-op rollout solves (kinetix-semantics.md section 7); here every reason is a
+Kinetix down-weights levels a 64-step no-op rollout solves (docs/kinetix.md, the filter); here every reason is a
 per-level flag, and the no-op rollout covers the full episode unless told otherwise.
 """
 

@@ -1,8 +1,9 @@
 """Random levels from Kinetix's level distribution (`sample_kinetix_level`): key -> `Level`, pure and vmappable.
 
-Recipe (kinetix-semantics.md section 6): floor role; green and blue shapes (one of them never fixated); forced
-control (thruster, motor or both; without a motor a free shape is added instead); the remaining shape slots each
-get a connected shape, a free shape or nothing; extra thrusters; a green/blue swap; a permutation of the slots.
+Recipe (docs/kinetix.md, random level distribution): floor role; green and blue shapes (one of them never
+fixated); forced control (thruster, motor or both; without a motor a free shape is added instead); the remaining
+shape slots each get a connected shape, a free shape or nothing; extra thrusters; a green/blue swap; a permutation
+of the slots.
 Every shape is the best of several proposals: the one overlapping the fewest existing shapes.
 """
 

@@ -1,4 +1,4 @@
-"""Test group C of the engine plan (reference/engine.md section 10): contacts, stacking, restitution, friction,
+"""Test group C of the engine test plan (docs/physics.md): contacts, stacking, restitution, friction,
 tunnelling, deep overlap, joint filtering and collision modes, at the plan's pass thresholds.
 
 Every test prints a `MEASURED` line (run pytest with -s to see them).

@@ -1,4 +1,4 @@
-"""Test group D of the engine plan (reference/engine.md section 10): joints, motors and limits, at the plan's
+"""Test group D of the engine test plan (docs/physics.md): joints, motors and limits, at the plan's
 pass thresholds. Every scene uses the `l` size (6 joints), so this module compiles one runner.
 
 Every test prints a `MEASURED` line (run pytest with -s to see them).

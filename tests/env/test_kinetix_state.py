@@ -1,4 +1,4 @@
-"""Kinetix `EnvState` leaves <-> our `EnvState`: sizes from the reference, values from Kinetix's own level files."""
+"""Kinetix `EnvState` leaves <-> our `EnvState`: sizes from Kinetix's format, values from Kinetix's own level files."""
 
 from __future__ import annotations
 
@@ -13,7 +13,7 @@ from env import StaticEnvParams, initial_state, load_level
 from env.kinetix_state import KinetixStateError, kinetix_leaf_specs, state_from_kinetix, state_to_kinetix
 
 REFERENCE_STATE_BYTES = {"s": 1456, "m": 2442, "l": 8022}
-"""Bytes of one full Kinetix EnvState per size (kinetix-semantics.md section 2, measured with kinetix-env 3.0.2)."""
+"""Bytes of one full Kinetix EnvState per size (measured with kinetix-env 3.0.2; docs/kinetix.md)."""
 
 NUM_LEAVES = 82
 

@@ -1,7 +1,8 @@
 """Random level sampler: determinism, validity invariants, and statistics against Kinetix's measured distribution.
 
-Reference figures: kinetix-semantics.md section 6 (1,024 Kinetix levels per size). Our samples are compared with a
-two-sample test: |ours - table| <= Z_LIMIT * sqrt(se_ours^2 + se_table^2) + the table's rounding.
+Reference figures: Kinetix's sampler over 1,024 levels per size (docs/kinetix.md, random level distribution). Our
+samples are compared with a two-sample test: |ours - table| <= Z_LIMIT * sqrt(se_ours^2 + se_table^2) + the table's
+rounding.
 """
 
 from __future__ import annotations
@@ -18,11 +19,11 @@ from env.rollout import Outcome, Policy, first_episode_outcomes
 from env.sampler import sample_level, sample_levels
 
 NUM_LEVELS = 1024
-TABLE_LEVELS = 1024  # levels behind each figure of the reference table
+TABLE_LEVELS = 1024  # levels behind each figure of Kinetix's table
 Z_LIMIT = 4.0
 SEED = 20240611
 
-# Reference table (kinetix-semantics.md section 6). Histograms count levels with 0, 1, 2, ... items.
+# Kinetix's sampler statistics (docs/kinetix.md). Histograms count levels with 0, 1, 2, ... items.
 TABLE = {
     "s": {
         "polygons": [0, 1024],

@@ -23,8 +23,8 @@ RELEASE = {
     "10M/s": ("s", 10_000_000, 637_400),
     "10M/m": ("m", 10_000_000, 422_100),
 }
-"""Split -> (env size, expert budget [env steps per level], unique levels in the release); kinetix-semantics.md
-section 11 (level counts as published, rounded)."""
+"""Split -> (env size, expert budget [env steps per level], unique levels in the release); docs/kinetix.md,
+released splits (level counts as published, rounded)."""
 
 SCALES = ("tiny", "local", "full")
 

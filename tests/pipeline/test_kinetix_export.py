@@ -1,6 +1,6 @@
 """`kforge export --format kinetix` and the import back: Kinetix-Offline layout, dtypes, values, shuffle, errors.
 
-Expectations are written out from the reference (`kinetix-semantics.md` sections 1, 2 and 9) and from the
+Expectations are written out from Kinetix's format (docs/kinetix.md: sizes, offline dataset format) and from the
 conftest rollout in our own field names, not computed by the exporter's mapping.
 """
 
@@ -22,7 +22,7 @@ from pipeline.kinetix.importer import load_kinetix_levels
 from pipeline.kinetix.zarr_v2 import RecordArray
 from pipeline.storage.layout import DatasetError
 
-P, C, J, T = 5, 2, 1, 1  # size s slots (reference section 1)
+P, C, J, T = 5, 2, 1, 1  # size s slots (docs/kinetix.md, sizes)
 NRR, NCR, NCC = 4, 10, 1  # contact-pair slots of size s: P(P-1)/2 - 6, C P, C(C-1)/2
 F4, I4, B1 = "<f4", "<i4", "|b1"
 KEPT_LEVEL_IDS = [0, 1, 10, 11, 20, 21, 30, 31]  # level batch g keeps levels 10 g and 10 g + 1
@@ -108,12 +108,12 @@ EXPECTED_STATE = {
     "timestep": (I4, ()),
     "last_distance": (F4, ()),
 }
-"""Kinetix's 82 EnvState leaves at size s: name -> (dtype, shape) (reference sections 2 and 9)."""
+"""Kinetix's 82 EnvState leaves at size s: name -> (dtype, shape) (docs/kinetix.md, offline dataset format)."""
 
 EXPECTED_RECORD = {"action": (I4, (6,)), "action_mask": (B1, (6,)), "done": (B1, ())} | {
     f"env_state/{name}": spec for name, spec in EXPECTED_STATE.items()
 }
-RECORD_BYTES_S = 1487  # reference section 9: record itemsize for size s, 85 fields
+RECORD_BYTES_S = 1487  # record itemsize for size s, 85 fields (docs/kinetix.md)
 
 
 @pytest.fixture(scope="module")

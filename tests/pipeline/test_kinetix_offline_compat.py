@@ -37,7 +37,7 @@ SIZE_S_LEVELS = Path(__file__).resolve().parents[2].parent / "shared" / "levels"
 """Kinetix's size-s level files (`../shared/levels/kinetix/s` beside the project root)."""
 
 ROLLOUT_SLOTS = (0, 1)  # dataset slots 0 and 1 hold rollout levels 0 and 1 (conftest)
-EXPECTED_FIELDS = 85  # action, action_mask, done and the 82 EnvState leaves (reference section 9)
+EXPECTED_FIELDS = 85  # action, action_mask, done and the 82 EnvState leaves (docs/kinetix.md, offline dataset format)
 NUM_RENDERS = 3
 
 
