@@ -78,7 +78,8 @@ def test_the_checker_finds_private_and_upward_imports():
     assert "private module of env" in problems[0]
     assert "private module of pipeline.storage" in problems[1]
     assert "pipeline.reading may not depend on agents" in problems[2]
-    assert import_problems("from env import load_level\nfrom pipeline.storage import DONE\n", "pipeline.reading.x") == []
+    public = "from env import load_level\nfrom pipeline.storage import DONE\n"
+    assert import_problems(public, "pipeline.reading.x") == []
 
 
 def test_every_package_imports_other_packages_through_their_public_surface():
