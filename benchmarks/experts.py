@@ -1,7 +1,7 @@
 """Expert quality: how often a PPO specialist solves its level at a given budget, on random and hand-designed s levels.
 
 Two level sets: the first `--levels` levels of split 1M/s (the pipeline's level keys, so level i here is level i of
-that split) and the 10 hand-designed s levels in ../shared/levels/kinetix/s/*.json (beside the checkout). Each level
+that split) and Kinetix's 10 hand-designed s levels (bundled with `env`, `kforge levels list --size s`). Each level
 gets one expert per budget in `--budgets`, trained and rolled out exactly as pipeline/generation/level_batch.py does
 (its env, PPO and collection settings and per-level keys). Per set and budget it prints:
 
@@ -54,7 +54,7 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 from agents import collect_windows, evaluate, train_levels, training_progress  # noqa: E402
 from benchmarks.env import REPO_ROOT  # noqa: E402
 from benchmarks.machine import describe_machine  # noqa: E402
-from env import FilterReason, Level, StaticEnvParams, filter_levels, load_level  # noqa: E402
+from env import FilterReason, Level, StaticEnvParams, bundled_level_path, filter_levels, load_level  # noqa: E402
 from pipeline.generation.config import (  # noqa: E402
     JobConfig,
     environment,  # noqa: E402
@@ -66,7 +66,8 @@ from pipeline.generation.level_batch import KeyPurpose, level_key, level_keys, s
 SPLIT_CONFIG = REPO_ROOT / "configs" / "splits" / "1M" / "s.yaml"
 """The split whose levels, env, filter, PPO and collection settings are used (its budget is replaced)."""
 
-HAND_LEVELS_DIR = REPO_ROOT.parent / "shared" / "levels" / "kinetix" / "s"
+HAND_LEVELS_DIR = bundled_level_path("s/h0_weak_thrust").parent
+"""The hand-designed s levels bundled with `env`."""
 HAND_LEVELS_SEED = 1_000_003
 """Split seed of the hand-designed levels' training keys: a stream no release split uses."""
 

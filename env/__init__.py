@@ -1,7 +1,8 @@
 """Kinetix-style tasks on the engine: levels, episodes, rewards, actions, observations, sampler, level files.
 
 Public surface: parameters, level and state types, `reset` / `step` (and the gymnax-style `Environment`),
-action spaces and masks, observations, the pixel renderer and GIF export.
+action spaces and masks, observations, the pixel renderer and GIF export, Kinetix level files and the bundled
+hand-designed levels.
 """
 
 from env.actions import (
@@ -13,6 +14,7 @@ from env.actions import (
     noop_action,
     random_action,
 )
+from env.bundled_levels import BUNDLED_SIZES, bundled_level_path, list_levels
 from env.environment import Environment
 from env.episode import StepResult, advance, reset, step
 from env.gif import GIF_RESOLUTION, write_state_gif
@@ -30,6 +32,7 @@ from env.sampler import sample_level, sample_levels
 from env.state import NO_DISTANCE, NUM_ROLES, EnvState, Level, Role, Task, empty_task, initial_state
 
 __all__ = [
+    "BUNDLED_SIZES",
     "GIF_FPS",
     "GIF_RESOLUTION",
     "MULTI_DISCRETE_SIZES",
@@ -64,6 +67,7 @@ __all__ = [
     "actuator_actions",
     "advance",
     "build_level",
+    "bundled_level_path",
     "empty_task",
     "filter_levels",
     "first_episode_outcomes",
@@ -72,6 +76,7 @@ __all__ = [
     "initial_state",
     "kinetix_leaf_specs",
     "level_to_dict",
+    "list_levels",
     "load_level",
     "noop_action",
     "observation_shape",

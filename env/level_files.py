@@ -21,6 +21,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from engine import CONVEXITY_TOLERANCE, MIN_POLYGON_AREA, cross2
+from env.bundled_levels import bundled_level_path, close_level_names
 from env.kinetix_convert import (
     ENV_PARAM_ORDER,
     KINETIX_UNMODELLED_ENV_PARAMS,
@@ -367,8 +368,16 @@ def decode_level(raw: Any) -> KinetixLevel:
 
 
 def load_level(source: str | os.PathLike | Mapping) -> LoadedLevel:
-    """Read a Kinetix level from a JSON file path or an already parsed dict; `LevelFileError` if it is invalid."""
+    """Read a Kinetix level from a JSON file path, a bundled level's name ("l/h4_cartpole", see `list_levels`; an
+    existing file of that name wins) or an already parsed dict; `LevelFileError` if it is invalid or not found."""
     is_file = isinstance(source, (str, os.PathLike))
+    if is_file and not Path(source).is_file():
+        bundled = bundled_level_path(str(source))
+        if bundled is None:
+            close = close_level_names(str(source))
+            hint = f" (did you mean {', '.join(close)}?)" if close else " (kforge levels list names the bundled ones)"
+            raise LevelFileError(f"{source}: no such level file or bundled level{hint}")
+        source = bundled
     if is_file:
         try:
             raw = json.loads(Path(source).read_text())

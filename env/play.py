@@ -49,7 +49,9 @@ def record_episode(
 def main(argv=None, prog: str | None = None) -> None:
     """Play LEVEL (a Kinetix level JSON file) and write a GIF of it; prints the path and how episodes ended."""
     parser = argparse.ArgumentParser(prog=prog, description=main.__doc__)
-    parser.add_argument("level", type=Path, help="Kinetix level JSON file (sizes s, m or l)")
+    parser.add_argument(
+        "level", type=Path, help="Kinetix level JSON file (sizes s, m or l) or bundled name (s/h0_weak_thrust)"
+    )
     parser.add_argument("--policy", choices=[p.value for p in Policy], default=Policy.NOOP.value)
     parser.add_argument("--steps", type=int, default=256, help="env steps to play (default 256, one episode)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the random policy")

@@ -26,12 +26,15 @@ def wheel(tmp_path_factory) -> Path:
     return path
 
 
-def test_the_wheel_holds_every_package_and_the_configs(wheel):
+def test_the_wheel_holds_every_package_the_configs_and_the_bundled_levels(wheel):
     names = set(zipfile.ZipFile(wheel).namelist())
     for module in ("engine/__init__.py", "env/__init__.py", "agents/__init__.py", "pipeline/cli/__init__.py"):
         assert module in names
     for config in ("configs/splits/1M/s.yaml", "configs/splits/10M/m.yaml", "configs/scales/tiny.yaml"):
         assert config in names
+    levels = [name for name in names if name.startswith("env/levels/") and name.endswith(".json")]
+    assert len(levels) == 74 and "env/levels/l/h4_cartpole.json" in levels
+    assert {"env/levels/LICENSE", "env/levels/README.md"} <= names
     assert not any(name.startswith(("tests/", "benchmarks/")) for name in names)
 
 

@@ -28,6 +28,7 @@ from tqdm import tqdm
 
 from engine import KINETIX_SIZES
 from env import (
+    BUNDLED_SIZES,
     GIF_FPS,
     GIF_RESOLUTION,
     EnvParams,
@@ -37,6 +38,7 @@ from env import (
     Role,
     StaticEnvParams,
     level_to_dict,
+    list_levels,
     load_level,
     record_episode,
     render_image,
@@ -264,6 +266,16 @@ def import_command(args: argparse.Namespace) -> None:
     print(out)
 
 
+def list_command(args: argparse.Namespace) -> None:
+    """Print the names of the hand-designed Kinetix levels that ship with kforge, one a line, with a count per size;
+    any command that takes a level file also takes such a name (e.g. `kforge render l/h4_cartpole`)."""
+    sizes = BUNDLED_SIZES if args.size is None else (args.size,)
+    for size in sizes:
+        names = list_levels(size)
+        print("\n".join(names))
+        print(f"{len(names)} levels ({size})")
+
+
 # ------------------------------------------------------------------------------------------------- arguments
 
 
@@ -285,6 +297,12 @@ def _parser(prog: str | None) -> argparse.ArgumentParser:
     )
     commands = parser.add_subparsers(dest="command", required=True, metavar="subcommand")
 
+    listing = commands.add_parser(
+        "list", help="name the bundled hand-designed Kinetix levels", description=list_command.__doc__
+    )
+    listing.add_argument("--size", choices=list(BUNDLED_SIZES), help="only levels of this size")
+    listing.set_defaults(run=list_command)
+
     sample = commands.add_parser(
         "sample", help="sample levels of a size from a seed", description=sample_command.__doc__ + " " + _SAMPLE_NOTE
     )
@@ -301,7 +319,12 @@ def _parser(prog: str | None) -> argparse.ArgumentParser:
     preview = commands.add_parser(
         "preview", help="render a level to PNG (start) or GIF (episode)", description=preview_command.__doc__
     )
-    preview.add_argument("level", type=Path, nargs="?", help="Kinetix level JSON file (or use --size/--seed/--index)")
+    preview.add_argument(
+        "level",
+        type=Path,
+        nargs="?",
+        help="level JSON file or bundled name (s/h4_thrust_aim), or --size/--seed/--index",
+    )
     preview.add_argument("--size", choices=sorted(KINETIX_SIZES), help="sampled level: env size")
     preview.add_argument("--seed", type=int, help="sampled level: split seed")
     preview.add_argument("--index", type=int, help="sampled level: level id")

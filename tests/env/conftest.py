@@ -1,7 +1,7 @@
-"""Shared fixtures for the env tests: the Kinetix level files in the shared folder beside the project root.
+"""Fixtures for the env tests: Kinetix's hand-designed level files, bundled with `env` as package data.
 
-A test with a `fixture_file` argument runs once per level file (s and m); tests that need the folder itself take
-the `shared_levels_dir` fixture. Without the shared folder those tests are skipped.
+A test with a `fixture_file` argument runs once per level file (s, m and l); tests that need the folder itself take
+the `levels_dir` fixture. A missing folder fails them: it is part of the package.
 """
 
 from __future__ import annotations
@@ -10,17 +10,14 @@ from pathlib import Path
 
 import pytest
 
-SHARED_LEVELS_DIR = Path(__file__).resolve().parents[2].parent / "shared" / "levels" / "kinetix"
-"""`../shared/levels/kinetix` relative to the project root: one sub-folder per size with Kinetix level JSON files."""
-
-FIXTURE_SIZES = ("s", "m")
-"""Sizes with level files in the shared folder."""
+from env import BUNDLED_SIZES
+from env.bundled_levels import LEVELS_DIR
 
 
 def fixture_files(size: str | None = None) -> list[Path]:
-    """Sorted level files of one size, or of every size in `FIXTURE_SIZES`."""
-    sizes = FIXTURE_SIZES if size is None else (size,)
-    return [path for s in sizes for path in sorted((SHARED_LEVELS_DIR / s).glob("*.json"))]
+    """Sorted bundled level files of one size, or of every size."""
+    sizes = BUNDLED_SIZES if size is None else (size,)
+    return [path for s in sizes for path in sorted((LEVELS_DIR / s).glob("*.json"))]
 
 
 def fixture_id(path: Path) -> str:
@@ -29,14 +26,16 @@ def fixture_id(path: Path) -> str:
 
 
 @pytest.fixture(scope="session")
-def shared_levels_dir() -> Path:
-    if not SHARED_LEVELS_DIR.is_dir():
-        pytest.skip(f"shared level folder not found: {SHARED_LEVELS_DIR}")
-    return SHARED_LEVELS_DIR
+def levels_dir() -> Path:
+    if not all((LEVELS_DIR / size).is_dir() for size in BUNDLED_SIZES):
+        pytest.fail(f"the bundled level folder is missing or incomplete: {LEVELS_DIR}")
+    return LEVELS_DIR
 
 
 def pytest_generate_tests(metafunc):
-    """Parametrise `fixture_file` over every level file (an empty set skips the test)."""
+    """Parametrise `fixture_file` over every bundled level file; none at all is an error, not a skip."""
     if "fixture_file" in metafunc.fixturenames:
         files = fixture_files()
+        if not files:
+            raise pytest.UsageError(f"no bundled level files under {LEVELS_DIR}")
         metafunc.parametrize("fixture_file", files, ids=[fixture_id(path) for path in files])

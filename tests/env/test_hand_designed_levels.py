@@ -118,22 +118,22 @@ def _first_outcome(success: np.ndarray, failure: np.ndarray) -> str:
     return "success" if success[decided[0]] else "failure"
 
 
-def _outcomes_of_size(size: str, shared_levels_dir) -> dict[tuple[str, str, str], str]:
+def _outcomes_of_size(size: str, levels_dir) -> dict[tuple[str, str, str], str]:
     cases = [case for case in EXPECTED if case[0] == size]
-    loaded = [load_level(shared_levels_dir / size / f"{name}.json") for _, name, _ in cases]
+    loaded = [load_level(levels_dir / size / f"{name}.json") for _, name, _ in cases]
     success, failure, _, _ = _run(loaded, np.stack([SCRIPTS[script] for _, _, script in cases]))
     return {case: _first_outcome(s, f) for case, s, f in zip(cases, success, failure, strict=True)}
 
 
 @pytest.fixture(scope="module")
-def scripted_outcome(shared_levels_dir):
+def scripted_outcome(levels_dir):
     """case -> outcome; all cases of a size run together in one batch, on first use."""
     by_size: dict[str, dict] = {}
 
     def outcome(case: tuple[str, str, str]) -> str:
         size = case[0]
         if size not in by_size:
-            by_size[size] = _outcomes_of_size(size, shared_levels_dir)
+            by_size[size] = _outcomes_of_size(size, levels_dir)
         return by_size[size][case]
 
     return outcome
@@ -152,8 +152,8 @@ def test_scripted_policy_outcome(case, scripted_outcome):
 
 
 @pytest.mark.parametrize("size", [pytest.param(size, marks=_size_marks(size)) for size in ("s", "m")])
-def test_random_play_on_every_level_stays_finite(size, shared_levels_dir):
-    paths = sorted((shared_levels_dir / size).glob("*.json"))
+def test_random_play_on_every_level_stays_finite(size, levels_dir):
+    paths = sorted((levels_dir / size).glob("*.json"))
     loaded = [load_level(path) for path in paths]
     assert 0 < len(loaded) <= ROLLOUT_BATCH
     keys = jax.random.split(jax.random.PRNGKey(0), len(loaded) * EPISODE_STEPS)

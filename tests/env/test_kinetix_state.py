@@ -57,8 +57,8 @@ def _value(raw):
     return np.asarray(raw)
 
 
-def _level_files(shared_levels_dir, size: str):
-    return sorted((shared_levels_dir / size).glob("*.json"))
+def _level_files(levels_dir, size: str):
+    return sorted((levels_dir / size).glob("*.json"))
 
 
 def _stack(trees):
@@ -108,8 +108,8 @@ def test_leaves_reproduce_the_level_file(fixture_file):
 
 
 @pytest.mark.parametrize("size", ["s", "m"])
-def test_batched_round_trip_of_level_files_is_exact(size, shared_levels_dir):
-    loaded = [load_level(path) for path in _level_files(shared_levels_dir, size)]
+def test_batched_round_trip_of_level_files_is_exact(size, levels_dir):
+    loaded = [load_level(path) for path in _level_files(levels_dir, size)]
     static = loaded[0].static
     states = _stack([initial_state(entry.level) for entry in loaded])
     leaves = state_to_kinetix(states, static)
@@ -123,8 +123,8 @@ def test_batched_round_trip_of_level_files_is_exact(size, shared_levels_dir):
             np.testing.assert_array_equal(leaves[name][index], value, err_msg=name)
 
 
-def test_import_drops_warm_start_caches_only(shared_levels_dir):
-    loaded = load_level(_level_files(shared_levels_dir, "m")[0])
+def test_import_drops_warm_start_caches_only(levels_dir):
+    loaded = load_level(_level_files(levels_dir, "m")[0])
     state = initial_state(loaded.level)
     sim = state.sim
     warm = state.replace(
@@ -143,8 +143,8 @@ def test_import_drops_warm_start_caches_only(shared_levels_dir):
         np.testing.assert_array_equal(np.asarray(got), np.asarray(want))
 
 
-def test_missing_or_misshapen_leaves_are_named(shared_levels_dir):
-    loaded = load_level(_level_files(shared_levels_dir, "s")[0])
+def test_missing_or_misshapen_leaves_are_named(levels_dir):
+    loaded = load_level(_level_files(levels_dir, "s")[0])
     leaves = state_to_kinetix(initial_state(loaded.level), loaded.static)
     with pytest.raises(KinetixStateError, match="leaf thruster/power is missing"):
         state_from_kinetix({name: value for name, value in leaves.items() if name != "thruster/power"})

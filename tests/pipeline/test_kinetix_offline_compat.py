@@ -22,7 +22,7 @@ import numpy as np
 import pytest
 
 from benchmarks.env import DEFAULT_KINETIX_VENV, kinetix_python
-from env import initial_state, load_level
+from env import bundled_level_path, initial_state, list_levels, load_level
 from pipeline.kinetix.export import export_kinetix, kept_trajectories
 from pipeline.kinetix.importer import load_kinetix_levels
 from pipeline.reading.loader import TrajectoryDatasetManager
@@ -33,8 +33,8 @@ KINETIX_VENV_VARIABLE = "KFORGE_KINETIX_VENV"
 
 SCRIPT = Path(__file__).with_name("kinetix_offline_check.py")
 SCRIPT_TIMEOUT = 1800  # [s] Kinetix compiles its renderer and env step on a 2-core CPU: a few minutes
-SIZE_S_LEVELS = Path(__file__).resolve().parents[2].parent / "shared" / "levels" / "kinetix" / "s"
-"""Kinetix's size-s level files (`../shared/levels/kinetix/s` beside the project root)."""
+SIZE_S_LEVELS = [bundled_level_path(name) for name in list_levels("s")]
+"""Kinetix's hand-designed size-s level files, bundled with `env`."""
 
 ROLLOUT_SLOTS = (0, 1)  # dataset slots 0 and 1 hold rollout levels 0 and 1 (conftest)
 EXPECTED_FIELDS = 85  # action, action_mask, done and the 82 EnvState leaves (docs/kinetix.md, offline dataset format)
@@ -60,12 +60,10 @@ def _expected_file(dataset_dir, path: Path) -> None:
 
 @pytest.mark.slow
 def test_kinetix_reads_our_export_and_we_read_kinetix_shards(dataset_dir, tmp_path):
-    if not SIZE_S_LEVELS.is_dir():
-        pytest.skip(f"shared level folder not found: {SIZE_S_LEVELS}")
     python = kinetix_python(Path(os.environ.get(KINETIX_VENV_VARIABLE, DEFAULT_KINETIX_VENV)), print)
     summary = export_kinetix(dataset_dir, tmp_path / "export", seed=0, trajectories_per_shard=3, show_progress=False)
     _expected_file(dataset_dir, tmp_path / "expected.npz")
-    level_files = sorted(SIZE_S_LEVELS.glob("*.json"))
+    level_files = SIZE_S_LEVELS
     environment = {name: value for name, value in os.environ.items() if name != "PYTHONPATH"}
     command = [str(python), str(SCRIPT), "--export", str(summary.group), "--expected", str(tmp_path / "expected.npz")]
     command += ["--images", str(tmp_path / "images"), "--write-shard", str(tmp_path / "kinetix")]

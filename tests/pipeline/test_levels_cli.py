@@ -145,3 +145,13 @@ def test_help_explains_each_subcommand(subcommand, phrase, capsys):
         main([subcommand, "--help"])
     assert exit_info.value.code == 0
     assert phrase in " ".join(capsys.readouterr().out.split())
+
+
+def test_levels_list_names_every_bundled_level_by_size(capsys):
+    main(["list"])
+    lines = capsys.readouterr().out.splitlines()
+    assert [line for line in lines if line.endswith(")")] == ["10 levels (s)", "24 levels (m)", "40 levels (l)"]
+    names = [line for line in lines if not line.endswith(")")]
+    assert len(names) == 74 and "l/h4_cartpole" in names and "s/h4_thrust_aim" in names
+    main(["list", "--size", "m"])
+    assert capsys.readouterr().out.splitlines()[-1] == "24 levels (m)"
