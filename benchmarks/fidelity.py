@@ -1,0 +1,266 @@
+"""Dynamics fidelity against Kinetix: the same levels played by the same simple policies in kforge and in kinetix-env.
+
+Levels: Kinetix's hand-designed levels of each size (bundled with `env`), and random levels of each size sampled by
+Kinetix's own sampler and written as level files, which both engines then load, so both play the very same levels.
+Policies: the no-op policy (deterministic: one episode) and the uniform random multi-discrete policy (`--episodes`
+episodes; 280 keep every rate's standard error at or below 0.03). Each episode starts at the level's start and runs
+until its first end or one episode's length (256 steps); it ends in success (green touches blue), failure (green
+touches red), timeout, or instability (NaN).
+
+A level agrees when the no-op outcome is the same in both engines and the random policy's success and failure
+rates differ by at most two standard errors of the difference plus 0.02. Per level the report gives both engines'
+rates and the difference in standard errors; per set and size, the share of levels that agree.
+
+Kinetix runs in its own virtualenv (`--kinetix-venv`, built with kinetix-env 3.0.2 on first use, as for
+benchmarks/env.py). Physics options of ours can be switched for a measurement (`--sim motor_model=0`) to see which
+difference of the engine moves which level.
+
+    python benchmarks/fidelity.py --sizes s --random-levels 0            # hand-designed s levels only
+    python benchmarks/fidelity.py --sizes s m l --random-levels 1024 --json
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import math
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import jax
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from benchmarks.env import DEFAULT_KINETIX_VENV, kinetix_python  # noqa: E402
+from benchmarks.machine import describe_machine  # noqa: E402
+from env import (  # noqa: E402
+    EnvParams,
+    Outcome,
+    Policy,
+    bundled_level_path,
+    first_episode_outcomes,
+    list_levels,
+    load_level,
+)
+
+KINETIX_SCRIPT = Path(__file__).resolve().parent / "kinetix_fidelity_baseline.py"
+OUTCOME_NAMES = {
+    Outcome.TIMEOUT: "timeout",
+    Outcome.SUCCESS: "success",
+    Outcome.FAILURE: "failure",
+    Outcome.UNSTABLE: "unstable",
+}
+EPISODES_PER_CALL = 4096
+"""Most episodes stepped together in one compiled call of ours."""
+CALL_ROUNDING = 64
+"""A smaller call is padded to a multiple of this many episodes."""
+AGREEMENT_STANDARD_ERRORS = 2.0
+AGREEMENT_SLACK = 0.02
+"""Rates agree when they differ by at most AGREEMENT_STANDARD_ERRORS standard errors plus this."""
+
+
+def play_ours(paths: dict[str, str], episodes: int, seed: int, sim_overrides: dict, log) -> dict:
+    """Per level name: the no-op outcome and the random policy's outcome counts, in kforge."""
+    groups: dict = {}
+    for name, path in paths.items():
+        loaded = load_level(path)
+        groups.setdefault(loaded.static, []).append((name, loaded))
+    report = {}
+    for static, members in groups.items():
+        params = EnvParams(dense_reward_scale=0.0)
+        if sim_overrides:
+            params = params.replace(sim=dataclasses.replace(params.sim, **sim_overrides))
+        levels = jax.tree.map(lambda *xs: np.stack(xs), *(loaded.level for _, loaded in members))
+        started = time.perf_counter()
+        noop = _outcomes(levels, params, static, 1, None)
+        random = _outcomes(levels, params, static, episodes, jax.random.key(seed))
+        log(f"kforge: {len(members)} levels x {episodes} episodes in {time.perf_counter() - started:.0f} s")
+        for index, (name, _) in enumerate(members):
+            report[name] = {
+                "noop": OUTCOME_NAMES[Outcome(int(noop[index, 0]))],
+                "random": {label: int((random[index] == code).sum()) for code, label in OUTCOME_NAMES.items()},
+            }
+    return report
+
+
+def _outcomes(levels, params, static, episodes: int, key) -> np.ndarray:
+    """(levels, episodes) first-episode outcome codes under the random policy (with `key`) or the no-op."""
+    num_levels = jax.tree.leaves(levels)[0].shape[0]
+    rows = np.repeat(np.arange(num_levels), episodes)
+    call = min(EPISODES_PER_CALL, -(-len(rows) // CALL_ROUNDING) * CALL_ROUNDING)
+    policy = Policy.NOOP if key is None else Policy.UNIFORM_RANDOM
+    codes = []
+    for start in range(0, len(rows), call):
+        chunk = rows[start : start + call]
+        padded = np.concatenate([chunk, np.full(call - len(chunk), chunk[-1])])
+        batch = jax.tree.map(lambda x, r=padded: x[r], levels)
+        call_key = None if key is None else jax.random.fold_in(key, start)
+        result = first_episode_outcomes(batch, params, static, policy, call_key)
+        codes.append(np.asarray(result.outcome)[: len(chunk)])
+    return np.concatenate(codes).reshape(num_levels, episodes)
+
+
+def run_kinetix(python: Path, arguments: list[str], log) -> dict:
+    command = [str(python), str(KINETIX_SCRIPT), *arguments]
+    result = subprocess.run(command, capture_output=True, text=True, cwd=KINETIX_SCRIPT.parent)
+    for line in result.stderr.splitlines():
+        if line.startswith("kinetix"):
+            log(line)
+    if result.returncode != 0:
+        raise RuntimeError(f"Kinetix's side failed:\n{result.stderr[-3000:]}")
+    return json.loads(result.stdout)
+
+
+def kinetix_outcomes(python: Path, paths: dict[str, str], listing: Path, args, log) -> dict:
+    """Kinetix's outcomes per level name, played now or read from `--kinetix-results` when it holds the same levels,
+    episodes and seed (Kinetix's side does not change between measurements of ours)."""
+    key = {"levels": sorted(paths), "episodes": args.episodes, "seed": args.seed}
+    cache = args.kinetix_results
+    if cache is not None and cache.is_file():
+        stored = json.loads(cache.read_text())
+        if stored["key"] == key:
+            log(f"Kinetix's outcomes read from {cache}")
+            return stored["outcomes"]
+    by_path = run_kinetix(
+        python,
+        ["--levels-from", str(listing), "--episodes", str(args.episodes), "--seed", str(args.seed)],
+        log,
+    )["played"]
+    outcomes = {name: by_path[path] for name, path in paths.items()}
+    if cache is not None:
+        cache.write_text(json.dumps({"key": key, "outcomes": outcomes}))
+    return outcomes
+
+
+def _rate_difference(ours: dict, theirs: dict, outcome: str) -> dict:
+    n_ours, n_theirs = sum(ours.values()), sum(theirs.values())
+    p_ours, p_theirs = ours[outcome] / n_ours, theirs[outcome] / n_theirs
+    error = math.sqrt(p_ours * (1 - p_ours) / n_ours + p_theirs * (1 - p_theirs) / n_theirs)
+    difference = p_ours - p_theirs
+    return {
+        "ours": p_ours,
+        "kinetix": p_theirs,
+        "standard_error": error,
+        "z": difference / error if error > 0 else (0.0 if difference == 0 else math.inf),
+        "agree": abs(difference) <= AGREEMENT_STANDARD_ERRORS * error + AGREEMENT_SLACK,
+    }
+
+
+def compare(ours: dict, theirs: dict) -> dict:
+    """Per level: both engines' no-op outcome and random-policy rates, and whether they agree."""
+    levels = {}
+    for name in ours:
+        success = _rate_difference(ours[name]["random"], theirs[name]["random"], "success")
+        failure = _rate_difference(ours[name]["random"], theirs[name]["random"], "failure")
+        noop_agrees = ours[name]["noop"] == theirs[name]["noop"]
+        levels[name] = {
+            "noop": {"ours": ours[name]["noop"], "kinetix": theirs[name]["noop"], "agree": noop_agrees},
+            "random_success": success,
+            "random_failure": failure,
+            "agree": noop_agrees and success["agree"] and failure["agree"],
+        }
+    return levels
+
+
+def summarize(levels: dict) -> dict:
+    """Per set and size ("hand/s", "random/m", ...): levels, levels that agree, their share."""
+    groups: dict = {}
+    for name, level in levels.items():
+        group = name.rsplit("/", 1)[0]
+        counts = groups.setdefault(group, {"levels": 0, "agree": 0, "disagree": []})
+        counts["levels"] += 1
+        counts["agree"] += level["agree"]
+        if not level["agree"]:
+            counts["disagree"].append(name)
+    for counts in groups.values():
+        counts["share"] = counts["agree"] / counts["levels"]
+    return dict(sorted(groups.items()))
+
+
+def format_table(levels: dict) -> str:
+    lines = [
+        f"{'level':40s} {'no-op ours/kinetix':22s} {'random success ours/kx (z)':28s} {'failure ours/kx (z)':24s} agree"
+    ]
+    for name, level in levels.items():
+        noop, s, f = level["noop"], level["random_success"], level["random_failure"]
+        lines.append(
+            f"{name:40s} {noop['ours'] + '/' + noop['kinetix']:22s} "
+            f"{s['ours']:.2f}/{s['kinetix']:.2f} ({s['z']:+.1f}){'':12s} {f['ours']:.2f}/{f['kinetix']:.2f} "
+            f"({f['z']:+.1f}){'':8s} {'yes' if level['agree'] else 'NO'}"
+        )
+    return "\n".join(lines)
+
+
+def _sim_override(text: str) -> tuple[str, float]:
+    key, _, value = text.partition("=")
+    if not value:
+        raise argparse.ArgumentTypeError(f"expected KEY=VALUE, got {text!r}")
+    return key, float(value)
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--sizes", nargs="+", default=["s", "m", "l"], choices=["s", "m", "l"])
+    parser.add_argument("--no-hand", action="store_true", help="skip the hand-designed levels")
+    parser.add_argument("--random-levels", type=int, default=0, help="Kinetix-sampled random levels per size")
+    parser.add_argument("--episodes", type=int, default=280, help="random-policy episodes per level")
+    parser.add_argument("--seed", type=int, default=0, help="seed of Kinetix's level sampler and of the actions")
+    parser.add_argument("--sim", type=_sim_override, action="append", default=[], help="SimParams KEY=VALUE of ours")
+    parser.add_argument("--kinetix-venv", type=Path, default=DEFAULT_KINETIX_VENV)
+    parser.add_argument("--level-dir", type=Path, help="keep the sampled level files here (default: a temp folder)")
+    parser.add_argument(
+        "--kinetix-results", type=Path, help="JSON file that keeps Kinetix's outcomes for later runs with other --sim"
+    )
+    parser.add_argument("--json", action="store_true", help="print the report as one JSON document")
+    args = parser.parse_args(argv)
+
+    def log(line: str) -> None:
+        print(line, file=sys.stderr if args.json else sys.stdout, flush=True)
+
+    python = kinetix_python(args.kinetix_venv, log)
+    level_dir = args.level_dir or Path(tempfile.mkdtemp(prefix="kforge-fidelity-"))
+    paths = {}
+    if not args.no_hand:
+        for size in args.sizes:
+            for name in list_levels(size):
+                paths[f"hand/{name}"] = str(bundled_level_path(name))
+    for size in args.sizes if args.random_levels else ():
+        files = [level_dir / size / f"k{args.seed}-{index:05d}.json" for index in range(args.random_levels)]
+        if not all(file.is_file() for file in files):  # sampled by an earlier run into the same --level-dir
+            spec = f"{size}:{args.random_levels}:{args.seed}"
+            run_kinetix(python, ["--sample", spec, "--sample-dir", str(level_dir)], log)
+        paths.update({f"random/{size}/{file.stem}": str(file) for file in files})
+    listing = level_dir / "levels.txt"
+    listing.parent.mkdir(parents=True, exist_ok=True)
+    listing.write_text("\n".join(paths.values()) + "\n")
+
+    started = time.perf_counter()
+    theirs = kinetix_outcomes(python, paths, listing, args, log)
+    kinetix_seconds = time.perf_counter() - started
+    started = time.perf_counter()
+    ours = play_ours(paths, args.episodes, args.seed, dict(args.sim), log)
+    ours_seconds = time.perf_counter() - started
+
+    levels = compare(ours, theirs)
+    report = {
+        "machine": describe_machine(),
+        "episodes": args.episodes,
+        "sim_overrides": dict(args.sim),
+        "seconds": {"kforge": ours_seconds, "kinetix": kinetix_seconds},
+        "summary": summarize(levels),
+        "levels": levels,
+    }
+    if args.json:
+        print(json.dumps(report, indent=1))
+        return
+    log(format_table(levels))
+    for group, counts in report["summary"].items():
+        log(f"{group}: {counts['agree']}/{counts['levels']} agree ({counts['share']:.0%})")
+
+
+if __name__ == "__main__":
+    main()
