@@ -1,15 +1,17 @@
-"""Training progress of the level batches in flight: worker reports, the coordinator's view, the progress bar."""
+"""What a run shows while it works: worker reports, the coordinator's view of the batches in flight (compiling,
+training), the progress bar's text and time left, and the --max-batches budget."""
 
 from pipeline_test_helpers import tiny_job
 
+from pipeline.generation.console import in_flight_summary, remaining_seconds, resume_line
 from pipeline.generation.coordinator import Coordinator
 from pipeline.generation.level_batch import batches_per_shard, num_shards
-from pipeline.generation.run import _training_summary, prepare_output
+from pipeline.generation.run import prepare_output
 from pipeline.generation.worker import Worker
 
 
-def _coordinator(tmp_path):
-    return Coordinator(tmp_path, num_shards=2, batches_per_shard=2)
+def _coordinator(tmp_path, max_batches=None):
+    return Coordinator(tmp_path, num_shards=2, batches_per_shard=2, max_batches=max_batches)
 
 
 def test_the_coordinator_keeps_reports_of_claimed_batches_until_commit_or_release(tmp_path):
@@ -26,6 +28,56 @@ def test_the_coordinator_keeps_reports_of_claimed_batches_until_commit_or_releas
     assert coordinator.training() == {(shard, second): 0.25}
     coordinator.release(shard)  # the worker failed: its batch is no longer in flight
     assert coordinator.training() == {}
+
+
+def test_batches_in_flight_are_compiling_until_their_worker_reports_or_has_committed(tmp_path):
+    coordinator = _coordinator(tmp_path)
+    a, b = coordinator.next_shard("a"), coordinator.next_shard("b")
+    coordinator.claim_batch(a), coordinator.claim_batch(b)
+    assert coordinator.in_flight() == {(0, 0): "compiling", (1, 0): "compiling"}
+    coordinator.report_training(a, 0, 2, 8)
+    assert coordinator.in_flight() == {(0, 0): 0.25, (1, 0): "compiling"}
+    coordinator.commit(a, 0, {"levels": []})
+    coordinator.claim_batch(a)  # worker a's programs are compiled: its next batch is only starting
+    assert coordinator.in_flight() == {(0, 1): "starting", (1, 0): "compiling"}
+
+
+def test_the_progress_text_shows_compiling_and_training_batches_apart():
+    assert in_flight_summary({}) == ""
+    assert in_flight_summary({(0, 0): "compiling", (1, 0): "compiling"}) == "compiling 2 batches"
+    assert in_flight_summary({(0, 1): 0.4}) == "training 1 batch: 40%"
+    mixed = {(1, 0): 0.95, (0, 3): 0.4, (2, 0): "compiling", (3, 0): "starting"}
+    assert in_flight_summary(mixed) == "compiling 1 batch, starting 1 batch, training 2 batches: 40% 95%"
+    many = {(shard, 0): share for shard, share in enumerate([0.1, 0.2, 0.3, 0.4, 0.5])}
+    assert in_flight_summary(many) == "training 5 batches: mean 30%"
+
+
+def test_time_left_is_the_measured_time_per_committed_batch_of_this_run():
+    assert remaining_seconds(0, 120.0, 4) is None  # nothing committed yet: no estimate
+    assert remaining_seconds(2, 100.0, 3) == 150.0  # 50 s per batch, 3 to go
+
+
+def test_a_resumed_run_says_what_it_found():
+    assert resume_line(0, 4, 0) is None  # a new dataset
+    assert resume_line(3, 4, 0) == "resuming: found 3 of 4 level batches committed; 1 remain"
+    assert resume_line(4, 4, 0) == "resuming: found 4 of 4 level batches committed; nothing remains"
+    grown = resume_line(2, 6, 1)
+    assert grown == "resuming: found 2 of 6 level batches committed (1 level batch withdrawn to grow the split); 4 remain"
+
+
+def test_max_batches_counts_commits_so_a_failed_claim_does_not_use_up_the_budget(tmp_path):
+    coordinator = _coordinator(tmp_path, max_batches=2)
+    shard = coordinator.next_shard("w")
+    assert coordinator.claim_batch(shard) == 0
+    coordinator.release(shard)  # the worker died before committing
+    shard = coordinator.next_shard("w2")
+    assert (coordinator.claim_batch(shard), coordinator.claim_batch(shard)) == (0, 1)
+    assert coordinator.claim_batch(shard) is None  # two in flight: the budget is reached
+    coordinator.commit(shard, 0, {"levels": []})
+    coordinator.commit(shard, 1, {"levels": []})
+    coordinator.release(shard)
+    assert coordinator.next_shard("w2") is None  # exactly two committed
+    assert coordinator.progress() == (2, 4)
 
 
 class _RecordingCoordinator(Coordinator):
@@ -49,11 +101,3 @@ def test_a_worker_reports_each_batch_fully_trained_before_it_commits(tmp_path):
     assert coordinator.reports == [(shard, 0, 0, 4), (shard, 0, 4, 4), (shard, 1, 0, 4), (shard, 1, 4, 4)]
     assert coordinator.training() == {}  # both committed
     assert coordinator.progress() == (2, 4)
-
-
-def test_the_progress_bar_lists_a_few_batches_and_averages_many():
-    assert _training_summary({}) == ""
-    assert _training_summary({(0, 1): 0.4}) == "training 1 batch: 40%"
-    assert _training_summary({(1, 0): 0.95, (0, 3): 0.4}) == "training 2 batches: 40% 95%"
-    many = {(shard, 0): share for shard, share in enumerate([0.1, 0.2, 0.3, 0.4, 0.5])}
-    assert _training_summary(many) == "training 5 batches: mean 30%"
