@@ -11,6 +11,7 @@ from pathlib import Path
 
 from tqdm import tqdm
 
+from pipeline.generation.coordinator import COMPILING, STARTING
 from pipeline.storage import CONFIG_FILE, DATA_DIR, FAILED, FILTERED_PREFIX, KEPT, MANIFEST_DIR, UNSOLVED
 
 LOG_DIR = "logs"
@@ -24,10 +25,6 @@ QUIET_ENV = {"WANDB_SILENT": "true", "RAY_COLOR_PREFIX": "0"}
 
 LISTED_BATCHES = 4
 """The progress bar lists the training share of up to this many in-flight level batches, then only their mean."""
-
-COMPILING = "compiling"
-"""What the coordinator reports for a claimed level batch whose worker has not reported training yet and has not
-committed a batch in this run (it is compiling its programs); "starting" once it has (sampling and filtering)."""
 
 
 def start_log_file(output_dir: str | os.PathLike, verbose: bool) -> Path:
@@ -64,13 +61,15 @@ def resume_line(committed: int, total: int, withdrawn: int) -> str | None:
 
 
 def in_flight_summary(in_flight: dict[tuple[int, int], float | str]) -> str:
-    """The level batches in flight: "compiling 2 batches", "training 2 batches: 40% 95%", both joined by ", "."""
+    """The level batches in flight, by state: "compiling 1 batch, training 2 batches: 40% 95%, collecting 1 batch"
+    (a batch whose experts have done all their training is rolling out its windows and being written)."""
+    states = {key: "collecting" if share == 1.0 else share for key, share in in_flight.items()}
     parts = []
-    for state in (COMPILING, "starting"):
-        waiting = [key for key, share in in_flight.items() if share == state]
+    for state in (COMPILING, STARTING):
+        waiting = [key for key, share in states.items() if share == state]
         if waiting:
             parts.append(f"{state} {count(len(waiting), 'batch', 'batches')}")
-    shares = [share for _, share in sorted(in_flight.items()) if not isinstance(share, str)]
+    shares = [share for _, share in sorted(states.items()) if not isinstance(share, str)]
     if shares:
         listed = (
             " ".join(f"{share:.0%}" for share in shares)
@@ -78,6 +77,9 @@ def in_flight_summary(in_flight: dict[tuple[int, int], float | str]) -> str:
             else f"mean {sum(shares) / len(shares):.0%}"
         )
         parts.append(f"training {count(len(shares), 'batch', 'batches')}: {listed}")
+    collecting = sum(1 for share in states.values() if share == "collecting")
+    if collecting:
+        parts.append(f"collecting {count(collecting, 'batch', 'batches')}")
     return ", ".join(parts)
 
 

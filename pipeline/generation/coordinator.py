@@ -11,6 +11,12 @@ import os
 
 from pipeline.storage import committed_batches, read_record, record_path, write_record
 
+COMPILING = "compiling"
+"""State of a claimed level batch before its first training report, while its worker has committed nothing in this
+run (the worker is compiling its programs)."""
+STARTING = "starting"
+"""The same once its worker has committed a batch in this run (the batch is being sampled and filtered)."""
+
 
 @dataclasses.dataclass(frozen=True)
 class Commit:
@@ -115,13 +121,14 @@ class Coordinator:
 
     def in_flight(self) -> dict[tuple[int, int], float | str]:
         """Every claimed level batch not yet committed, by (shard, batch): its share of training done, or "compiling"
-        (its worker has committed nothing in this run yet) or "starting" before its first training report."""
+        (its worker has committed nothing in this run yet) or "starting" before its first training report; 1.0 once
+        trained (rolling out and writing)."""
         states = {}
         for shard, batch in sorted(self._claimed):
             if batch in self._committed[shard]:
                 continue
             worker = self._leased.get(shard)
-            waiting = "starting" if worker in self._committers else "compiling"
+            waiting = STARTING if worker in self._committers else COMPILING
             states[shard, batch] = self._training.get((shard, batch), waiting)
         return states
 

@@ -108,6 +108,8 @@ def run_job(
         started_ray = not ray.is_initialized()
         if started_ray:
             _init_ray(job, verbose)
+            if previous_handler is not None:  # Ray's own SIGTERM handler (a crash report) replaced ours
+                signal.signal(signal.SIGTERM, _terminate_as_interrupt)
         coordinator = (
             ray.remote(Coordinator)
             .options(num_cpus=0)

@@ -46,8 +46,9 @@ def test_the_progress_text_shows_compiling_and_training_batches_apart():
     assert in_flight_summary({}) == ""
     assert in_flight_summary({(0, 0): "compiling", (1, 0): "compiling"}) == "compiling 2 batches"
     assert in_flight_summary({(0, 1): 0.4}) == "training 1 batch: 40%"
-    mixed = {(1, 0): 0.95, (0, 3): 0.4, (2, 0): "compiling", (3, 0): "starting"}
-    assert in_flight_summary(mixed) == "compiling 1 batch, starting 1 batch, training 2 batches: 40% 95%"
+    mixed = {(1, 0): 0.95, (0, 3): 0.4, (2, 0): "compiling", (3, 0): "starting", (4, 0): 1.0}
+    expected = "compiling 1 batch, starting 1 batch, training 2 batches: 40% 95%, collecting 1 batch"
+    assert in_flight_summary(mixed) == expected
     many = {(shard, 0): share for shard, share in enumerate([0.1, 0.2, 0.3, 0.4, 0.5])}
     assert in_flight_summary(many) == "training 5 batches: mean 30%"
 
@@ -62,7 +63,9 @@ def test_a_resumed_run_says_what_it_found():
     assert resume_line(3, 4, 0) == "resuming: found 3 of 4 level batches committed; 1 remain"
     assert resume_line(4, 4, 0) == "resuming: found 4 of 4 level batches committed; nothing remains"
     grown = resume_line(2, 6, 1)
-    assert grown == "resuming: found 2 of 6 level batches committed (1 level batch withdrawn to grow the split); 4 remain"
+    assert (
+        grown == "resuming: found 2 of 6 level batches committed (1 level batch withdrawn to grow the split); 4 remain"
+    )
 
 
 def test_max_batches_counts_commits_so_a_failed_claim_does_not_use_up_the_budget(tmp_path):
