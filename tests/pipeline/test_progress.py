@@ -1,9 +1,19 @@
 """What a run shows while it works: worker reports, the coordinator's view of the batches in flight (compiling,
-training), the progress bar's text and time left, and the --max-batches budget."""
+training), the progress bar's text and time left, the --max-batches budget, the closing summary and the log file."""
+
+import logging
 
 from pipeline_test_helpers import tiny_job
 
-from pipeline.generation.console import in_flight_summary, remaining_seconds, resume_line
+from pipeline.generation.console import (
+    QUIET_ENV,
+    THIRD_PARTY_LOGGERS,
+    closing_summary,
+    in_flight_summary,
+    remaining_seconds,
+    resume_line,
+    start_log_file,
+)
 from pipeline.generation.coordinator import Coordinator
 from pipeline.generation.level_batch import batches_per_shard, num_shards
 from pipeline.generation.run import prepare_output
@@ -104,3 +114,48 @@ def test_a_worker_reports_each_batch_fully_trained_before_it_commits(tmp_path):
     assert coordinator.reports == [(shard, 0, 0, 4), (shard, 0, 4, 4), (shard, 1, 0, 4), (shard, 1, 4, 4)]
     assert coordinator.training() == {}  # both committed
     assert coordinator.progress() == (2, 4)
+
+
+def test_the_closing_summary_says_what_was_made_where_and_what_to_run_next(tmp_path):
+    (tmp_path / "data").mkdir()
+    (tmp_path / "data" / "chunk").write_bytes(b"x" * 3000)
+    (tmp_path / "manifest").mkdir()
+    summary = {
+        "committed_batches": 3,
+        "total_batches": 4,
+        "committed_in_run": 2,
+        "levels": 6,
+        "outcomes": {"kept": 2, "unsolved": 1, "failed": 0, "filtered:trivial": 2, "filtered:no_actuator": 1},
+        "seconds": 75.0,
+        "worker_failures": [{"shard": 1}],
+        "abandoned_shards": [],
+        "log_file": str(tmp_path / "logs" / "run-1.log"),
+    }
+    assert closing_summary(summary, tmp_path).splitlines() == [
+        f"dataset incomplete: 1 of 4 level batches remain: {tmp_path} (2.9 KiB)",
+        "levels: 6 sampled, 3 filtered (no_actuator 1, trivial 2), 2 kept, 1 unsolved, 0 failed",
+        "this run: 2 level batches committed in 01:15, 1 worker failure",
+        f"third-party logs: {tmp_path / 'logs' / 'run-1.log'}",
+        "next:",
+        f"  kforge run {tmp_path / 'config.yaml'}    # continue",
+        f"  kforge verify {tmp_path}",
+        f"  kforge stats {tmp_path}",
+        f"  python -c \"from pipeline.reading import TrajectoryDatasetManager as M; print(M('{tmp_path}', "
+        'batch_size=2, seed=0).load_next_batch().action.shape)"',
+    ]
+
+
+def test_third_party_logs_go_to_the_log_file_and_to_the_terminal_only_when_verbose(tmp_path, capfd, monkeypatch):
+    for name, value in QUIET_ENV.items():
+        monkeypatch.setenv(name, value)  # restored after the test
+    for name in THIRD_PARTY_LOGGERS:
+        logger = logging.getLogger(name)
+        monkeypatch.setattr(logger, "handlers", list(logger.handlers))
+        monkeypatch.setattr(logger, "propagate", logger.propagate)
+    quiet = start_log_file(tmp_path / "quiet", verbose=False)
+    logging.getLogger("ray").warning("raylet says hello")
+    assert "raylet says hello" in quiet.read_text() and "raylet says hello" not in capfd.readouterr().err
+    assert quiet.parent == tmp_path / "quiet" / "logs"
+    loud = start_log_file(tmp_path / "loud", verbose=True)
+    logging.getLogger("wandb").warning("wandb says hello")
+    assert "wandb says hello" in loud.read_text() and "wandb says hello" in capfd.readouterr().err
