@@ -80,14 +80,14 @@ def run_job(
     """Generate (or resume, or grow) the job's dataset; returns the summary. `max_batches` stops after that many
     level batches. Third-party logs go to the dataset's log file (and the terminal too if `verbose`); `report` gets
     the lines an operator reads (what a resumed run found). SIGINT and SIGTERM end it with `JobInterrupted`; a
-    dataset whose commits name missing files is refused with `DatasetDamaged`."""
+    dataset whose commits name missing or damaged files is refused with `DatasetDamaged`."""
     import ray
 
     withdrawn = prepare_output(job)
     damaged = damaged_commits(job.output_dir)
     if damaged:
         raise DatasetDamaged(
-            f"{job.output_dir}: {len(damaged)} committed level batches have missing or unreadable files "
+            f"{job.output_dir}: {len(damaged)} committed level batches have missing, unreadable or damaged files "
             f"({damaged[0]}); run `kforge verify --repair {job.output_dir}`, then this command again"
         )
     log_file = start_log_file(job.output_dir, verbose)
@@ -182,7 +182,7 @@ class JobInterrupted(Exception):
 
 
 class DatasetDamaged(DatasetError):
-    """Committed level batches of the output directory have missing or unreadable files."""
+    """Committed level batches of the output directory have missing, unreadable or damaged files."""
 
 
 def write_config(root: Path, text: str) -> None:

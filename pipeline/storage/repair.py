@@ -1,20 +1,24 @@
 """Repair of a damaged dataset: the commits of level batches that fail verification are withdrawn, so the next run
 regenerates exactly those batches (generation is deterministic, so the repaired dataset equals an undamaged one).
 
-Also the cheap check a resumed run makes before it trusts its commits: every committed batch's record reads and
-every data file it names exists (checksums are `kforge verify`'s job).
+Also the check a resumed run makes before it trusts its commits: every committed batch's record reads and every
+data file it names exists with its recorded checksum.
 """
 
 from __future__ import annotations
 
+import concurrent.futures
 import dataclasses
 import os
 from collections.abc import Sequence
 
 from pipeline.storage.layout import DatasetError
 from pipeline.storage.manifest import committed_batches, read_record, remove_record, shard_name
-from pipeline.storage.shard_store import open_dataset
+from pipeline.storage.shard_store import file_digest, open_dataset
 from pipeline.storage.verify import ShardReport
+
+HASH_THREADS = 4
+"""Files hashed at once by `damaged_commits` (hashlib releases the GIL on large buffers)."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -50,11 +54,13 @@ def withdraw_bad_batches(root: str | os.PathLike, reports: Sequence[ShardReport]
 
 
 def damaged_commits(root: str | os.PathLike) -> list[str]:
-    """Committed level batches whose record does not read or whose recorded data files are missing, one line each
-    ("shard-000001 batch 1: file data/done/c/3/0 missing"); empty for an intact dataset."""
+    """Committed level batches whose record does not read, or whose recorded data files are missing or differ from
+    their recorded sha256 (a flipped byte), one line each ("shard-000001 batch 1: file data/done/c/3/0 missing");
+    empty for an intact dataset. Reads every data file once (hashed in parallel); decoding and content checks are
+    `kforge verify`'s."""
     dataset = open_dataset(root)
     geometry = dataset.geometry
-    damaged = []
+    damaged, expected = [], []
     for shard in range(geometry.num_shards):
         for batch in committed_batches(root, shard):
             where = f"{shard_name(shard)} batch {batch}"
@@ -66,14 +72,21 @@ def damaged_commits(root: str | os.PathLike) -> list[str]:
             if batch >= geometry.batches_per_shard:
                 damaged.append(f"{where}: outside the dataset's {geometry.batches_per_shard} batches per shard")
                 continue
+            arrays = record.get("arrays", {})
+            missing = [spec.name for spec in dataset.layout.fields if spec.name not in arrays]
+            if missing:
+                damaged.append(f"{where}: {missing[0]} not in the record")
+                continue
             global_batch = geometry.global_batch(shard, batch)
             for spec in dataset.layout.fields:
-                entry = record.get("arrays", {}).get(spec.name)
-                path = dataset.batch_file(spec.name, global_batch)
-                if entry is None:
-                    damaged.append(f"{where}: {spec.name} not in the record")
-                    break
-                if entry.get("sha256") is not None and not path.is_file():
-                    damaged.append(f"{where}: file {path.relative_to(dataset.root)} missing")
-                    break
+                if arrays[spec.name].get("sha256") is not None:
+                    expected.append((where, dataset.batch_file(spec.name, global_batch), arrays[spec.name]["sha256"]))
+    with concurrent.futures.ThreadPoolExecutor(HASH_THREADS) as pool:
+        digests = list(pool.map(file_digest, [path for _, path, _ in expected]))
+    bad_batches = set()
+    for (where, path, recorded), digest in zip(expected, digests, strict=True):
+        if digest != recorded and where not in bad_batches:
+            bad_batches.add(where)
+            what = "missing" if digest is None else "sha256 mismatch"
+            damaged.append(f"{where}: file {path.relative_to(dataset.root)} {what}")
     return damaged

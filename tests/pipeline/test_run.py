@@ -224,7 +224,7 @@ def test_a_damaged_commit_is_refused_by_run_repaired_by_verify_and_regenerated_i
     _flip_byte(record_path(root, 1, 0))  # the tiny job keeps no trajectory, so its damage is in a commit record
     with pytest.raises(
         DatasetDamaged,
-        match=r"1 committed level batches have missing or unreadable files .*"
+        match=r"1 committed level batches have missing, unreadable or damaged files .*"
         r"run `kforge verify --repair",
     ):
         run_job(tiny_job(root), show_progress=False)  # refused before anything starts

@@ -10,6 +10,7 @@ import pytest
 from pipeline_test_helpers import GEOMETRY, batch_result
 
 from pipeline.cli.verify import main
+from pipeline.storage.repair import damaged_commits
 from pipeline.storage.shard_store import open_dataset
 from pipeline.storage.verify import verify_dataset
 from pipeline.storage.writer import clean_uncommitted, write_level_batch
@@ -115,3 +116,17 @@ def test_an_unfinished_dataset_points_at_allow_incomplete_and_the_command_that_f
     assert f"1 level batches are not committed: finish the job with kforge run {copy / 'config.yaml'}" in err
     assert "--allow-incomplete" in err
     assert "--repair" not in err  # nothing committed is damaged
+
+
+def test_the_check_a_resumed_run_makes_finds_missing_and_damaged_files(dataset_dir, copy):
+    assert damaged_commits(dataset_dir) == []
+    dataset = open_dataset(copy)
+    dataset.batch_file("done", GEOMETRY.global_batch(0, 1)).unlink()
+    flipped = dataset.batch_file("action", GEOMETRY.global_batch(1, 0))
+    data = bytearray(flipped.read_bytes())
+    data[50] ^= 0x01
+    flipped.write_bytes(bytes(data))
+    assert damaged_commits(copy) == [
+        "shard-000000 batch 1: file data/done/c/1/0 missing",
+        "shard-000001 batch 0: file data/action/c/2/0/0 sha256 mismatch",
+    ]
