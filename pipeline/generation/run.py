@@ -90,11 +90,13 @@ def run_job(
             f"{job.output_dir}: {len(damaged)} committed level batches have missing, unreadable or damaged files "
             f"({damaged[0]}); run `kforge verify --repair {job.output_dir}`, then this command again"
         )
-    log_file = start_log_file(job.output_dir, verbose)
     total = num_shards(job) * batches_per_shard(job)
     found = _committed_count(job)
     if (line := resume_line(found, total, len(withdrawn))) is not None:
         report(line)
+    if found == total:  # nothing to do: no Ray, no tracked run, no log file
+        return _run_summary(job, found, total, 0.0, [], collections.Counter(), None)
+    log_file = start_log_file(job.output_dir, verbose)
     for name, value in RAY_QUIET_ENV.items():
         os.environ.setdefault(name, value)
     previous_handler = signal.signal(signal.SIGTERM, _terminate_as_interrupt) if _main_thread() else None
@@ -161,14 +163,21 @@ def run_job(
             ray.shutdown()
         if previous_handler is not None:
             signal.signal(signal.SIGTERM, previous_handler)
+    summary = _run_summary(job, found, total, time.perf_counter() - started, failures, attempts, log_file)
+    tracker.finish(summary)
+    return summary
+
+
+def _run_summary(job, found, total, seconds, failures, attempts, log_file) -> dict:
+    """`summarize` of the dataset, with what this run did: batches committed, time, worker failures, abandoned
+    shards, and the log file."""
     summary = summarize(job.output_dir)
     summary["total_batches"] = total
     summary["committed_in_run"] = summary["committed_batches"] - found
-    summary["seconds"] = time.perf_counter() - started
+    summary["seconds"] = seconds
     summary["worker_failures"] = failures
     summary["abandoned_shards"] = sorted(shard for shard, count in attempts.items() if count >= MAX_SHARD_ATTEMPTS)
-    summary["log_file"] = str(log_file)
-    tracker.finish(summary)
+    summary["log_file"] = None if log_file is None else str(log_file)
     return summary
 
 

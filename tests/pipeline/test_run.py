@@ -241,6 +241,16 @@ def test_a_damaged_commit_is_refused_by_run_repaired_by_verify_and_regenerated_i
     assert_same_dataset(uninterrupted, root)
 
 
+def test_a_complete_dataset_is_reported_without_starting_ray_or_tracking(uninterrupted, tmp_path):
+    root = tmp_path / "dataset"
+    shutil.copytree(uninterrupted, root)
+    lines = []
+    summary = run_job(tiny_job(root), show_progress=False, report=lines.append)
+    assert lines == ["resuming: found 4 of 4 level batches committed; nothing remains"]
+    assert (summary["committed_batches"], summary["committed_in_run"], summary["log_file"]) == (4, 0, None)
+    assert not (root / "logs").exists()
+
+
 def test_raising_num_levels_grows_the_dataset_to_equal_one_made_at_the_larger_count(uninterrupted, tmp_path):
     root = tmp_path / "dataset"
     run_in_process(tiny_job(root, "split.num_levels=3"))  # one shard: levels 0-1, then 2 and a padding slot
