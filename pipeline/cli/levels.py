@@ -7,7 +7,8 @@
 - `import`: check a Kinetix level JSON (each problem names its field), report what it holds and what
   normalisation changed, and write it in the form this project writes (`env.level_files.save_level`), which loads
   back exactly.
-- `export`: levels of a split config by level id, exactly as a run of that config samples them (same batches).
+- `export`: levels of a split config by level id, exactly as a run of that config samples them (same batches);
+  config overrides are positional `key=value` arguments, as for `kforge run`.
 """
 
 from __future__ import annotations

@@ -1,4 +1,6 @@
-"""Generating a split's dataset with Ray workers (`kforge run`); re-running on the same directory resumes it."""
+"""Generating a split's dataset with Ray workers (`kforge run`): re-running on the same directory resumes it (after
+checking its committed files), a larger `split.num_levels` grows it, SIGINT and SIGTERM stop it keeping every
+committed level batch."""
 
 from __future__ import annotations
 
