@@ -30,7 +30,9 @@ class Withdrawal:
     problems: tuple[str, ...]
 
     def describe(self) -> str:
-        return f"{shard_name(self.shard)} batch {self.batch}: {'; '.join(self.problems)}"
+        """ "shard-000001 batch 0: <problem>; <problem>"."""
+        where = f"{shard_name(self.shard)} batch {self.batch}"
+        return f"{where}: {'; '.join(problem.removeprefix(f'{where}: ') for problem in self.problems)}"
 
 
 def withdraw_commit(root: str | os.PathLike, shard: int, batch: int) -> bool:

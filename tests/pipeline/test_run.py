@@ -234,7 +234,7 @@ def test_a_damaged_commit_is_refused_by_run_repaired_by_verify_and_regenerated_i
     assert f"kforge verify --repair {root}" in capsys.readouterr().err
     verify_main([str(root), "--repair"])
     out = capsys.readouterr().out
-    assert "withdrew the commit of shard-000001 batch 0: shard-000001 batch 0: unreadable record" in out
+    assert "withdrew the commit of shard-000001 batch 0: unreadable record" in out
     assert f"repaired: 1 level batches to regenerate; next: kforge run {root / 'config.yaml'}" in out
     assert committed_batches(root, 1) == [1]
     run_in_process(tiny_job(root))
