@@ -65,7 +65,7 @@ def build_submission(
     working_dir = Path(working_dir).resolve()
     job = load_config(config, overrides, scale=scale)
     output_dir = Path(job.output_dir).resolve()
-    command = ["python", "-m", "pipeline", "run", "--no-progress"]
+    command = ["python", "-m", "pipeline", "run", "--no-progress", "--json"]
     if scale is not None:
         is_path = scale.endswith((".yaml", ".yml"))  # else a preset name, resolved in the job's configs/scales
         command += ["--scale", _inside(Path(scale), working_dir, "scale") if is_path else scale]

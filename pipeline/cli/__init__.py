@@ -1,18 +1,41 @@
 """The `kforge` command line: one subcommand per entry point, each parsing its own arguments.
 
 A subcommand's module is imported only when it runs, so `kforge --help` and a subcommand's `--help` answer without
-importing JAX or Ray.
+importing JAX or Ray. Every subcommand ends with one of the exit codes below, reports errors in one line (the
+traceback only with `--debug`), and takes config overrides as positional `key=value` arguments.
+
+Public surface: the exit codes, `EXIT_CODES_HELP`, `add_common_options`, `fail` and `main`.
 """
 
 from __future__ import annotations
 
 import argparse
 import importlib
+import sys
 from collections.abc import Sequence
 
+EXIT_OK = 0
+"""Success."""
+EXIT_DATA = 1
+"""The data has a problem (verification failed, unreadable dataset), or the job is incomplete."""
+EXIT_USAGE = 2
+"""A usage, config or input-file error (argparse's own code for bad arguments)."""
+EXIT_INTERRUPTED = 130
+"""Interrupted by SIGINT (Ctrl-C) or SIGTERM (128 + SIGINT, as shells report it)."""
+
+EXIT_CODES_HELP = (
+    "exit codes: 0 success; 1 the data has a problem or the job is incomplete; 2 usage, config or input-file "
+    "error; 130 interrupted (SIGINT/SIGTERM). --debug shows the traceback of an error, --verbose shows "
+    "third-party logs (Ray, wandb) on the terminal."
+)
+"""The epilog of every subcommand's --help."""
+
+DEBUG_OPTION = "--debug"
+VERBOSE_OPTION = "--verbose"
+
 COMMANDS: dict[str, tuple[str, str]] = {
-    "run": ("generate (or resume) a dataset from a release split or a job config", "pipeline.cli.run"),
-    "verify": ("check every shard of a dataset against its commit records", "pipeline.cli.verify"),
+    "run": ("generate (or resume, or grow) a dataset from a release split or a job config", "pipeline.cli.run"),
+    "verify": ("check every shard of a dataset against its commit records (--repair)", "pipeline.cli.verify"),
     "stats": ("write a dataset card: counts, bytes, timings, config and plots", "pipeline.cli.stats"),
     "export": ("write a dataset as Kinetix-Offline zarr v2 shards (--format kinetix)", "pipeline.cli.export"),
     "levels": ("list, sample, preview, import and export Kinetix level files", "pipeline.cli.levels"),
@@ -21,13 +44,67 @@ COMMANDS: dict[str, tuple[str, str]] = {
 }
 """Subcommand name -> (help line, module whose `main(argv, prog)` parses the remaining arguments)."""
 
+OWN_PARSERS = ("pipeline.cli.",)
+"""Subcommand modules whose parsers take --debug and --verbose themselves (`add_common_options`); the others
+never see these two options."""
+
+USAGE_ERRORS = ("ConfigError", "ResumeRefused", "LevelFileError", "ExportTargetExists", "OSError")
+"""Exception classes (by name, so that this module imports nothing heavy) that are the caller's mistake: exit 2."""
+DATA_ERRORS = ("DatasetError",)
+"""Exception classes that report a problem of the data: exit 1."""
+
+
+def add_common_options(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
+    """Add --debug and --verbose, and the exit codes as the help's epilog."""
+    parser.epilog = EXIT_CODES_HELP
+    parser.add_argument(DEBUG_OPTION, action="store_true", help="show the traceback of an error")
+    parser.add_argument(VERBOSE_OPTION, action="store_true", help="show third-party logs (Ray, wandb) on the terminal")
+    return parser
+
+
+def exit_code(error: BaseException) -> int:
+    """The exit code of an error that ended a subcommand: the first of its classes, most specific first, that
+    `USAGE_ERRORS` or `DATA_ERRORS` names; 1 for anything else."""
+    if isinstance(error, KeyboardInterrupt):
+        return EXIT_INTERRUPTED
+    for cls in type(error).__mro__:
+        if cls.__name__ in USAGE_ERRORS:
+            return EXIT_USAGE
+        if cls.__name__ in DATA_ERRORS:
+            return EXIT_DATA
+    return EXIT_DATA
+
+
+def fail(error: BaseException, code: int | None = None) -> SystemExit:
+    """Print `error` as one line on stderr and return the SystemExit to raise (`raise fail(error) from error`)."""
+    text = str(error).strip()
+    message = text.splitlines()[0] if text else type(error).__name__
+    known = {cls.__name__ for cls in type(error).__mro__} & set(USAGE_ERRORS + DATA_ERRORS)
+    if not known:
+        message = f"{type(error).__name__}: {message} (run with {DEBUG_OPTION} for the traceback)"
+    print(f"error: {message}", file=sys.stderr)
+    return SystemExit(exit_code(error) if code is None else code)
+
 
 def main(argv: Sequence[str] | None = None) -> None:
     """Run `kforge <command> [arguments]`; `kforge <command> --help` shows the command's own options."""
-    parser = argparse.ArgumentParser(prog="kforge", description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog="kforge", description=__doc__.splitlines()[0], epilog=EXIT_CODES_HELP)
     subcommands = parser.add_subparsers(dest="command", required=True, metavar="command")
     for name, (help_line, _) in COMMANDS.items():
         subcommands.add_parser(name, help=help_line, add_help=False)
     args, rest = parser.parse_known_args(argv)
     _, module = COMMANDS[args.command]
-    importlib.import_module(module).main(rest, prog=f"{parser.prog} {args.command}")
+    debug = DEBUG_OPTION in rest
+    if not module.startswith(OWN_PARSERS):
+        rest = [arg for arg in rest if arg not in (DEBUG_OPTION, VERBOSE_OPTION)]
+    try:
+        importlib.import_module(module).main(rest, prog=f"{parser.prog} {args.command}")
+    except (SystemExit, GeneratorExit):
+        raise
+    except BaseException as error:
+        if debug:
+            raise
+        if isinstance(error, KeyboardInterrupt):
+            print("interrupted", file=sys.stderr)
+            raise SystemExit(EXIT_INTERRUPTED) from None
+        raise fail(error) from None

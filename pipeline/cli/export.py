@@ -4,11 +4,20 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 from collections.abc import Sequence
 
+from pipeline.cli import add_common_options, fail
 from pipeline.kinetix import DEFAULT_TRAJECTORIES_PER_SHARD, export_kinetix
 from pipeline.storage import DatasetError
+
+READING_HINT = """How to read it:
+  - with Kinetix: in a virtualenv of its own, pip install kinetix-env==3.0.2 (it brings zarr 2.18; the zarr 3 that
+    kforge installs cannot open these zarr v2 structured records), then
+    kinetix.data.data_utils.TrajectoryDatasetManager("{group}", batch_size=..., seed=0).load_next_batch()
+  - with kforge: from pipeline.kinetix import load_kinetix_levels; load_kinetix_levels("{group}") gives each
+    trajectory's level and initial state
+See docs/kinetix-export.md."""
+"""Printed after an export (and in docs/kinetix-export.md): how the Kinetix-format shards are read."""
 
 FORMATS = {"kinetix": export_kinetix}
 """Format name -> exporter(dataset_dir, out_dir, seed, trajectories_per_shard, show_progress)."""
@@ -23,7 +32,8 @@ def _positive_int(text: str) -> int:
 
 def main(argv: Sequence[str] | None = None, prog: str | None = None) -> None:
     """Export DATASET (a `kforge run` output directory) to OUT; `kinetix` writes OUT/<split> as Kinetix-Offline
-    zarr v2 shards, readable by kinetix-env's TrajectoryDatasetManager. Exit 2 naming the problem on failure."""
+    zarr v2 shards, readable by kinetix-env's TrajectoryDatasetManager (with zarr 2) and by
+    pipeline.kinetix.load_kinetix_levels; prints how."""
     parser = argparse.ArgumentParser(prog=prog, description=main.__doc__)
     parser.add_argument("--format", required=True, choices=sorted(FORMATS), help="output layout")
     parser.add_argument("dataset", help="dataset directory (holds data/ and manifest/)")
@@ -36,7 +46,8 @@ def main(argv: Sequence[str] | None = None, prog: str | None = None) -> None:
         help="at most this many trajectories per shard (shards are filled evenly)",
     )
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
-    args = parser.parse_args(argv)
+    parser.add_argument("--json", action="store_true", help="print the export summary as JSON (for scripts)")
+    args = add_common_options(parser).parse_args(argv)
     try:
         summary = FORMATS[args.format](
             args.dataset,
@@ -46,12 +57,21 @@ def main(argv: Sequence[str] | None = None, prog: str | None = None) -> None:
             show_progress=not args.no_progress,
         )
     except DatasetError as error:
-        print(f"error: {error}", file=sys.stderr)
-        raise SystemExit(2) from error
+        if args.debug:
+            raise
+        raise fail(error) from error
     report = {
         "group": str(summary.group),
         "trajectories": summary.num_trajectories,
         "shards": summary.shard_sizes,
         "record_bytes": summary.record_bytes,
     }
-    print(json.dumps(report, indent=1))
+    if args.json:
+        print(json.dumps(report, indent=1))
+        return
+    print(
+        f"wrote {summary.num_trajectories} trajectories in {len(summary.shard_sizes)} "
+        f"{'shard' if len(summary.shard_sizes) == 1 else 'shards'} to {summary.group} "
+        f"({summary.record_bytes} bytes per stored step)"
+    )
+    print(READING_HINT.format(group=summary.group))

@@ -7,7 +7,8 @@
 - `import`: check a Kinetix level JSON (each problem names its field), report what it holds and what
   normalisation changed, and write it in the form this project writes (`env.level_files.save_level`), which loads
   back exactly.
-- `export`: levels of a split config by level id, exactly as a run of that config samples them (same batches).
+- `export`: levels of a split config by level id, exactly as a run of that config samples them (same batches);
+  config overrides are positional `key=value` arguments, as for `kforge run`.
 """
 
 from __future__ import annotations
@@ -17,7 +18,6 @@ import collections
 import functools
 import json
 import re
-import sys
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from pathlib import Path
 
@@ -47,6 +47,7 @@ from env import (
     save_level,
     write_state_gif,
 )
+from pipeline.cli import EXIT_CODES_HELP, add_common_options, fail
 from pipeline.generation import ConfigError, EnvSection, KeyPurpose, environment, level_keys, load_config, sample_batch
 
 LEVELS_DIR = Path("outputs") / "levels"
@@ -116,15 +117,23 @@ def sample_command(args: argparse.Namespace) -> None:
 
 def export_command(args: argparse.Namespace) -> None:
     """Write the given level ids of a split config as Kinetix JSON files, sampled in the job's own level batches."""
-    job = load_config(args.config, args.override or [], scale=args.scale)
-    outside = [level_id for level_id in args.level_ids if not 0 <= level_id < job.split.num_levels]
+    overrides = [item for item in args.items if "=" in item] + (args.override or [])
+    try:
+        level_ids = [int(item) for item in args.items if "=" not in item]
+    except ValueError as error:
+        item = error.args[0].split(": ", 1)[-1]
+        raise ConfigError(f"{item} is neither a level id nor a key=value override") from None
+    if not level_ids:
+        raise ConfigError("no level ids given (e.g. kforge levels export 1M/s 0 1 2)")
+    job = load_config(args.config, overrides, scale=args.scale)
+    outside = [level_id for level_id in level_ids if not 0 <= level_id < job.split.num_levels]
     if outside:
         raise ConfigError(
             f"level ids {outside} are outside split {job.split.name} (split.num_levels = {job.split.num_levels})"
         )
     params, static = environment(job)
     levels = _sampled_levels(
-        sorted(set(args.level_ids)),
+        sorted(set(level_ids)),
         job.work.levels_per_batch,
         functools.partial(sample_batch, job),
         progress=not args.no_progress,
@@ -295,6 +304,7 @@ def _parser(prog: str | None) -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog=prog, description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
+    parser.epilog = EXIT_CODES_HELP
     commands = parser.add_subparsers(dest="command", required=True, metavar="subcommand")
 
     listing = commands.add_parser(
@@ -348,12 +358,19 @@ def _parser(prog: str | None) -> argparse.ArgumentParser:
         "export", help="write levels of a split config by id", description=export_command.__doc__
     )
     export.add_argument("config", help="job config, e.g. configs/splits/1M/s.yaml, or a dataset's config.yaml")
-    export.add_argument("level_ids", type=int, nargs="+", help="level ids in [0, split.num_levels)")
+    export.add_argument(
+        "items",
+        nargs="+",
+        metavar="ID|KEY=VALUE",
+        help="level ids in [0, split.num_levels) and config overrides as key=value, in any order (as for kforge run)",
+    )
     export.add_argument("--scale", help="scale preset, as for kforge run (sets split.num_levels, the id range)")
-    export.add_argument("--override", action="append", metavar="KEY=VALUE", help="config override (repeatable)")
+    export.add_argument("--override", action="append", metavar="KEY=VALUE", help="deprecated: give KEY=VALUE alone")
     export.add_argument("--out", type=Path, help="folder for level-<id>.json (default outputs/levels/<split>)")
     export.add_argument("--no-progress", action="store_true", help="no progress bar")
     export.set_defaults(run=export_command)
+    for subcommand in commands.choices.values():
+        add_common_options(subcommand)
     return parser
 
 
@@ -362,6 +379,7 @@ def main(argv: Sequence[str] | None = None, prog: str | None = None) -> None:
     args = _parser(prog).parse_args(argv)
     try:
         args.run(args)
-    except (LevelFileError, ConfigError) as error:
-        print(f"error: {error}", file=sys.stderr)
-        raise SystemExit(1) from error
+    except (LevelFileError, ConfigError, OSError) as error:
+        if args.debug:
+            raise
+        raise fail(error) from error

@@ -1,18 +1,22 @@
-"""`kforge run SPLIT|CONFIG [key=value ...]`: generate a split's dataset; re-running on the same directory resumes."""
+"""`kforge run SPLIT|CONFIG [key=value ...]`: generate a split's dataset; re-running on the same directory resumes
+it, and a larger `split.num_levels` grows it."""
 
 from __future__ import annotations
 
 import argparse
 import json
+import shlex
 import sys
 from collections.abc import Sequence
 
 import configs
+from pipeline.cli import EXIT_DATA, EXIT_INTERRUPTED, add_common_options, fail
 
 
 def main(argv: Sequence[str] | None = None, prog: str | None = None) -> None:
     """Run CONFIG (a release split such as 1M/s, or a job YAML) at a --scale with `key=value` overrides; resumes in
-    output_dir."""
+    output_dir (Ctrl-C or SIGTERM stops it, keeping every committed level batch), and grows it when
+    split.num_levels is raised. Ends with a short summary (--json: the machine-readable one)."""
     parser = argparse.ArgumentParser(prog=prog, description=main.__doc__)
     parser.add_argument("config", help=f"release split ({', '.join(configs.split_names())}) or a job YAML file")
     parser.add_argument("overrides", nargs="*", help="dotlist overrides, e.g. split.num_levels=32 ray.num_workers=2")
@@ -22,11 +26,22 @@ def main(argv: Sequence[str] | None = None, prog: str | None = None) -> None:
     parser.add_argument(
         "--print-config", action="store_true", help="print the resolved config (each key's type and meaning) and exit"
     )
-    parser.add_argument("--max-batches", type=int, help="stop after this many level batches (resume later)")
+    parser.add_argument("--max-batches", type=int, help="commit at most this many level batches, then stop")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
-    args = parser.parse_intermixed_args(argv)  # overrides may follow the options
+    parser.add_argument("--json", action="store_true", help="end with the summary as JSON (for scripts)")
+    args = add_common_options(parser).parse_intermixed_args(argv)  # overrides may follow the options
+    if args.max_batches is not None and args.max_batches < 1:
+        parser.error(f"--max-batches must be >= 1, got {args.max_batches}")
 
-    from pipeline.generation import ConfigError, ResumeRefused, load_config, run_job, to_yaml
+    from pipeline.generation import (
+        ConfigError,
+        JobInterrupted,
+        ResumeRefused,
+        closing_summary,
+        load_config,
+        run_job,
+        to_yaml,
+    )
     from pipeline.storage import DatasetError
 
     try:
@@ -34,10 +49,27 @@ def main(argv: Sequence[str] | None = None, prog: str | None = None) -> None:
         if args.print_config:
             print(to_yaml(job), end="")
             return
-        summary = run_job(job, max_batches=args.max_batches, show_progress=not args.no_progress)
+        summary = run_job(
+            job,
+            max_batches=args.max_batches,
+            show_progress=not args.no_progress,
+            verbose=args.verbose,
+            report=lambda line: print(line, file=sys.stderr),
+        )
+    except JobInterrupted as interrupted:
+        resume = shlex.join(["kforge", "run", *(argv if argv is not None else sys.argv[1:])])
+        print(
+            f"{interrupted} ({interrupted.committed_in_run} in this run); resume with: {resume}",
+            file=sys.stderr,
+        )
+        raise SystemExit(EXIT_INTERRUPTED) from None
     except (ConfigError, ResumeRefused, DatasetError) as error:
-        print(f"error: {error}", file=sys.stderr)
-        raise SystemExit(2) from error
-    print(json.dumps(summary, indent=1))
-    if summary["abandoned_shards"]:
-        raise SystemExit(1)
+        if args.debug:
+            raise
+        raise fail(error) from error
+    if args.json:
+        print(json.dumps(summary, indent=1))
+    else:
+        print(closing_summary(summary, job.output_dir))
+    if summary["abandoned_shards"] or summary["committed_batches"] < summary["total_batches"]:
+        raise SystemExit(EXIT_DATA)

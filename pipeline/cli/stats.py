@@ -3,9 +3,10 @@
 from __future__ import annotations
 
 import argparse
-import sys
 from collections.abc import Sequence
 from pathlib import Path
+
+from pipeline.cli import add_common_options, fail
 
 
 def main(argv: Sequence[str] | None = None, prog: str | None = None) -> None:
@@ -16,7 +17,7 @@ def main(argv: Sequence[str] | None = None, prog: str | None = None) -> None:
     parser.add_argument("dataset", type=Path, help="dataset directory (holds data/ and manifest/)")
     parser.add_argument("--out", type=Path, help="folder for card.md and card/*.png (default: DATASET)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar while reading commit records")
-    args = parser.parse_args(argv)
+    args = add_common_options(parser).parse_args(argv)
 
     from pipeline.reading import collect_stats, write_card
     from pipeline.storage import DatasetError
@@ -24,6 +25,7 @@ def main(argv: Sequence[str] | None = None, prog: str | None = None) -> None:
     try:
         stats = collect_stats(args.dataset, show_progress=not args.no_progress)
     except DatasetError as error:
-        print(f"error: {error}", file=sys.stderr)
-        raise SystemExit(1) from error
+        if args.debug:
+            raise
+        raise fail(error) from error
     print(write_card(stats, args.out or args.dataset))

@@ -17,7 +17,9 @@ from pipeline.generation.config import (
     ppo_config,
     to_yaml,
 )
+from pipeline.generation.console import closing_summary
 from pipeline.generation.coordinator import Commit, Coordinator
+from pipeline.generation.growth import ResumeRefused
 from pipeline.generation.level_batch import (
     KeyPurpose,
     batches_per_shard,
@@ -27,7 +29,7 @@ from pipeline.generation.level_batch import (
     run_level_batch,
     sample_batch,
 )
-from pipeline.generation.run import ResumeRefused, prepare_output, run_job, summarize
+from pipeline.generation.run import DatasetDamaged, JobInterrupted, prepare_output, run_job, summarize
 from pipeline.generation.tracking import start_tracking
 from pipeline.generation.worker import Worker
 
@@ -35,13 +37,16 @@ __all__ = [
     "TRACKING_MODES",
     "Commit",
     "ConfigError",
+    "DatasetDamaged",
     "Coordinator",
     "EnvSection",
     "JobConfig",
+    "JobInterrupted",
     "KeyPurpose",
     "ResumeRefused",
     "Worker",
     "batches_per_shard",
+    "closing_summary",
     "config_path",
     "data_definition",
     "data_fingerprint",

@@ -116,7 +116,7 @@ class TrackingConfig:
     wandb: str = "offline"  # offline: local run files (`wandb sync` uploads them); online: needs a login; disabled
     project: str = "kforge"  # wandb project
     name: str | None = None  # wandb run name; None: wandb picks one
-    dir: str | None = None  # directory that receives wandb/<run>; None: output_dir (survives a Ray job's temp cwd)
+    dir: str | None = None  # directory that receives wandb/<run>; None: <output_dir>/logs, beside the run logs
 
 
 @dataclasses.dataclass
@@ -340,9 +340,32 @@ def data_definition(job: JobConfig) -> dict:
     return data | {"physics": dataclasses.asdict(environment(job)[0].sim)}
 
 
+GROWABLE_KEY = ("split", "num_levels")
+"""The one data-defining key a dataset may change after it is made: raising it appends levels (level i is the same
+level whatever the count), so the data fingerprint leaves it out."""
+
+
 def data_fingerprint(job: JobConfig) -> str:
-    """Hash of `data_definition`: equal fingerprints mean identical datasets."""
-    return hashlib.sha256(json.dumps(data_definition(job), sort_keys=True).encode()).hexdigest()[:16]
+    """Hash of `data_definition` without `split.num_levels`: equal fingerprints mean that level i's data is the same
+    in both datasets, whatever their level counts."""
+    return definition_fingerprint(data_definition(job))
+
+
+def definition_fingerprint(definition: dict) -> str:
+    """The data fingerprint of a stored `data_definition` (`data_config` among a dataset's attributes)."""
+    section, key = GROWABLE_KEY
+    countless = definition | {section: {k: v for k, v in definition.get(section, {}).items() if k != key}}
+    return _hash(countless)
+
+
+def legacy_fingerprint(definition: dict) -> str:
+    """The fingerprint datasets made before they could grow carry: the hash of the whole definition, level count
+    included."""
+    return _hash(definition)
+
+
+def _hash(value: dict) -> str:
+    return hashlib.sha256(json.dumps(value, sort_keys=True).encode()).hexdigest()[:16]
 
 
 def field_docs(section: type) -> dict[str, str]:

@@ -11,6 +11,12 @@ import os
 
 from pipeline.storage import committed_batches, read_record, record_path, write_record
 
+COMPILING = "compiling"
+"""State of a claimed level batch before its first training report, while its worker has committed nothing in this
+run (the worker is compiling its programs)."""
+STARTING = "starting"
+"""The same once its worker has committed a batch in this run (the batch is being sampled and filtered)."""
+
 
 @dataclasses.dataclass(frozen=True)
 class Commit:
@@ -33,13 +39,15 @@ class Coordinator:
         self._leased: dict[int, str] = {}
         self._claimed: set[tuple[int, int]] = set()
         self._abandoned: set[int] = set()
-        self._budget = max_batches
+        self._budget = max_batches  # batches this run may commit; claims in flight count against it
+        self._committed_in_run = 0
+        self._committers: set[str] = set()  # workers that committed a batch in this run (their programs are compiled)
         self._unreported: list[Commit] = []
         self._training: dict[tuple[int, int], float] = {}
 
     def next_shard(self, worker: str) -> int | None:
         """The lowest shard with uncommitted level batches that no worker holds, leased to `worker`; None if done."""
-        if self._budget is not None and self._budget <= 0:
+        if not self._within_budget():
             return None
         for shard, done in self._committed.items():
             if shard not in self._leased and shard not in self._abandoned and len(done) < self._batches_per_shard:
@@ -60,15 +68,21 @@ class Coordinator:
     def claim_batch(self, shard: int) -> int | None:
         """The next uncommitted, unclaimed level batch of a leased shard, in order; None when none is left or the
         run's batch budget is spent."""
-        if self._budget is not None and self._budget <= 0:
+        if not self._within_budget():
             return None
         for batch in range(self._batches_per_shard):
             if batch not in self._committed[shard] and (shard, batch) not in self._claimed:
                 self._claimed.add((shard, batch))
-                if self._budget is not None:
-                    self._budget -= 1
                 return batch
         return None
+
+    def _within_budget(self) -> bool:
+        """Another batch may be claimed: the commits of this run and the claims in flight are below the budget (a
+        failed claim, released, does not use it up)."""
+        if self._budget is None:
+            return True
+        in_flight = sum(1 for shard, batch in self._claimed if batch not in self._committed[shard])
+        return self._committed_in_run + in_flight < self._budget
 
     def commit(self, shard: int, batch: int, record: dict) -> bool:
         """Write the record that commits a level batch whose data files are written; False if already committed.
@@ -79,6 +93,9 @@ class Coordinator:
             return False
         stored = write_record(self._root, shard, batch, record)
         self._committed[shard].add(batch)
+        self._committed_in_run += 1
+        if shard in self._leased:
+            self._committers.add(self._leased[shard])
         self._training.pop((shard, batch), None)
         self._unreported.append(Commit(stored, len(self._committed[shard]) == self._batches_per_shard))
         return True
@@ -101,6 +118,19 @@ class Coordinator:
         """A worker's report on a claimed level batch: its experts have done `updates_done` of `num_updates`."""
         if (shard, batch) in self._claimed and batch not in self._committed[shard]:
             self._training[shard, batch] = updates_done / num_updates
+
+    def in_flight(self) -> dict[tuple[int, int], float | str]:
+        """Every claimed level batch not yet committed, by (shard, batch): its share of training done, or "compiling"
+        (its worker has committed nothing in this run yet) or "starting" before its first training report; 1.0 once
+        trained (rolling out and writing)."""
+        states = {}
+        for shard, batch in sorted(self._claimed):
+            if batch in self._committed[shard]:
+                continue
+            worker = self._leased.get(shard)
+            waiting = STARTING if worker in self._committers else COMPILING
+            states[shard, batch] = self._training.get((shard, batch), waiting)
+        return states
 
     def training(self) -> dict[tuple[int, int], float]:
         """The share of training done, by (shard, batch), of each claimed level batch not yet committed that has

@@ -1,14 +1,17 @@
-"""Generating a split's dataset with Ray workers (`kforge run`); re-running on the same directory resumes it."""
+"""Generating a split's dataset with Ray workers (`kforge run`): re-running on the same directory resumes it (after
+checking its committed files), a larger `split.num_levels` grows it, SIGINT and SIGTERM stop it keeping every
+committed level batch."""
 
 from __future__ import annotations
 
 import collections
 import os
+import signal
+import threading
 import time
+import uuid
 import warnings
 from pathlib import Path
-
-from tqdm import tqdm
 
 from env import ActionType
 from pipeline.generation.config import (
@@ -18,18 +21,22 @@ from pipeline.generation.config import (
     environment,
     to_yaml,
 )
+from pipeline.generation.console import ProgressBar, resume_line, start_log_file
 from pipeline.generation.coordinator import Coordinator
+from pipeline.generation.growth import reconcile_dataset
 from pipeline.generation.level_batch import batches_per_shard, num_shards
 from pipeline.generation.tracking import start_tracking
 from pipeline.generation.worker import Worker
 from pipeline.storage import (
     CONFIG_FILE,
+    DatasetError,
     DatasetSpec,
     Geometry,
+    committed_batches,
     create_dataset,
+    damaged_commits,
     iter_records,
     make_layout,
-    open_dataset,
 )
 
 RAY_NAMESPACE = "kforge"
@@ -38,10 +45,6 @@ MAX_SHARD_ATTEMPTS = 3
 """A shard whose worker fails this many times in one run is abandoned for the run (committed batches stay)."""
 RAY_QUIET_ENV = {"RAY_AUTH_MODE": "disabled", "RAY_USAGE_STATS_ENABLED": "0"}
 """Embedded local Ray: no token auth (a private, single-user instance) and no usage reporting."""
-
-
-class ResumeRefused(ValueError):
-    """The output directory holds a dataset made with a config that would change the data."""
 
 
 def dataset_spec(job: JobConfig) -> DatasetSpec:
@@ -58,54 +61,59 @@ def dataset_spec(job: JobConfig) -> DatasetSpec:
     )
 
 
-def prepare_output(job: JobConfig) -> None:
-    """Create the dataset, or check that an existing one was made with the same data-defining config."""
+def prepare_output(job: JobConfig) -> list[tuple[int, int]]:
+    """Create the dataset, or check that an existing one was made with the same data-defining config and grow it if
+    the job has more levels (`reconcile_dataset`); returns the commits growing withdrew."""
     root = Path(job.output_dir)
     spec = dataset_spec(job)
-    if (root / "data").exists():
-        stored = open_dataset(root).spec
-        if stored.attributes.get("data_fingerprint") != spec.attributes["data_fingerprint"]:
-            changed = _changed_keys(stored.attributes.get("data_config", {}), spec.attributes["data_config"])
-            raise ResumeRefused(
-                f"{root} holds a dataset generated with a different config; these keys would change the data: "
-                f"{', '.join(changed) or '(unknown: older dataset)'}. Use another output_dir or the original values."
-            )
+    withdrawn = reconcile_dataset(root, spec) if (root / "data").exists() else []
     create_dataset(root, spec)
-    (root / CONFIG_FILE).write_text(to_yaml(job))
+    write_config(root, to_yaml(job))
+    return withdrawn
 
 
-def _changed_keys(old: dict, new: dict, prefix: str = "") -> list[str]:
-    keys = []
-    for key in sorted(set(old) | set(new)):
-        a, b = old.get(key), new.get(key)
-        if isinstance(a, dict) and isinstance(b, dict):
-            keys += _changed_keys(a, b, f"{prefix}{key}.")
-        elif a != b:
-            keys.append(f"{prefix}{key} ({a!r} -> {b!r})")
-    return keys
-
-
-def run_job(job: JobConfig, max_batches: int | None = None, show_progress: bool = True) -> dict:
-    """Generate (or resume) the job's dataset; returns the summary. `max_batches` stops after that many batches."""
+def run_job(
+    job: JobConfig,
+    max_batches: int | None = None,
+    show_progress: bool = True,
+    verbose: bool = False,
+    report=print,
+) -> dict:
+    """Generate (or resume, or grow) the job's dataset; returns the summary. `max_batches` stops after that many
+    level batches. Third-party logs go to the dataset's log file (and the terminal too if `verbose`); `report` gets
+    the lines an operator reads (what a resumed run found). SIGINT and SIGTERM end it with `JobInterrupted`; a
+    dataset whose commits name missing or damaged files is refused with `DatasetDamaged`."""
     import ray
 
-    prepare_output(job)
-    tracker = start_tracking(job)
+    withdrawn = prepare_output(job)
+    damaged = damaged_commits(job.output_dir)
+    if damaged:
+        raise DatasetDamaged(
+            f"{job.output_dir}: {len(damaged)} committed level batches have missing, unreadable or damaged files "
+            f"({damaged[0]}); run `kforge verify --repair {job.output_dir}`, then this command again"
+        )
+    total = num_shards(job) * batches_per_shard(job)
+    found = _committed_count(job)
+    if (line := resume_line(found, total, len(withdrawn))) is not None:
+        report(line)
+    if found == total:  # nothing to do: no Ray, no tracked run, no log file
+        return _run_summary(job, found, total, 0.0, [], collections.Counter(), None)
+    log_file = start_log_file(job.output_dir, verbose)
     for name, value in RAY_QUIET_ENV.items():
         os.environ.setdefault(name, value)
-    started_ray = not ray.is_initialized()
-    if started_ray:
-        with warnings.catch_warnings():
-            # Ray starts its processes with fork + exec, which JAX's fork warning cannot tell from a bare fork.
-            warnings.filterwarnings("ignore", message="os.fork\\(\\) was called", category=RuntimeWarning)
-            if job.ray.address is None:
-                ray.init(address="local", include_dashboard=False, log_to_driver=False, namespace=RAY_NAMESPACE)
-            else:
-                ray.init(address=job.ray.address, namespace=RAY_NAMESPACE)
+    previous_handler = signal.signal(signal.SIGTERM, _terminate_as_interrupt) if _main_thread() else None
     started = time.perf_counter()
     failures = []
     attempts = collections.Counter()
+    tracker = None
+    started_ray = False
     try:
+        tracker = start_tracking(job)
+        started_ray = not ray.is_initialized()
+        if started_ray:
+            _init_ray(job, verbose)
+            if previous_handler is not None:  # Ray's own SIGTERM handler (a crash report) replaced ours
+                signal.signal(signal.SIGTERM, _terminate_as_interrupt)
         coordinator = (
             ray.remote(Coordinator)
             .options(num_cpus=0)
@@ -121,8 +129,8 @@ def run_job(job: JobConfig, max_batches: int | None = None, show_progress: bool 
 
         for i in range(job.ray.num_workers):
             assign(worker_class.remote(job, f"worker-{i}"), f"worker-{i}")
-        done, total = ray.get(coordinator.progress.remote())
-        with tqdm(total=total, initial=done, unit="batch", desc="level batches", disable=not show_progress) as bar:
+        bar = ProgressBar(found, total, enabled=show_progress)
+        try:
             while in_flight:
                 ready, _ = ray.wait(list(in_flight), timeout=PROGRESS_POLL_SECONDS)
                 for ref in ready:
@@ -140,39 +148,87 @@ def run_job(job: JobConfig, max_batches: int | None = None, show_progress: bool 
                     ray.get(coordinator.release.remote(shard))
                     assign(worker, name)
                 tracker.log_commits(ray.get(coordinator.take_commits.remote()))
-                committed = ray.get(coordinator.progress.remote())[0]
-                training = ray.get(coordinator.training.remote())
-                bar.update(round(committed + sum(training.values()), 2) - bar.n)  # in-flight batches count in part
-                bar.set_postfix_str(_training_summary(training), refresh=False)
+                bar.show(ray.get(coordinator.progress.remote())[0], ray.get(coordinator.in_flight.remote()))
+        finally:
+            bar.close()
+    except KeyboardInterrupt:
+        if tracker is not None:
+            tracker.finish()  # marks the tracked run failed
+        committed = _committed_count(job)
+        raise JobInterrupted(job.output_dir, committed, total, committed - found) from None
     except BaseException:
-        tracker.finish()  # marks the tracked run failed
+        if tracker is not None:
+            tracker.finish()  # marks the tracked run failed
         raise
     finally:
         if started_ray:
             ray.shutdown()
-    summary = summarize(job.output_dir)
-    summary["seconds"] = time.perf_counter() - started
-    summary["worker_failures"] = failures
-    summary["abandoned_shards"] = sorted(shard for shard, count in attempts.items() if count >= MAX_SHARD_ATTEMPTS)
+        if previous_handler is not None:
+            signal.signal(signal.SIGTERM, previous_handler)
+    summary = _run_summary(job, found, total, time.perf_counter() - started, failures, attempts, log_file)
     tracker.finish(summary)
     return summary
 
 
-LISTED_TRAINING_BATCHES = 4
-"""The progress bar lists the training share of up to this many in-flight level batches, then only their mean."""
+def _run_summary(job, found, total, seconds, failures, attempts, log_file) -> dict:
+    """`summarize` of the dataset, with what this run did: batches committed, time, worker failures, abandoned
+    shards, and the log file."""
+    summary = summarize(job.output_dir)
+    summary["total_batches"] = total
+    summary["committed_in_run"] = summary["committed_batches"] - found
+    summary["seconds"] = seconds
+    summary["worker_failures"] = failures
+    summary["abandoned_shards"] = sorted(shard for shard, count in attempts.items() if count >= MAX_SHARD_ATTEMPTS)
+    summary["log_file"] = None if log_file is None else str(log_file)
+    return summary
 
 
-def _training_summary(training: dict[tuple[int, int], float]) -> str:
-    """How far the experts of the level batches in flight have trained: "training 2 batches: 40% 95%"."""
-    if not training:
-        return ""
-    shares = [share for _, share in sorted(training.items())]
-    listed = (
-        " ".join(f"{share:.0%}" for share in shares)
-        if len(shares) <= LISTED_TRAINING_BATCHES
-        else f"mean {sum(shares) / len(shares):.0%}"
-    )
-    return f"training {len(shares)} batch{'es' if len(shares) > 1 else ''}: {listed}"
+class JobInterrupted(Exception):
+    """The run was stopped by SIGINT or SIGTERM; committed level batches stay, re-running resumes."""
+
+    def __init__(self, output_dir: str, committed: int, total: int, committed_in_run: int):
+        super().__init__(f"interrupted: {committed} of {total} level batches committed in {output_dir}")
+        self.output_dir, self.committed, self.total = output_dir, committed, total
+        self.committed_in_run = committed_in_run
+
+
+class DatasetDamaged(DatasetError):
+    """Committed level batches of the output directory have missing, unreadable or damaged files."""
+
+
+def write_config(root: Path, text: str) -> None:
+    """Write the dataset's config.yaml atomically (a temporary file renamed over it)."""
+    path = root / CONFIG_FILE
+    temp = path.with_name(f"{path.name}.tmp-{uuid.uuid4().hex}")
+    temp.write_text(text)
+    os.replace(temp, path)
+
+
+def _committed_count(job: JobConfig) -> int:
+    return sum(len(committed_batches(job.output_dir, shard)) for shard in range(num_shards(job)))
+
+
+def _terminate_as_interrupt(signum, frame) -> None:
+    raise KeyboardInterrupt
+
+
+def _main_thread() -> bool:
+    return threading.current_thread() is threading.main_thread()
+
+
+def _init_ray(job: JobConfig, verbose: bool) -> None:
+    """Start embedded local Ray, or connect to `ray.address`; Ray's own logs go to the run's log file (the "ray"
+    logger, see `start_log_file`), workers' output to the terminal only if `verbose`."""
+    import ray
+
+    with warnings.catch_warnings():
+        # Ray starts its processes with fork + exec, which JAX's fork warning cannot tell from a bare fork.
+        warnings.filterwarnings("ignore", message="os.fork\\(\\) was called", category=RuntimeWarning)
+        options = {"namespace": RAY_NAMESPACE, "log_to_driver": verbose, "configure_logging": False}
+        if job.ray.address is None:
+            ray.init(address="local", include_dashboard=False, **options)
+        else:
+            ray.init(address=job.ray.address, **options)
 
 
 def summarize(root) -> dict:

@@ -3,7 +3,7 @@
 The driver feeds the tracker the commits the coordinator reports (`Coordinator.take_commits`), so each level batch
 is logged as it commits and each shard when its last batch commits; the numbers come from the commit records (the
 manifest), so a shard's metrics cover its batches from earlier, resumed runs too. Mode `tracking.wandb`: offline
-by default (a local run directory under `tracking.dir`, uploaded later with `wandb sync <run dir>`), online, or
+by default (a local run directory per run under `tracking.dir`, uploaded later with `wandb sync <run dir>`), online, or
 disabled (wandb is not even imported). The `WANDB_MODE` environment variable, when set, overrides it; the tests set
 it to "disabled". Only the driver calls wandb: workers report through the coordinator.
 """
@@ -25,6 +25,10 @@ from pipeline.storage import FAILED, FILTERED_PREFIX, KEPT, PADDING, PROVENANCE,
 
 WANDB_MODE_ENV = "WANDB_MODE"
 """Environment variable that overrides `tracking.wandb` when set (wandb's own name for it)."""
+
+TRACKING_DIR = "logs"
+"""Default folder, inside the dataset directory, of wandb's run folders (`<output_dir>/logs/wandb/offline-run-*`, one
+per run): beside the run logs, apart from the data."""
 
 WANDB_DISABLE_WEAVE_ENV = "WANDB_DISABLE_WEAVE"
 """Set by the tracker: wandb takes our `agents` package for the LLM library of that name and advertises Weave."""
@@ -189,7 +193,7 @@ def start_tracking(job: JobConfig) -> Tracker:
         return Tracker(job)
     import wandb
 
-    directory = Path(job.tracking.dir or job.output_dir)
+    directory = Path(job.tracking.dir or Path(job.output_dir) / TRACKING_DIR)
     directory.mkdir(parents=True, exist_ok=True)
     os.environ.setdefault(WANDB_DISABLE_WEAVE_ENV, "true")
     run = wandb.init(

@@ -3,12 +3,13 @@
 Public surface: the exporter and the level loader.
 """
 
-from pipeline.kinetix.export import DEFAULT_TRAJECTORIES_PER_SHARD, ExportSummary, export_kinetix
+from pipeline.kinetix.export import DEFAULT_TRAJECTORIES_PER_SHARD, ExportSummary, ExportTargetExists, export_kinetix
 from pipeline.kinetix.importer import KinetixLevels, load_kinetix_levels
 
 __all__ = [
     "DEFAULT_TRAJECTORIES_PER_SHARD",
     "ExportSummary",
+    "ExportTargetExists",
     "KinetixLevels",
     "export_kinetix",
     "load_kinetix_levels",

@@ -135,6 +135,10 @@ def split_group(out_dir: str | os.PathLike, split: str) -> Path:
     return Path(out_dir).joinpath(*parts)
 
 
+class ExportTargetExists(DatasetError):
+    """The export's output folder already holds something (nothing is overwritten)."""
+
+
 def export_kinetix(
     dataset_dir: str | os.PathLike,
     out_dir: str | os.PathLike,
@@ -154,7 +158,7 @@ def export_kinetix(
         raise DatasetError(f"{dataset_dir}: no committed trajectories to export")
     group = split_group(out_dir, split)
     if group.exists() and (not group.is_dir() or any(group.iterdir())):
-        raise DatasetError(f"{group}: output already exists and is not empty; remove it or choose another output")
+        raise ExportTargetExists(f"{group}: output already exists and is not empty; remove it or choose another output")
     plan = shard_plan(len(kept), trajectories_per_shard, seed)
     reader = TrajectoryDatasetManager(dataset_dir, batch_size=1)
     dtype = record_dtype(layout)

@@ -4,6 +4,7 @@ the writer of a level batch and verification.
 Public surface: what generation, reading, Kinetix interop and the command line use.
 """
 
+from pipeline.storage.growth import grow_dataset
 from pipeline.storage.layout import (
     ACTION,
     ACTION_MASK,
@@ -32,6 +33,7 @@ from pipeline.storage.manifest import (
     write_record,
 )
 from pipeline.storage.records import FAILED, FILTERED_PREFIX, KEPT, PADDING, PROVENANCE, UNSOLVED
+from pipeline.storage.repair import Withdrawal, damaged_commits, withdraw_bad_batches, withdraw_commit
 from pipeline.storage.shard_store import (
     BLOSC_LEVEL,
     CONFIG_FILE,
@@ -77,6 +79,7 @@ __all__ = [
     "SUCCESS",
     "UNSOLVED",
     "VALID",
+    "Withdrawal",
     "BatchTrajectories",
     "Dataset",
     "DatasetError",
@@ -89,8 +92,10 @@ __all__ = [
     "clean_uncommitted",
     "committed_batches",
     "create_dataset",
+    "damaged_commits",
     "encode",
     "format_report",
+    "grow_dataset",
     "is_coded",
     "iter_records",
     "learning_curves",
@@ -104,6 +109,8 @@ __all__ = [
     "static_to_json",
     "unflatten_state",
     "verify_dataset",
+    "withdraw_bad_batches",
+    "withdraw_commit",
     "write_level_batch",
     "write_record",
 ]

@@ -259,7 +259,8 @@ class Dataset:
             raise DatasetError(f"{self.root}: cannot open array {name}: {error}") from error
         expected = _array_shape(spec, self.layout, self.geometry.num_slots)
         dtype = stored_dtype(spec)
-        if tuple(store.shape) != expected or store.dtype.numpy_dtype != np.dtype(dtype):
+        shape = tuple(store.shape)  # longer than the spec says after an interrupted growth (`grow_dataset`)
+        if shape[1:] != expected[1:] or shape[0] < expected[0] or store.dtype.numpy_dtype != np.dtype(dtype):
             raise DatasetError(
                 f"{self.root}: array {name} is {store.dtype.numpy_dtype}{tuple(store.shape)}, "
                 f"the spec says {dtype}{expected}"

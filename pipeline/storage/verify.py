@@ -41,6 +41,7 @@ class ShardReport:
     num_kept: int = 0
     problems: list[str] = dataclasses.field(default_factory=list)
     notes: list[str] = dataclasses.field(default_factory=list)
+    bad_batches: dict[int, list[str]] = dataclasses.field(default_factory=dict)  # committed batch -> its problems
 
     @property
     def ok(self) -> bool:
@@ -78,6 +79,8 @@ def verify_shard(dataset: Dataset, shard: int, allow_incomplete: bool = False) -
             problems, num_kept = [str(error)], 0
         report.problems += [f"batch {batch}: {problem}" for problem in problems]
         report.num_kept += num_kept
+        if problems:
+            report.bad_batches[batch] = problems
     return report
 
 
@@ -165,13 +168,19 @@ def format_report(reports: Sequence[ShardReport]) -> str:
     lines = []
     for report in reports:
         status = "ok" if report.ok else "BAD"
-        lines.append(
-            f"{shard_name(report.shard)}: {status} ({len(report.committed)} level batches committed, "
-            f"{report.num_kept} trajectories)"
-        )
+        batches = _count(len(report.committed), "level batch", "level batches")
+        kept = _count(report.num_kept, "trajectory", "trajectories")
+        lines.append(f"{shard_name(report.shard)}: {status} ({batches} committed, {kept})")
         lines += [f"  problem: {problem}" for problem in report.problems]
         lines += [f"  note: {note}" for note in report.notes]
     bad = [shard_name(report.shard) for report in reports if not report.ok]
     total = sum(report.num_kept for report in reports)
-    lines.append(f"{len(reports)} shards, {total} trajectories verified; bad shards: {', '.join(bad) or 'none'}")
+    lines.append(
+        f"{_count(len(reports), 'shard', 'shards')}, {_count(total, 'trajectory', 'trajectories')} verified; "
+        f"bad shards: {', '.join(bad) or 'none'}"
+    )
     return "\n".join(lines)
+
+
+def _count(number: int, singular: str, plural: str) -> str:
+    return f"{number} {singular if number == 1 else plural}"

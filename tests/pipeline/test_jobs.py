@@ -59,8 +59,8 @@ def test_the_submission_runs_kforge_in_the_uploaded_checkout_against_its_own_clu
     )
     assert submission.output_dir == tmp_path / "data" / "tiny"  # relative: resolved where the submitter runs
     command = submission.entrypoint.split()
-    assert command[:7] == ["python", "-m", "pipeline", "run", "--no-progress", "--scale", "tiny"]
-    assert command[7] == SPLIT_CONFIG  # relative to the working dir, which is the job's cwd
+    assert command[:8] == ["python", "-m", "pipeline", "run", "--no-progress", "--json", "--scale", "tiny"]
+    assert command[8] == SPLIT_CONFIG  # relative to the working dir, which is the job's cwd
     assert command[-2:] == [f"output_dir={tmp_path / 'data' / 'tiny'}", "ray.address=auto"]  # last: they win
     assert submission.runtime_env == {
         "working_dir": str(REPO_ROOT),
@@ -123,7 +123,7 @@ def test_a_job_submitted_to_a_local_ray_cluster_writes_a_dataset_that_verifies(t
     assert summary["committed_batches"] == 4 and summary["worker_failures"] == []
     assert [committed_batches(output, shard) for shard in range(2)] == [[0, 1], [0, 1]]
     assert all(report.ok for report in verify_dataset(output))
-    (run_dir,) = (output / "wandb").glob("offline-run-*")  # the job's tracking, in the dataset directory
+    (run_dir,) = (output / "logs" / "wandb").glob("offline-run-*")  # the job's tracking, in the dataset's logs
     rows, summary = wandb_history(run_dir)
     assert sum("batch/seconds" in row for row in rows) == 4 and sum("shard/levels" in row for row in rows) == 2
     assert summary["run/committed_batches"] == 4
@@ -287,7 +287,7 @@ def write_script(path: Path, body: str) -> None:
 
 
 def job_summary(log: str) -> dict:
-    """The JSON summary `kforge run` prints last."""
+    """The JSON summary `kforge run --json` prints last."""
     match = re.search(r'^\{\n "committed_batches".*?^\}', log, re.MULTILINE | re.DOTALL)
     assert match, f"no kforge run summary in: {log[-3000:]}"
     return json.loads(match[0])

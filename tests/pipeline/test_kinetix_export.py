@@ -340,7 +340,10 @@ def test_cli_exports_with_progress_and_reports_errors(dataset_dir, tmp_path, cap
     (tmp_path / "out" / SPLIT).mkdir(parents=True)  # an empty split folder may be reused
     kforge(["export", "--format", "kinetix", str(dataset_dir), str(tmp_path / "out")])
     captured = capsys.readouterr()
-    assert json.loads(captured.out)["trajectories"] == 8 and "8/8" in captured.err
+    assert f"wrote 8 trajectories in 1 shard to {tmp_path / 'out' / SPLIT}" in captured.out and "8/8" in captured.err
+    assert "pip install kinetix-env==3.0.2" in captured.out and "load_kinetix_levels" in captured.out
+    kforge(["export", "--format", "kinetix", str(dataset_dir), str(tmp_path / "json"), "--json", "--no-progress"])
+    assert json.loads(capsys.readouterr().out)["trajectories"] == 8
     assert load_kinetix_levels(tmp_path / "out" / SPLIT).static.sim.num_polygons == P
     with pytest.raises(SystemExit) as exit_info:
         kforge(["export", "--format", "kinetix", str(dataset_dir), str(tmp_path / "out"), "--no-progress"])

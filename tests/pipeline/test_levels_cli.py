@@ -77,8 +77,19 @@ def test_export_writes_the_level_a_run_of_the_split_trains(sampled_dir, tmp_path
 def test_export_refuses_an_id_outside_the_split(tmp_path, capsys):
     with pytest.raises(SystemExit) as exit_info:
         main(["export", str(SPLIT_CONFIG), "8", "--scale", "tiny", "--out", str(tmp_path)])
-    assert exit_info.value.code == 1
+    assert exit_info.value.code == 2  # a usage / config error, as in every subcommand
     assert "level ids [8] are outside split 1M/s (split.num_levels = 8)" in capsys.readouterr().err
+
+
+def test_export_takes_overrides_as_positional_key_value_like_run(tmp_path, capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        main(["export", str(SPLIT_CONFIG), "5", "split.num_levels=4", "--scale", "tiny", "--out", str(tmp_path)])
+    assert exit_info.value.code == 2
+    assert "level ids [5] are outside split 1M/s (split.num_levels = 4)" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as exit_info:
+        main(["export", str(SPLIT_CONFIG), "five", "--scale", "tiny", "--out", str(tmp_path)])
+    assert exit_info.value.code == 2
+    assert "error: 'five' is neither a level id nor a key=value override" in capsys.readouterr().err
 
 
 def test_import_names_the_field_of_a_malformed_file(sampled_dir, tmp_path, capsys):
@@ -88,7 +99,7 @@ def test_import_names_the_field_of_a_malformed_file(sampled_dir, tmp_path, capsy
     broken.write_text(json.dumps(raw))
     with pytest.raises(SystemExit) as exit_info:
         main(["import", str(broken), "--out", str(tmp_path / "out.json")])
-    assert exit_info.value.code == 1
+    assert exit_info.value.code == 2
     assert f"{broken}: env_state.polygon[4].role: must be in 0..3, got 7" in capsys.readouterr().err
     assert not (tmp_path / "out.json").exists()
 

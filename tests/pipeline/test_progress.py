@@ -1,15 +1,27 @@
-"""Training progress of the level batches in flight: worker reports, the coordinator's view, the progress bar."""
+"""What a run shows while it works: worker reports, the coordinator's view of the batches in flight (compiling,
+training), the progress bar's text and time left, the --max-batches budget, the closing summary and the log file."""
+
+import logging
 
 from pipeline_test_helpers import tiny_job
 
+from pipeline.generation.console import (
+    QUIET_ENV,
+    THIRD_PARTY_LOGGERS,
+    closing_summary,
+    in_flight_summary,
+    remaining_seconds,
+    resume_line,
+    start_log_file,
+)
 from pipeline.generation.coordinator import Coordinator
 from pipeline.generation.level_batch import batches_per_shard, num_shards
-from pipeline.generation.run import _training_summary, prepare_output
+from pipeline.generation.run import prepare_output
 from pipeline.generation.worker import Worker
 
 
-def _coordinator(tmp_path):
-    return Coordinator(tmp_path, num_shards=2, batches_per_shard=2)
+def _coordinator(tmp_path, max_batches=None):
+    return Coordinator(tmp_path, num_shards=2, batches_per_shard=2, max_batches=max_batches)
 
 
 def test_the_coordinator_keeps_reports_of_claimed_batches_until_commit_or_release(tmp_path):
@@ -26,6 +38,59 @@ def test_the_coordinator_keeps_reports_of_claimed_batches_until_commit_or_releas
     assert coordinator.training() == {(shard, second): 0.25}
     coordinator.release(shard)  # the worker failed: its batch is no longer in flight
     assert coordinator.training() == {}
+
+
+def test_batches_in_flight_are_compiling_until_their_worker_reports_or_has_committed(tmp_path):
+    coordinator = _coordinator(tmp_path)
+    a, b = coordinator.next_shard("a"), coordinator.next_shard("b")
+    coordinator.claim_batch(a), coordinator.claim_batch(b)
+    assert coordinator.in_flight() == {(0, 0): "compiling", (1, 0): "compiling"}
+    coordinator.report_training(a, 0, 2, 8)
+    assert coordinator.in_flight() == {(0, 0): 0.25, (1, 0): "compiling"}
+    coordinator.commit(a, 0, {"levels": []})
+    coordinator.claim_batch(a)  # worker a's programs are compiled: its next batch is only starting
+    assert coordinator.in_flight() == {(0, 1): "starting", (1, 0): "compiling"}
+
+
+def test_the_progress_text_shows_compiling_and_training_batches_apart():
+    assert in_flight_summary({}) == ""
+    assert in_flight_summary({(0, 0): "compiling", (1, 0): "compiling"}) == "compiling 2 batches"
+    assert in_flight_summary({(0, 1): 0.4}) == "training 1 batch: 40%"
+    mixed = {(1, 0): 0.95, (0, 3): 0.4, (2, 0): "compiling", (3, 0): "starting", (4, 0): 1.0}
+    expected = "compiling 1 batch, starting 1 batch, training 2 batches: 40% 95%, collecting 1 batch"
+    assert in_flight_summary(mixed) == expected
+    many = {(shard, 0): share for shard, share in enumerate([0.1, 0.2, 0.3, 0.4, 0.5])}
+    assert in_flight_summary(many) == "training 5 batches: mean 30%"
+
+
+def test_time_left_is_the_measured_time_per_committed_batch_of_this_run():
+    assert remaining_seconds(0, 120.0, 4) is None  # nothing committed yet: no estimate
+    assert remaining_seconds(2, 100.0, 3) == 150.0  # 50 s per batch, 3 to go
+
+
+def test_a_resumed_run_says_what_it_found():
+    assert resume_line(0, 4, 0) is None  # a new dataset
+    assert resume_line(3, 4, 0) == "resuming: found 3 of 4 level batches committed; 1 remain"
+    assert resume_line(4, 4, 0) == "resuming: found 4 of 4 level batches committed; nothing remains"
+    grown = resume_line(2, 6, 1)
+    assert (
+        grown == "resuming: found 2 of 6 level batches committed (1 level batch withdrawn to grow the split); 4 remain"
+    )
+
+
+def test_max_batches_counts_commits_so_a_failed_claim_does_not_use_up_the_budget(tmp_path):
+    coordinator = _coordinator(tmp_path, max_batches=2)
+    shard = coordinator.next_shard("w")
+    assert coordinator.claim_batch(shard) == 0
+    coordinator.release(shard)  # the worker died before committing
+    shard = coordinator.next_shard("w2")
+    assert (coordinator.claim_batch(shard), coordinator.claim_batch(shard)) == (0, 1)
+    assert coordinator.claim_batch(shard) is None  # two in flight: the budget is reached
+    coordinator.commit(shard, 0, {"levels": []})
+    coordinator.commit(shard, 1, {"levels": []})
+    coordinator.release(shard)
+    assert coordinator.next_shard("w2") is None  # exactly two committed
+    assert coordinator.progress() == (2, 4)
 
 
 class _RecordingCoordinator(Coordinator):
@@ -51,9 +116,46 @@ def test_a_worker_reports_each_batch_fully_trained_before_it_commits(tmp_path):
     assert coordinator.progress() == (2, 4)
 
 
-def test_the_progress_bar_lists_a_few_batches_and_averages_many():
-    assert _training_summary({}) == ""
-    assert _training_summary({(0, 1): 0.4}) == "training 1 batch: 40%"
-    assert _training_summary({(1, 0): 0.95, (0, 3): 0.4}) == "training 2 batches: 40% 95%"
-    many = {(shard, 0): share for shard, share in enumerate([0.1, 0.2, 0.3, 0.4, 0.5])}
-    assert _training_summary(many) == "training 5 batches: mean 30%"
+def test_the_closing_summary_says_what_was_made_where_and_what_to_run_next(tmp_path):
+    (tmp_path / "data").mkdir()
+    (tmp_path / "data" / "chunk").write_bytes(b"x" * 3000)
+    (tmp_path / "manifest").mkdir()
+    summary = {
+        "committed_batches": 3,
+        "total_batches": 4,
+        "committed_in_run": 2,
+        "levels": 6,
+        "outcomes": {"kept": 2, "unsolved": 1, "failed": 0, "filtered:trivial": 2, "filtered:no_actuator": 1},
+        "seconds": 75.0,
+        "worker_failures": [{"shard": 1}],
+        "abandoned_shards": [],
+        "log_file": str(tmp_path / "logs" / "run-1.log"),
+    }
+    assert closing_summary(summary, tmp_path).splitlines() == [
+        f"dataset incomplete: 1 of 4 level batches remain: {tmp_path} (2.9 KiB)",
+        "levels: 6 sampled, 3 filtered (no_actuator 1, trivial 2), 2 kept, 1 unsolved, 0 failed",
+        "this run: 2 level batches committed in 01:15, 1 worker failure",
+        f"third-party logs: {tmp_path / 'logs' / 'run-1.log'}",
+        "next:",
+        f"  kforge run {tmp_path / 'config.yaml'}    # continue",
+        f"  kforge verify {tmp_path}",
+        f"  kforge stats {tmp_path}",
+        f"  python -c \"from pipeline.reading import TrajectoryDatasetManager as M; print(M('{tmp_path}', "
+        'batch_size=2, seed=0).load_next_batch().action.shape)"',
+    ]
+
+
+def test_third_party_logs_go_to_the_log_file_and_to_the_terminal_only_when_verbose(tmp_path, capfd, monkeypatch):
+    for name, value in QUIET_ENV.items():
+        monkeypatch.setenv(name, value)  # restored after the test
+    for name in THIRD_PARTY_LOGGERS:
+        logger = logging.getLogger(name)
+        monkeypatch.setattr(logger, "handlers", list(logger.handlers))
+        monkeypatch.setattr(logger, "propagate", logger.propagate)
+    quiet = start_log_file(tmp_path / "quiet", verbose=False)
+    logging.getLogger("ray").warning("raylet says hello")
+    assert "raylet says hello" in quiet.read_text() and "raylet says hello" not in capfd.readouterr().err
+    assert quiet.parent == tmp_path / "quiet" / "logs"
+    loud = start_log_file(tmp_path / "loud", verbose=True)
+    logging.getLogger("wandb").warning("wandb says hello")
+    assert "wandb says hello" in loud.read_text() and "wandb says hello" in capfd.readouterr().err

@@ -9,6 +9,7 @@ import contextlib
 import dataclasses
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -23,11 +24,14 @@ from pipeline_test_helpers import run_in_process, tiny_job
 import pipeline.generation.config
 from engine import SimParams
 from env import EnvParams
-from pipeline.generation.config import to_yaml
+from pipeline.cli import EXIT_DATA, EXIT_INTERRUPTED
+from pipeline.cli.verify import main as verify_main
+from pipeline.generation.config import data_fingerprint, legacy_fingerprint, load_config, to_yaml
+from pipeline.generation.growth import ResumeRefused
 from pipeline.generation.level_batch import run_level_batch
-from pipeline.generation.run import ResumeRefused, prepare_output, run_job
+from pipeline.generation.run import DatasetDamaged, prepare_output, run_job
 from pipeline.generation.worker import FAULT_INJECTION_ENV
-from pipeline.storage.manifest import committed_batches, iter_records
+from pipeline.storage.manifest import committed_batches, iter_records, record_path
 from pipeline.storage.shard_store import open_dataset
 from pipeline.storage.verify import verify_dataset
 from pipeline.storage.writer import PROVENANCE, stage_level_batch
@@ -201,3 +205,150 @@ def test_a_job_killed_at_several_points_and_resumed_equals_an_uninterrupted_run(
     _run_job_process(config_file)
     assert_same_dataset(uninterrupted, output)
     assert all(report.ok for report in verify_dataset(output))
+
+
+# ------------------------------------------------------------------------------------------- repair and growth
+
+
+def _flip_byte(path: Path, offset: int = 10) -> None:
+    data = bytearray(path.read_bytes())
+    data[offset] ^= 0xFF
+    path.write_bytes(bytes(data))
+
+
+def test_a_damaged_commit_is_refused_by_run_repaired_by_verify_and_regenerated_identically(
+    uninterrupted, tmp_path, capsys
+):
+    root = tmp_path / "dataset"
+    shutil.copytree(uninterrupted, root)
+    _flip_byte(record_path(root, 1, 0))  # the tiny job keeps no trajectory, so its damage is in a commit record
+    with pytest.raises(
+        DatasetDamaged,
+        match=r"1 committed level batches have missing, unreadable or damaged files .*"
+        r"run `kforge verify --repair",
+    ):
+        run_job(tiny_job(root), show_progress=False)  # refused before anything starts
+    with pytest.raises(SystemExit) as exit_info:
+        verify_main([str(root)])
+    assert exit_info.value.code == EXIT_DATA
+    assert f"kforge verify --repair {root}" in capsys.readouterr().err
+    verify_main([str(root), "--repair"])
+    out = capsys.readouterr().out
+    assert "withdrew the commit of shard-000001 batch 0: unreadable record" in out
+    assert f"repaired: 1 level batches to regenerate; next: kforge run {root / 'config.yaml'}" in out
+    assert committed_batches(root, 1) == [1]
+    run_in_process(tiny_job(root))
+    assert_same_dataset(uninterrupted, root)
+
+
+def test_a_complete_dataset_is_reported_without_starting_ray_or_tracking(uninterrupted, tmp_path):
+    root = tmp_path / "dataset"
+    shutil.copytree(uninterrupted, root)
+    lines = []
+    summary = run_job(tiny_job(root), show_progress=False, report=lines.append)
+    assert lines == ["resuming: found 4 of 4 level batches committed; nothing remains"]
+    assert (summary["committed_batches"], summary["committed_in_run"], summary["log_file"]) == (4, 0, None)
+    assert not (root / "logs").exists()
+
+
+def test_raising_num_levels_grows_the_dataset_to_equal_one_made_at_the_larger_count(uninterrupted, tmp_path):
+    root = tmp_path / "dataset"
+    run_in_process(tiny_job(root, "split.num_levels=3"))  # one shard: levels 0-1, then 2 and a padding slot
+    assert committed_batches(root, 0) == [0, 1]
+    withdrawn = prepare_output(tiny_job(root))  # 6 levels: the padding slot becomes level 3, shard 1 is added
+    assert withdrawn == [(0, 1)] and committed_batches(root, 0) == [0]
+    assert open_dataset(root).geometry.num_shards == 2
+    run_in_process(tiny_job(root))
+    assert_same_dataset(uninterrupted, root)
+    with pytest.raises(ResumeRefused, match=r"holds 6 levels; split\.num_levels=4 would shrink it"):
+        prepare_output(tiny_job(root, "split.num_levels=4"))
+
+
+def test_an_interrupted_growth_leaves_a_dataset_that_opens_and_growing_again_finishes_it(tmp_path):
+    prepare_output(tiny_job(tmp_path, "split.num_levels=4"))
+    small_group = (tmp_path / "data" / "zarr.json").read_text()
+    prepare_output(tiny_job(tmp_path))
+    (tmp_path / "data" / "zarr.json").write_text(small_group)  # arrays grown, the group's spec not yet
+    dataset = open_dataset(tmp_path)
+    assert dataset.geometry.num_shards == 1 and dataset.array("done").shape[0] == 8  # longer arrays open
+    assert dataset.read(["done"], range(0, 4))["done"].shape == (4, 24)
+    prepare_output(tiny_job(tmp_path))
+    assert open_dataset(tmp_path).geometry.num_shards == 2
+
+
+def test_a_dataset_with_a_fingerprint_of_the_level_count_is_still_resumed(tmp_path):
+    prepare_output(tiny_job(tmp_path))
+    group_path = tmp_path / "data" / "zarr.json"
+    group = json.loads(group_path.read_text())
+    attributes = group["attributes"]["kforge_dataset"]["attributes"]
+    attributes["data_fingerprint"] = legacy_fingerprint(attributes["data_config"])  # made before datasets grew
+    group_path.write_text(json.dumps(group))
+    with pytest.raises(ResumeRefused, match=r"split\.seed \(0 -> 1\)"):
+        prepare_output(tiny_job(tmp_path, "split.seed=1"))
+    prepare_output(tiny_job(tmp_path))
+    assert open_dataset(tmp_path).spec.attributes["data_fingerprint"] == data_fingerprint(tiny_job(tmp_path))
+    assert data_fingerprint(tiny_job(tmp_path)) == data_fingerprint(tiny_job(tmp_path, "split.num_levels=99"))
+
+
+def test_the_config_is_written_atomically(tmp_path):
+    prepare_output(tiny_job(tmp_path))
+    assert sorted(path.name for path in tmp_path.iterdir()) == ["config.yaml", "data", "manifest"]  # no temp file
+    assert load_config(tmp_path / "config.yaml").output_dir == str(tmp_path)
+
+
+def test_a_failed_ray_start_finishes_the_tracked_run(tmp_path, monkeypatch):
+    import wandb
+
+    monkeypatch.delenv("WANDB_MODE")
+    job = tiny_job(tmp_path, "tracking.wandb=offline", "ray.address=not-an-address")
+    with pytest.raises(ValueError, match="not-an-address"):
+        run_job(job, show_progress=False)
+    assert wandb.run is None  # finished (marked failed), not left open
+    assert len(list((tmp_path / "logs" / "wandb").glob("offline-run-*"))) == 1
+
+
+# ------------------------------------------------------------------------------------ interrupting a real job
+
+
+def _worker_started(session: int) -> bool:
+    """A Ray worker actor of the job's session has started (the job is at work)."""
+    for pid in _session_processes(session):
+        with contextlib.suppress(OSError):
+            if b"ray::Worker" in Path(f"/proc/{pid}/cmdline").read_bytes():
+                return True
+    return False
+
+
+@pytest.mark.parametrize("whom", ["SIGINT to the terminal's process group", "SIGTERM to the driver"])
+def test_a_signal_ends_the_job_with_one_line_naming_what_was_committed_and_how_to_resume(whom, tmp_path):
+    output = tmp_path / "dataset"
+    config_file = tmp_path / "job.yaml"
+    config_file.write_text(to_yaml(tiny_job(output)))
+    run_in_process(tiny_job(output), max_batches=1)
+    command = [sys.executable, "-m", "pipeline", "run", str(config_file), "--no-progress"]
+    process = subprocess.Popen(
+        command,
+        start_new_session=True,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        env={**os.environ, "RAY_AUTH_MODE": "disabled"},
+    )
+    try:
+        deadline = time.monotonic() + JOB_TIMEOUT_SECONDS
+        while not _worker_started(process.pid) and process.poll() is None and time.monotonic() < deadline:
+            time.sleep(POLL_SECONDS)
+        if whom.startswith("SIGINT"):
+            os.killpg(process.pid, signal.SIGINT)  # what Ctrl-C does
+        else:
+            os.kill(process.pid, signal.SIGTERM)  # what a scheduler does
+        out, err = process.communicate(timeout=KILL_WAIT_SECONDS * 4)
+    finally:
+        _kill_session(process.pid)
+    err = err.decode()
+    assert process.returncode == EXIT_INTERRUPTED, err[-3000:]
+    assert out == b"" and "Traceback" not in err and "\x1b[" not in err  # no colour codes off a terminal
+    assert err.splitlines() == [
+        "resuming: found 1 of 4 level batches committed; 3 remain",
+        f"interrupted: {_committed(output)} of 4 level batches committed in {output} ({_committed(output) - 1} in "
+        f"this run); resume with: kforge run {config_file} --no-progress",
+    ]

@@ -108,8 +108,8 @@ def test_an_offline_run_logs_every_batch_each_completed_shard_and_the_summary(tm
 
 
 def tracker_dir(output_dir: Path) -> Path:
-    """The single offline run directory under a dataset directory (tracking.dir defaults to output_dir)."""
-    (run_dir,) = (output_dir / "wandb").glob("offline-run-*")
+    """The single offline run directory under a dataset directory (tracking.dir defaults to output_dir/logs)."""
+    (run_dir,) = (output_dir / "logs" / "wandb").glob("offline-run-*")
     return run_dir
 
 

@@ -1,15 +1,19 @@
-"""`kforge verify`: a clean dataset passes; corruption, missing files and uncommitted batches name their shard."""
+"""`kforge verify`: a clean dataset passes; corruption, missing files and uncommitted batches name their shard;
+`--repair` withdraws the commits of bad batches."""
 
 from __future__ import annotations
 
 import shutil
 
+import numpy as np
 import pytest
-from pipeline_test_helpers import GEOMETRY
+from pipeline_test_helpers import GEOMETRY, batch_result
 
 from pipeline.cli.verify import main
+from pipeline.storage.repair import damaged_commits
 from pipeline.storage.shard_store import open_dataset
 from pipeline.storage.verify import verify_dataset
+from pipeline.storage.writer import clean_uncommitted, write_level_batch
 
 
 @pytest.fixture
@@ -71,3 +75,58 @@ def test_an_unreadable_dataset_exits_with_the_reason(tmp_path, capsys):
         main([str(tmp_path)], prog="kforge verify")
     assert exit_info.value.code == 1
     assert "not a dataset" in capsys.readouterr().err
+
+
+def test_repair_withdraws_the_bad_batch_and_rewriting_it_gives_back_the_untouched_dataset(
+    dataset_dir, copy, rolled_out, capsys
+):
+    dataset = open_dataset(copy)
+    g = GEOMETRY.global_batch(1, 1)
+    path = dataset.batch_file("env_state/sim/bodies/position", g)
+    data = bytearray(path.read_bytes())
+    data[100] ^= 0xFF
+    path.write_bytes(bytes(data))
+    main([str(copy), "--repair"], prog="kforge verify")
+    out = capsys.readouterr().out
+    assert (
+        "withdrew the commit of shard-000001 batch 1: env_state/sim/bodies/position: file "
+        "data/env_state/sim/bodies/position/c/3/0/0/0 sha256 mismatch" in out
+    )
+    assert "repaired: 1 level batches to regenerate" in out
+    assert [r.committed for r in verify_dataset(copy, allow_incomplete=True)] == [[0, 1], [0]]
+    # The next run regenerates exactly that batch (here: the same writer call that made it).
+    clean_uncommitted(copy, 1)
+    write_level_batch(open_dataset(copy), 1, 1, batch_result(rolled_out, (10 * g, 10 * g + 1, 10 * g + 2)))
+    for name in ("env_state/sim/bodies/position", "action", "done"):
+        np.testing.assert_array_equal(
+            open_dataset(copy).read([name], range(GEOMETRY.num_slots))[name],
+            open_dataset(dataset_dir).read([name], range(GEOMETRY.num_slots))[name],
+        )
+    assert all(report.ok for report in verify_dataset(copy))
+    main([str(copy), "--repair"], prog="kforge verify")
+    assert "nothing to repair" in capsys.readouterr().out
+
+
+def test_an_unfinished_dataset_points_at_allow_incomplete_and_the_command_that_finishes_it(copy, capsys):
+    (copy / "manifest" / "shard-000001" / "batch-000.json").unlink()
+    with pytest.raises(SystemExit) as exit_info:
+        main([str(copy)], prog="kforge verify")
+    assert exit_info.value.code == 1
+    err = capsys.readouterr().err
+    assert f"1 level batches are not committed: finish the job with kforge run {copy / 'config.yaml'}" in err
+    assert "--allow-incomplete" in err
+    assert "--repair" not in err  # nothing committed is damaged
+
+
+def test_the_check_a_resumed_run_makes_finds_missing_and_damaged_files(dataset_dir, copy):
+    assert damaged_commits(dataset_dir) == []
+    dataset = open_dataset(copy)
+    dataset.batch_file("done", GEOMETRY.global_batch(0, 1)).unlink()
+    flipped = dataset.batch_file("action", GEOMETRY.global_batch(1, 0))
+    data = bytearray(flipped.read_bytes())
+    data[50] ^= 0x01
+    flipped.write_bytes(bytes(data))
+    assert damaged_commits(copy) == [
+        "shard-000000 batch 1: file data/done/c/1/0 missing",
+        "shard-000001 batch 0: file data/action/c/2/0/0 sha256 mismatch",
+    ]

@@ -1,0 +1,82 @@
+"""Resuming on an existing dataset: the job must define the same data; a larger `split.num_levels` grows it.
+
+Level i is the same level whatever the split's level count (its keys derive from (seed, i)), so raising the count
+appends levels: the dataset's arrays get the new shards' slots and every existing commit stays valid, except the
+level batches holding padding slots that become levels, whose commits are withdrawn so the run regenerates them.
+The grown dataset equals one generated at the larger count from the start. Lowering the count is refused.
+
+Datasets made before they could grow carry a fingerprint that covers the level count (`legacy_fingerprint`);
+they are accepted when their stored definition matches, and get the current fingerprint on their first resume.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from pipeline.generation.config import GROWABLE_KEY, definition_fingerprint, legacy_fingerprint
+from pipeline.storage import DatasetSpec, committed_batches, grow_dataset, open_dataset, withdraw_commit
+
+
+class ResumeRefused(ValueError):
+    """The output directory holds a dataset made with a config that would change the data."""
+
+
+FINGERPRINT = "data_fingerprint"
+DEFINITION = "data_config"
+"""Keys of the data fingerprint and the data definition among a dataset's attributes."""
+
+
+def reconcile_dataset(root: str | Path, spec: DatasetSpec) -> list[tuple[int, int]]:
+    """Check that the dataset at `root` holds the data `spec` (the job's) defines, and grow it to `spec` if the job
+    has more levels; returns the (shard, batch) commits withdrawn by growing. `ResumeRefused` naming the keys that
+    differ, or both level counts if the job has fewer levels."""
+    root = Path(root)
+    stored = open_dataset(root).spec
+    old, new = stored.attributes.get(DEFINITION, {}), spec.attributes[DEFINITION]
+    fingerprint = stored.attributes.get(FINGERPRINT)
+    same_data = fingerprint == definition_fingerprint(new) or (
+        fingerprint == legacy_fingerprint(old) and definition_fingerprint(old) == definition_fingerprint(new)
+    )
+    if not same_data:
+        changed = [key for key in changed_keys(old, new) if not key.startswith(".".join(GROWABLE_KEY) + " ")]
+        raise ResumeRefused(
+            f"{root} holds a dataset generated with a different config; these keys would change the data: "
+            f"{', '.join(changed) or '(unknown: older dataset)'}. Use another output_dir or the original values."
+        )
+    section, key = GROWABLE_KEY
+    old_levels, new_levels = old[section][key], new[section][key]
+    if new_levels < old_levels:
+        raise ResumeRefused(
+            f"{root} holds {old_levels} levels; split.num_levels={new_levels} would shrink it, which is refused "
+            f"(a dataset only grows). Use split.num_levels={old_levels} or more, or another output_dir."
+        )
+    if stored.to_json() == spec.to_json():
+        return []
+    withdrawn = _withdraw_padding_batches(root, stored, old_levels, new_levels)
+    grow_dataset(root, spec)
+    return withdrawn
+
+
+def _withdraw_padding_batches(root: Path, stored: DatasetSpec, old_levels: int, new_levels: int):
+    """Withdraw the commits of the stored level batches whose padding slots (level ids >= old_levels) become levels."""
+    geometry = stored.geometry
+    withdrawn = []
+    first = old_levels // geometry.levels_per_batch  # the global batch holding level old_levels
+    last = min(-(-new_levels // geometry.levels_per_batch), geometry.num_batches)
+    for global_batch in range(first, last):
+        shard, batch = divmod(global_batch, geometry.batches_per_shard)
+        if batch in committed_batches(root, shard) and withdraw_commit(root, shard, batch):
+            withdrawn.append((shard, batch))
+    return withdrawn
+
+
+def changed_keys(old: dict, new: dict, prefix: str = "") -> list[str]:
+    """Dotted keys whose values differ between two nested dicts, each as "key (old -> new)"."""
+    keys = []
+    for key in sorted(set(old) | set(new)):
+        a, b = old.get(key), new.get(key)
+        if isinstance(a, dict) and isinstance(b, dict):
+            keys += changed_keys(a, b, f"{prefix}{key}.")
+        elif a != b:
+            keys.append(f"{prefix}{key} ({a!r} -> {b!r})")
+    return keys

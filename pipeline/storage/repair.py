@@ -1,0 +1,94 @@
+"""Repair of a damaged dataset: the commits of level batches that fail verification are withdrawn, so the next run
+regenerates exactly those batches (generation is deterministic, so the repaired dataset equals an undamaged one).
+
+Also the check a resumed run makes before it trusts its commits: every committed batch's record reads and every
+data file it names exists with its recorded checksum.
+"""
+
+from __future__ import annotations
+
+import concurrent.futures
+import dataclasses
+import os
+from collections.abc import Sequence
+
+from pipeline.storage.layout import DatasetError
+from pipeline.storage.manifest import committed_batches, read_record, remove_record, shard_name
+from pipeline.storage.shard_store import file_digest, open_dataset
+from pipeline.storage.verify import ShardReport
+
+HASH_THREADS = 4
+"""Files hashed at once by `damaged_commits` (hashlib releases the GIL on large buffers)."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Withdrawal:
+    """A level batch whose commit was withdrawn, and why."""
+
+    shard: int
+    batch: int
+    problems: tuple[str, ...]
+
+    def describe(self) -> str:
+        """ "shard-000001 batch 0: <problem>; <problem>"."""
+        where = f"{shard_name(self.shard)} batch {self.batch}"
+        return f"{where}: {'; '.join(problem.removeprefix(f'{where}: ') for problem in self.problems)}"
+
+
+def withdraw_commit(root: str | os.PathLike, shard: int, batch: int) -> bool:
+    """Withdraw a level batch's commit (remove its record), so that the next run regenerates the batch; True if it
+    was committed."""
+    return remove_record(root, shard, batch)
+
+
+def withdraw_bad_batches(root: str | os.PathLike, reports: Sequence[ShardReport]) -> list[Withdrawal]:
+    """Withdraw the commit of every level batch the reports (`verify_dataset`) found bad; returns what was withdrawn.
+
+    Only commit records are removed (atomically, one file each); the batches' data files are left for the next run,
+    which removes them before it regenerates the batches (`clean_uncommitted`).
+    """
+    withdrawn = []
+    for report in reports:
+        for batch, problems in sorted(report.bad_batches.items()):
+            withdraw_commit(root, report.shard, batch)
+            withdrawn.append(Withdrawal(report.shard, batch, tuple(problems)))
+    return withdrawn
+
+
+def damaged_commits(root: str | os.PathLike) -> list[str]:
+    """Committed level batches whose record does not read, or whose recorded data files are missing or differ from
+    their recorded sha256 (a flipped byte), one line each ("shard-000001 batch 1: file data/done/c/3/0 missing");
+    empty for an intact dataset. Reads every data file once (hashed in parallel); decoding and content checks are
+    `kforge verify`'s."""
+    dataset = open_dataset(root)
+    geometry = dataset.geometry
+    damaged, expected = [], []
+    for shard in range(geometry.num_shards):
+        for batch in committed_batches(root, shard):
+            where = f"{shard_name(shard)} batch {batch}"
+            try:
+                record = read_record(root, shard, batch)
+            except DatasetError as error:
+                damaged.append(str(error))
+                continue
+            if batch >= geometry.batches_per_shard:
+                damaged.append(f"{where}: outside the dataset's {geometry.batches_per_shard} batches per shard")
+                continue
+            arrays = record.get("arrays", {})
+            missing = [spec.name for spec in dataset.layout.fields if spec.name not in arrays]
+            if missing:
+                damaged.append(f"{where}: {missing[0]} not in the record")
+                continue
+            global_batch = geometry.global_batch(shard, batch)
+            for spec in dataset.layout.fields:
+                if arrays[spec.name].get("sha256") is not None:
+                    expected.append((where, dataset.batch_file(spec.name, global_batch), arrays[spec.name]["sha256"]))
+    with concurrent.futures.ThreadPoolExecutor(HASH_THREADS) as pool:
+        digests = list(pool.map(file_digest, [path for _, path, _ in expected]))
+    bad_batches = set()
+    for (where, path, recorded), digest in zip(expected, digests, strict=True):
+        if digest != recorded and where not in bad_batches:
+            bad_batches.add(where)
+            what = "missing" if digest is None else "sha256 mismatch"
+            damaged.append(f"{where}: file {path.relative_to(dataset.root)} {what}")
+    return damaged
