@@ -7,6 +7,7 @@ import json
 
 import pytest
 
+from env import LevelFileError
 from pipeline.cli import EXIT_DATA, EXIT_USAGE, main
 
 PIPELINE_SUBCOMMANDS = (["run"], ["verify"], ["stats"], ["export"], ["levels", "sample"], ["levels", "export"])
@@ -45,7 +46,7 @@ def test_render_reports_a_missing_or_malformed_level_file_in_one_line(tmp_path, 
 
 
 def test_debug_shows_the_traceback(tmp_path):
-    with pytest.raises(FileNotFoundError):
+    with pytest.raises(LevelFileError, match="no such level file or bundled level"):
         main(["render", str(tmp_path / "missing.json"), "--debug"])
 
 
