@@ -6,7 +6,6 @@ import collections
 import os
 import time
 import warnings
-from pathlib import Path
 
 from tqdm import tqdm
 
@@ -26,10 +25,12 @@ from pipeline.storage import (
     CONFIG_FILE,
     DatasetSpec,
     Geometry,
+    Lease,
     create_dataset,
     iter_records,
     make_layout,
     open_dataset,
+    open_store,
 )
 
 RAY_NAMESPACE = "kforge"
@@ -59,19 +60,22 @@ def dataset_spec(job: JobConfig) -> DatasetSpec:
 
 
 def prepare_output(job: JobConfig) -> None:
-    """Create the dataset, or check that an existing one was made with the same data-defining config."""
-    root = Path(job.output_dir)
+    """Create the dataset, or check that an existing one was made with the same data-defining config.
+
+    Call it under the job's lease on the dataset (`Lease.acquire`)."""
+    store = open_store(job.output_dir)
+    root = store.location
     spec = dataset_spec(job)
-    if (root / "data").exists():
-        stored = open_dataset(root).spec
+    if store.exists("data/zarr.json"):
+        stored = open_dataset(store).spec
         if stored.attributes.get("data_fingerprint") != spec.attributes["data_fingerprint"]:
             changed = _changed_keys(stored.attributes.get("data_config", {}), spec.attributes["data_config"])
             raise ResumeRefused(
                 f"{root} holds a dataset generated with a different config; these keys would change the data: "
                 f"{', '.join(changed) or '(unknown: older dataset)'}. Use another output_dir or the original values."
             )
-    create_dataset(root, spec)
-    (root / CONFIG_FILE).write_text(to_yaml(job))
+    create_dataset(store, spec)
+    store.write(CONFIG_FILE, to_yaml(job).encode())
 
 
 def _changed_keys(old: dict, new: dict, prefix: str = "") -> list[str]:
@@ -87,6 +91,16 @@ def _changed_keys(old: dict, new: dict, prefix: str = "") -> list[str]:
 
 def run_job(job: JobConfig, max_batches: int | None = None, show_progress: bool = True) -> dict:
     """Generate (or resume) the job's dataset; returns the summary. `max_batches` stops after that many batches."""
+
+    lease = Lease.acquire(job.output_dir, job.lease.stale_after_s, job.lease.heartbeat_s)
+    try:
+        return _run_leased(job, lease, max_batches, show_progress)
+    finally:
+        lease.release()
+
+
+def _run_leased(job: JobConfig, lease: Lease, max_batches: int | None, show_progress: bool) -> dict:
+    """`run_job` while holding the dataset's lease."""
     import ray
 
     prepare_output(job)
@@ -109,7 +123,7 @@ def run_job(job: JobConfig, max_batches: int | None = None, show_progress: bool 
         coordinator = (
             ray.remote(Coordinator)
             .options(num_cpus=0)
-            .remote(job.output_dir, num_shards(job), batches_per_shard(job), max_batches)
+            .remote(job.output_dir, num_shards(job), batches_per_shard(job), max_batches, lease.holder.job_id)
         )
         worker_class = ray.remote(Worker).options(num_cpus=job.ray.cpus_per_worker, num_gpus=job.ray.gpus_per_worker)
         in_flight = {}
@@ -124,6 +138,7 @@ def run_job(job: JobConfig, max_batches: int | None = None, show_progress: bool 
         done, total = ray.get(coordinator.progress.remote())
         with tqdm(total=total, initial=done, unit="batch", desc="level batches", disable=not show_progress) as bar:
             while in_flight:
+                lease.check()
                 ready, _ = ray.wait(list(in_flight), timeout=PROGRESS_POLL_SECONDS)
                 for ref in ready:
                     worker, name, shard = in_flight.pop(ref)

@@ -22,11 +22,23 @@ from pipeline.storage.layout import (
     static_to_json,
     unflatten_state,
 )
+from pipeline.storage.lease import (
+    DEFAULT_HEARTBEAT_S,
+    DEFAULT_STALE_AFTER_S,
+    LEASE_KEY,
+    Lease,
+    LeaseHeld,
+    LeaseHolder,
+    LeaseLost,
+    read_holder,
+)
 from pipeline.storage.manifest import (
+    all_committed,
     committed_batches,
     iter_records,
     read_record,
-    record_path,
+    record_exists,
+    record_key,
     recorded_shards,
     shard_name,
     write_record,
@@ -45,6 +57,7 @@ from pipeline.storage.shard_store import (
     open_dataset,
 )
 from pipeline.storage.state_codec import encode, is_coded
+from pipeline.storage.store import Store, StoreError, is_remote, join, open_store
 from pipeline.storage.verify import ShardReport, format_report, verify_dataset
 from pipeline.storage.writer import (
     BatchTrajectories,
@@ -56,6 +69,19 @@ from pipeline.storage.writer import (
 )
 
 __all__ = [
+    "DEFAULT_HEARTBEAT_S",
+    "DEFAULT_STALE_AFTER_S",
+    "LEASE_KEY",
+    "Lease",
+    "LeaseHeld",
+    "LeaseHolder",
+    "LeaseLost",
+    "Store",
+    "StoreError",
+    "is_remote",
+    "join",
+    "open_store",
+    "read_holder",
     "ACTION",
     "ACTION_MASK",
     "BLOSC_LEVEL",
@@ -87,6 +113,7 @@ __all__ = [
     "LearningCurves",
     "ShardReport",
     "clean_uncommitted",
+    "all_committed",
     "committed_batches",
     "create_dataset",
     "encode",
@@ -97,7 +124,8 @@ __all__ = [
     "make_layout",
     "open_dataset",
     "read_record",
-    "record_path",
+    "record_exists",
+    "record_key",
     "recorded_shards",
     "shard_name",
     "stage_level_batch",

@@ -26,8 +26,8 @@ from pipeline.storage.layout import (
     DatasetError,
 )
 from pipeline.storage.manifest import committed_batches, read_record, shard_name, temp_records
-from pipeline.storage.shard_store import Dataset, array_digest, file_digest, open_dataset
-from pipeline.storage.writer import LOCK_SUFFIX, episode_lengths
+from pipeline.storage.shard_store import Dataset, array_digest, object_digest, open_dataset
+from pipeline.storage.writer import episode_lengths
 
 TIMESTEP = f"{STATE_PREFIX}/timestep"
 
@@ -56,21 +56,22 @@ def verify_dataset(root: str | os.PathLike, allow_incomplete: bool = False) -> l
 def verify_shard(dataset: Dataset, shard: int, allow_incomplete: bool = False) -> ShardReport:
     """Check every committed level batch of `shard`; see the module docstring."""
     geometry = dataset.geometry
-    report = ShardReport(shard, committed_batches(dataset.root, shard))
+    report = ShardReport(shard, committed_batches(dataset.store, shard))
     missing = [b for b in range(geometry.batches_per_shard) if b not in report.committed]
     if missing:
         message = f"level batches {missing} not committed"
         (report.notes if allow_incomplete else report.problems).append(message)
-    for path in temp_records(dataset.root, shard):
-        report.notes.append(f"half-written record {path.name} (removed on resume)")
+    store = dataset.store
+    for key in temp_records(store, shard):
+        report.notes.append(f"half-written record {key.rsplit('/', 1)[-1]} (removed on resume)")
     for batch in range(geometry.batches_per_shard):
         global_batch = geometry.global_batch(shard, batch)
         for spec in dataset.layout.fields:
-            path = dataset.batch_file(spec.name, global_batch)
-            if batch not in report.committed and path.exists():
-                report.notes.append(f"batch {batch}: uncommitted data file {path.relative_to(dataset.root)}")
-            if path.parent.is_dir() and any(p.name.startswith(path.name + LOCK_SUFFIX) for p in path.parent.iterdir()):
-                report.notes.append(f"batch {batch}: stale lock file beside {path.relative_to(dataset.root)}")
+            key = dataset.batch_key(spec.name, global_batch)
+            if batch not in report.committed and key in store.list(key):
+                report.notes.append(f"batch {batch}: uncommitted data file {key}")
+            if store.partial_writes(key):
+                report.notes.append(f"batch {batch}: stale lock file beside {key}")
     for batch in report.committed:
         try:
             problems, num_kept = _verify_batch(dataset, shard, batch)
@@ -82,7 +83,7 @@ def verify_shard(dataset: Dataset, shard: int, allow_incomplete: bool = False) -
 
 
 def _verify_batch(dataset: Dataset, shard: int, batch: int) -> tuple[list[str], int]:
-    record = read_record(dataset.root, shard, batch)
+    record = read_record(dataset.store, shard, batch)
     layout, geometry = dataset.layout, dataset.geometry
     slots = geometry.slots(shard, batch)
     problems = []
@@ -95,11 +96,11 @@ def _verify_batch(dataset: Dataset, shard: int, batch: int) -> tuple[list[str], 
         if entry is None:
             problems.append(f"{spec.name}: not in the record")
             continue
-        path = dataset.batch_file(spec.name, geometry.global_batch(shard, batch))
-        digest = file_digest(path)
+        key = dataset.batch_key(spec.name, geometry.global_batch(shard, batch))
+        digest = object_digest(dataset.store, key)
         if digest != entry.get("sha256"):
             what = "missing" if digest is None else ("unexpected" if entry.get("sha256") is None else "sha256 mismatch")
-            problems.append(f"{spec.name}: file {path.relative_to(dataset.root)} {what}")
+            problems.append(f"{spec.name}: file {key} {what}")
         try:
             arrays[spec.name] = dataset.read([spec.name], slots)[spec.name]
         except ValueError as error:

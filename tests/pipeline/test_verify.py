@@ -5,7 +5,7 @@ from __future__ import annotations
 import shutil
 
 import pytest
-from pipeline_test_helpers import GEOMETRY
+from pipeline_test_helpers import GEOMETRY, batch_file
 
 from pipeline.cli.verify import main
 from pipeline.storage.shard_store import open_dataset
@@ -30,7 +30,7 @@ def test_a_clean_dataset_passes(dataset_dir, capsys):
 
 def test_a_flipped_byte_in_a_chunk_fails_its_shard(copy, capsys):
     dataset = open_dataset(copy)
-    path = dataset.batch_file("env_state/sim/bodies/position", GEOMETRY.global_batch(1, 1))
+    path = batch_file(dataset, "env_state/sim/bodies/position", GEOMETRY.global_batch(1, 1))
     data = bytearray(path.read_bytes())
     data[100] ^= 0xFF
     path.write_bytes(bytes(data))
@@ -50,7 +50,7 @@ def test_a_flipped_byte_in_a_chunk_fails_its_shard(copy, capsys):
 
 def test_a_missing_file_fails_its_shard(copy):
     dataset = open_dataset(copy)
-    dataset.batch_file("done", GEOMETRY.global_batch(0, 1)).unlink()
+    batch_file(dataset, "done", GEOMETRY.global_batch(0, 1)).unlink()
     reports = verify_dataset(copy)
     assert [r.ok for r in reports] == [False, True]
     assert "batch 1: done: file data/done/c/1/0 missing" in reports[0].problems
