@@ -11,7 +11,7 @@ def main(argv: Sequence[str] | None = None, prog: str | None = None) -> None:
     """Check every committed level batch of DATASET: files against their checksums, decoded content against the
     records, finite kept trajectories whose episodes end in success; exit 1 naming each bad shard."""
     parser = argparse.ArgumentParser(prog=prog, description=main.__doc__)
-    parser.add_argument("dir", help="dataset directory (holds data/ and manifest/)")
+    parser.add_argument("dir", help="dataset: a directory (holds data/ and manifest/), s3:// or gs:// URL")
     parser.add_argument(
         "--allow-incomplete", action="store_true", help="uncommitted level batches are notes, not problems"
     )

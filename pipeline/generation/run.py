@@ -26,6 +26,7 @@ from pipeline.storage import (
     DatasetSpec,
     Geometry,
     Lease,
+    Outcome,
     create_dataset,
     iter_records,
     make_layout,
@@ -196,6 +197,6 @@ def summarize(root) -> dict:
     batches = 0
     for record in iter_records(root):
         batches += 1
-        outcomes.update(level["outcome"] for level in record["levels"])
-    levels = sum(count for outcome, count in outcomes.items() if outcome != "padding")
+        outcomes.update(str(level.outcome) for level in record.levels)
+    levels = sum(count for outcome, count in outcomes.items() if outcome != Outcome.PADDING)
     return {"committed_batches": batches, "levels": levels, "outcomes": dict(sorted(outcomes.items()))}

@@ -21,7 +21,7 @@ from env import FilterReason
 from pipeline.generation.config import TRACKING_MODES, ConfigError, JobConfig, data_fingerprint
 from pipeline.generation.coordinator import Commit
 from pipeline.generation.level_batch import batches_per_shard
-from pipeline.storage import FAILED, FILTERED_PREFIX, KEPT, PADDING, PROVENANCE, UNSOLVED, read_record
+from pipeline.storage import FAILED, FILTERED_PREFIX, KEPT, PADDING, PROVENANCE, UNSOLVED, read_record_json
 
 WANDB_MODE_ENV = "WANDB_MODE"
 """Environment variable that overrides `tracking.wandb` when set (wandb's own name for it)."""
@@ -161,7 +161,9 @@ class Tracker:
 
     def _log_shard(self, shard: int) -> None:
         """Log a completed shard's metrics over all its level batches, read from the manifest."""
-        records = [read_record(self._job.output_dir, shard, batch) for batch in range(batches_per_shard(self._job))]
+        records = [
+            read_record_json(self._job.output_dir, shard, batch) for batch in range(batches_per_shard(self._job))
+        ]
         metrics = batch_metrics(records, self._job)
         self._run.log(
             {SHARD_STEP: self._totals.shards, "shard/index": shard}

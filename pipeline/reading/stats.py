@@ -28,10 +28,9 @@ from pipeline.storage import (
     FILTERED_PREFIX,
     KEPT,
     MANIFEST_DIR,
-    PADDING,
-    PROVENANCE,
     UNSOLVED,
     DatasetError,
+    Outcome,
     Store,
     all_committed,
     open_dataset,
@@ -214,28 +213,28 @@ def collect_stats(root: str | os.PathLike, show_progress: bool = True) -> Datase
         record = read_record(store, shard, batch)
         shard_counts = shards[shard]
         shard_counts["batches"] += 1
-        for level in record["levels"]:
-            outcome = level["outcome"]
-            if outcome == PADDING:
+        for level in record.levels:
+            outcome = level.outcome
+            if outcome == Outcome.PADDING:
                 continue
             outcomes[outcome] += 1
             shard_counts["sampled"] += 1
             shard_counts[outcome] += 1
-            trained = outcome in TRAINED_OUTCOMES
+            trained = outcome.is_trained
             shard_counts["trained"] += trained
-            shard_counts["solved"] += trained and _float(level["expert_success_rate"]) > SOLVED_ABOVE
-            if outcome in WINDOW_OUTCOMES:
-                lengths[outcome].update(level["episode_lengths"])
-            if outcome in TRAINED_OUTCOMES:
-                rates.append(_float(level["expert_success_rate"]))
-                if "learning_curve" in level and level["level_id"] % curve_stride == 0:
-                    curves.append([_float(value) for value in level["learning_curve"]["success_rate"]])
-        steps = record.get("curve_env_steps")
+            shard_counts["solved"] += trained and _float(level.expert_success_rate) > SOLVED_ABOVE
+            if outcome.has_window:
+                lengths[outcome].update(level.episode_lengths)
+            if trained:
+                rates.append(_float(level.expert_success_rate))
+                if level.curve_success_rate is not None and level.level_id % curve_stride == 0:
+                    curves.append([_float(value) for value in level.curve_success_rate])
+        steps = None if record.curve_env_steps is None else list(record.curve_env_steps)
         if steps is not None:
             if curve_steps is not None and steps != curve_steps:
                 raise DatasetError(f"{root}: shard {shard} batch {batch} has other learning-curve steps than the rest")
             curve_steps = steps
-        provenance = record.get(PROVENANCE)
+        provenance = record.provenance
         if provenance and "total" in provenance.get("seconds", {}):
             timed += 1
             seconds.update(provenance["seconds"])

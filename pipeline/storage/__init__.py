@@ -37,13 +37,25 @@ from pipeline.storage.manifest import (
     committed_batches,
     iter_records,
     read_record,
+    read_record_json,
     record_exists,
     record_key,
     recorded_shards,
     shard_name,
     write_record,
 )
-from pipeline.storage.records import FAILED, FILTERED_PREFIX, KEPT, PADDING, PROVENANCE, UNSOLVED
+from pipeline.storage.records import (
+    FAILED,
+    FILTERED_PREFIX,
+    KEPT,
+    PADDING,
+    PROVENANCE,
+    UNSOLVED,
+    ArrayEntry,
+    BatchRecord,
+    LevelRecord,
+    Outcome,
+)
 from pipeline.storage.shard_store import (
     BLOSC_LEVEL,
     CONFIG_FILE,
@@ -69,6 +81,10 @@ from pipeline.storage.writer import (
 )
 
 __all__ = [
+    "ArrayEntry",
+    "BatchRecord",
+    "LevelRecord",
+    "Outcome",
     "DEFAULT_HEARTBEAT_S",
     "DEFAULT_STALE_AFTER_S",
     "LEASE_KEY",
@@ -124,6 +140,7 @@ __all__ = [
     "make_layout",
     "open_dataset",
     "read_record",
+    "read_record_json",
     "record_exists",
     "record_key",
     "recorded_shards",

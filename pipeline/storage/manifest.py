@@ -12,6 +12,7 @@ import re
 from collections.abc import Iterator
 
 from pipeline.storage.layout import DatasetError
+from pipeline.storage.records import BatchRecord
 from pipeline.storage.shard_store import MANIFEST_DIR
 from pipeline.storage.store import Store, StoreError, open_store
 
@@ -40,8 +41,11 @@ def record_key(shard: int, batch: int) -> str:
     return f"{shard_prefix(shard)}batch-{batch:03d}.json"
 
 
-def write_record(root: Location, shard: int, batch: int, record: dict) -> dict:
-    """Commit a level batch: write its record as one object. Returns the record as stored (with its version)."""
+def write_record(root: Location, shard: int, batch: int, record: dict | BatchRecord) -> dict:
+    """Commit a level batch: write its record (`BatchRecord` or its JSON) as one object. Returns the JSON as stored
+    (with its version)."""
+    if isinstance(record, BatchRecord):
+        record = record.to_json()
     record = {"record_version": RECORD_VERSION, **record}
     open_store(root).write(record_key(shard, batch), json.dumps(record, indent=1, sort_keys=True).encode())
     return record
@@ -61,8 +65,15 @@ def record_exists(root: Location, shard: int, batch: int) -> bool:
     return open_store(root).exists(record_key(shard, batch))
 
 
-def read_record(root: Location, shard: int, batch: int) -> dict:
+def read_record(root: Location, shard: int, batch: int) -> BatchRecord:
     """The commit record of a level batch; `DatasetError` if it is missing or unreadable."""
+    key = record_key(shard, batch)
+    where = f"{shard_name(shard)} batch {batch}: record {key}"
+    return BatchRecord.from_json(read_record_json(root, shard, batch), where)
+
+
+def read_record_json(root: Location, shard: int, batch: int) -> dict:
+    """The commit record of a level batch as stored (JSON), checked only for its version and batch."""
     store = open_store(root)
     key = record_key(shard, batch)
     try:
@@ -99,7 +110,7 @@ def recorded_shards(root: Location) -> list[int]:
     return sorted({int(match[1]) for key in keys if (match := _SHARD_KEY.match(key))})
 
 
-def iter_records(root: Location) -> Iterator[dict]:
+def iter_records(root: Location) -> Iterator[BatchRecord]:
     """Every commit record of the dataset, by shard then batch."""
     store = open_store(root)
     for shard, batches in all_committed(store).items():

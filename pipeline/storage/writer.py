@@ -29,7 +29,7 @@ from pipeline.storage.layout import (
 )
 from pipeline.storage.lease import require_lease
 from pipeline.storage.manifest import committed_batches, remove_record, temp_records, write_record
-from pipeline.storage.records import KEPT, PROVENANCE
+from pipeline.storage.records import KEPT, ArrayEntry, BatchRecord, LevelRecord, Outcome
 from pipeline.storage.shard_store import Dataset, array_digest, object_digest, open_dataset
 from pipeline.storage.store import Store
 
@@ -208,55 +208,35 @@ def stage_level_batch(dataset: Dataset, shard: int, batch: int, result: BatchTra
     for name, value in arrays.items():
         key = dataset.batch_key(name, global_batch)
         digest = object_digest(dataset.store, key)
-        files[name] = {
-            "file": key if digest else None,
-            "sha256": digest,
-            "data_sha256": array_digest(value),
-        }
+        files[name] = ArrayEntry(key if digest else None, digest, array_digest(value))
     slots = geometry.slots(shard, batch)
-    levels = [
-        {
-            "slot": slot,
-            "kept": result.outcome[i] == KEPT,
-            "outcome": str(result.outcome[i]),
-            "level_id": int(result.level_id[i]),
-            "level_seed": int(result.level_seed[i]),
-            "expert_success_rate": _json_number(result.expert_success_rate[i]),
-            "episode_lengths": episode_lengths(np.asarray(result.done[i])).tolist(),
-        }
-        | _expert_env_steps_entry(result.expert_env_steps, i)
-        | _curve_entry(result.curves, i)
+    curves = result.curves
+    levels = tuple(
+        LevelRecord(
+            slot=slot,
+            outcome=Outcome(result.outcome[i]),
+            level_id=int(result.level_id[i]),
+            level_seed=int(result.level_seed[i]),
+            expert_success_rate=_json_number(result.expert_success_rate[i]),
+            episode_lengths=tuple(episode_lengths(np.asarray(result.done[i])).tolist()),
+            expert_env_steps=None if result.expert_env_steps is None else int(result.expert_env_steps[i]),
+            curve_success_rate=None if curves is None else tuple(_json_number(v) for v in curves.success_rate[i]),
+            curve_mean_return=None if curves is None else tuple(_json_number(v) for v in curves.mean_return[i]),
+        )
         for i, slot in enumerate(slots)
-    ]
-    record = {
-        "shard": shard,
-        "batch": batch,
-        "global_batch": global_batch,
-        "slots": [slots.start, slots.stop],
-        "num_kept": int(arrays[VALID].sum()),
-        "levels": levels,
-        "arrays": files,
-    }
-    if result.curves is not None:
-        record["curve_env_steps"] = result.curves.env_steps.tolist()
-    if result.seconds:
-        record[PROVENANCE] = {"seconds": dict(result.seconds)}
-    return record
-
-
-def _expert_env_steps_entry(env_steps: np.ndarray | None, level: int) -> dict:
-    return {} if env_steps is None else {"expert_env_steps": int(env_steps[level])}
-
-
-def _curve_entry(curves: LearningCurves | None, level: int) -> dict:
-    if curves is None:
-        return {}
-    return {
-        "learning_curve": {
-            "success_rate": [_json_number(v) for v in curves.success_rate[level]],
-            "mean_return": [_json_number(v) for v in curves.mean_return[level]],
-        }
-    }
+    )
+    record = BatchRecord(
+        shard=shard,
+        batch=batch,
+        global_batch=global_batch,
+        slots=(slots.start, slots.stop),
+        num_kept=int(arrays[VALID].sum()),
+        levels=levels,
+        arrays=files,
+        curve_env_steps=None if curves is None else tuple(curves.env_steps.tolist()),
+        provenance={"seconds": dict(result.seconds)} if result.seconds else None,
+    )
+    return record.to_json()
 
 
 def clean_uncommitted(root: str | os.PathLike | Store, shard: int, job_id: str) -> list[str]:

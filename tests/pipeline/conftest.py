@@ -253,7 +253,7 @@ def dataset_contents(root):
     for name, array in group.groups():
         arrays.update({f"{name}/{k}": np.asarray(v[...]) for k, v in array.arrays()})
     records = sorted(
-        json.dumps({key: value for key, value in record.items() if key != PROVENANCE}, sort_keys=True)
+        json.dumps({key: value for key, value in record.to_json().items() if key != PROVENANCE}, sort_keys=True)
         for record in iter_records(root)
     )
     return arrays, records

@@ -34,7 +34,7 @@ def uninterrupted(tmp_path_factory):
 def test_uninterrupted_run_commits_every_batch_and_verifies(uninterrupted):
     assert [committed_batches(uninterrupted, shard) for shard in range(2)] == [[0, 1], [0, 1]]
     assert all(report.ok for report in verify_dataset(uninterrupted))
-    outcomes = [level["outcome"] for record in iter_records(uninterrupted) for level in record["levels"]]
+    outcomes = [level.outcome for record in iter_records(uninterrupted) for level in record.levels]
     assert outcomes.count("padding") == 2 and len(outcomes) == 8
 
 
