@@ -6,10 +6,13 @@ training and rollout (sampling, filtering, writing, coordination, start-up), ove
 level batch (which compiles every program), bytes of shard files per stored transition next to Kinetix-Offline's
 (release figures, docs/kinetix.md) and by field group, the trajectories per second the loader reads back, and whether
 every worker count wrote the same data.
-`--json` prints one JSON document instead.
+`--json` prints one JSON document instead. `--storage s3` measures the storage layer instead, against an S3 API
+server (moto) on 127.0.0.1: transitions written per second and the loader's read rate from S3 against a local
+folder, with and without prefetch (benchmarks/object_storage.py).
 
     python benchmarks/pipeline.py
     python benchmarks/pipeline.py --sizes s --levels 32 --workers 1 2 --json
+    python benchmarks/pipeline.py --storage s3 --sizes s --levels-per-batch 8 --batches-per-shard 4
 """
 
 from __future__ import annotations
@@ -34,7 +37,6 @@ from pipeline.reading.loader import TrajectoryDatasetManager  # noqa: E402
 from pipeline.storage.layout import STATE_PREFIX  # noqa: E402
 from pipeline.storage.manifest import iter_records  # noqa: E402
 from pipeline.storage.shard_store import DATA_DIR, open_dataset  # noqa: E402
-from pipeline.storage.writer import PROVENANCE  # noqa: E402
 
 KINETIX_OFFLINE_BYTES_PER_TRANSITION = {"s": 80.4, "m": 110.9, "l": 306.0}
 """Kinetix-Offline 1M splits: bytes on disk per transition (GB = 1e9), docs/kinetix.md, released splits."""
@@ -94,20 +96,20 @@ def loader_rate(root: Path, kept: int) -> float | None:
     return batches * manager.batch_size / (time.perf_counter() - clock)
 
 
-def steady_state_outside_share(records: list[dict]) -> float | None:
+def steady_state_outside_share(records: list) -> float | None:
     """Share of worker time outside training and rollout over the level batches after each worker's first one
     (which pays for compiling every program): what long jobs with many batches per worker approach."""
     first: dict[str, tuple[int, int]] = {}
     for record in records:
-        worker = record.get(PROVENANCE, {}).get("worker")
-        key = (record["shard"], record["batch"])
+        worker = (record.provenance or {}).get("worker")
+        key = (record.shard, record.batch)
         if worker is not None and (worker not in first or key < first[worker]):
             first[worker] = key
     later = [
-        record[PROVENANCE]["seconds"]
+        record.provenance["seconds"]
         for record in records
-        if record.get(PROVENANCE, {}).get("worker") is not None
-        and (record["shard"], record["batch"]) != first[record[PROVENANCE]["worker"]]
+        if (record.provenance or {}).get("worker") is not None
+        and (record.shard, record.batch) != first[record.provenance["worker"]]
     ]
     total = sum(seconds["total"] for seconds in later)
     if not total:
@@ -135,11 +137,11 @@ def measure(size: str, workers: int, args, scratch: Path) -> dict:
     records = list(iter_records(output))
     phases: dict[str, float] = {}
     for record in records:
-        for phase, seconds in record.get(PROVENANCE, {}).get("seconds", {}).items():
+        for phase, seconds in (record.provenance or {}).get("seconds", {}).items():
             phases[phase] = phases.get(phase, 0.0) + seconds
-    kept = sum(record["num_kept"] for record in records)
+    kept = sum(record.num_kept for record in records)
     transitions = kept * job.collect.window_steps
-    trained = sum(1 for record in records for level in record["levels"] if level["outcome"] in ("kept", "unsolved"))
+    trained = sum(1 for record in records for level in record.levels if level.outcome.has_window)
     wall = summary["seconds"]
     in_training = sum(phases.get(phase, 0.0) for phase in TRAINING_PHASES)
     disk, metadata = bytes_on_disk(output)
@@ -163,9 +165,9 @@ def measure(size: str, workers: int, args, scratch: Path) -> dict:
             group: size / transitions for group, size in bytes_by_group(output).items() if transitions
         },
         "data_digests": sorted(
-            (record["global_batch"], name, entry["data_sha256"])
+            (record.global_batch, name, entry.data_sha256)
             for record in records
-            for name, entry in record["arrays"].items()
+            for name, entry in record.arrays.items()
         ),
     }
 
@@ -251,7 +253,26 @@ def main(argv=None) -> None:
         "each must not exist yet",
     )
     parser.add_argument("--json", action="store_true", help="print one JSON document")
+    parser.add_argument(
+        "--storage",
+        choices=["local", "s3"],
+        default="local",
+        help="s3: measure writes and loader reads on an S3 API server (moto, 127.0.0.1) against a local folder, "
+        "with --levels-per-batch trajectories per batch, --batches-per-shard batches, --window-steps, --prefetch",
+    )
+    parser.add_argument("--window-steps", type=int, default=256, help="--storage s3: steps per trajectory")
+    parser.add_argument("--prefetch", type=int, default=2, help="--storage s3: loader prefetch depth compared with 0")
     args = parser.parse_args(argv)
+    if args.storage == "s3":
+        from benchmarks.object_storage import lines
+        from benchmarks.object_storage import run as run_storage
+
+        report = run_storage(
+            args.sizes[0], args.levels_per_batch, args.batches_per_shard, args.window_steps, args.prefetch
+        )
+        report["machine"] = describe_machine()
+        print(json.dumps(report, indent=1) if args.json else "\n".join(lines(report)))
+        return
     report = run(args, log=(lambda _: None) if args.json else print)
     if args.json:
         print(json.dumps(report, indent=1))

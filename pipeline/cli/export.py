@@ -36,7 +36,7 @@ def main(argv: Sequence[str] | None = None, prog: str | None = None) -> None:
     pipeline.kinetix.load_kinetix_levels; prints how."""
     parser = argparse.ArgumentParser(prog=prog, description=main.__doc__)
     parser.add_argument("--format", required=True, choices=sorted(FORMATS), help="output layout")
-    parser.add_argument("dataset", help="dataset directory (holds data/ and manifest/)")
+    parser.add_argument("dataset", help="dataset: a directory (holds data/ and manifest/), s3:// or gs:// URL")
     parser.add_argument("out", help="output directory; the split is written to OUT/<split name>, which must be empty")
     parser.add_argument("--seed", type=int, default=0, help="seed of the trajectory shuffle across shards")
     parser.add_argument(

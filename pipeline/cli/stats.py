@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import argparse
 from collections.abc import Sequence
-from pathlib import Path
 
 from pipeline.cli import add_common_options, fail
 
@@ -14,8 +13,8 @@ def main(argv: Sequence[str] | None = None, prog: str | None = None) -> None:
     disk, the data fingerprint and key config values, wall times per phase, and PNG plots (outcomes, expert success
     rates, episode lengths, training curves)."""
     parser = argparse.ArgumentParser(prog=prog, description=main.__doc__)
-    parser.add_argument("dataset", type=Path, help="dataset directory (holds data/ and manifest/)")
-    parser.add_argument("--out", type=Path, help="folder for card.md and card/*.png (default: DATASET)")
+    parser.add_argument("dataset", help="dataset: a directory (holds data/ and manifest/), s3:// or gs:// URL")
+    parser.add_argument("--out", help="folder or URL for card.md and card/*.png (default: DATASET)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar while reading commit records")
     args = add_common_options(parser).parse_args(argv)
 

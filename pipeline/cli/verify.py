@@ -17,7 +17,7 @@ def main(argv: Sequence[str] | None = None, prog: str | None = None) -> None:
     withdraw the commit of every bad level batch (saying which and why) so that re-running the job regenerates
     exactly those batches."""
     parser = argparse.ArgumentParser(prog=prog, description=main.__doc__)
-    parser.add_argument("dir", type=Path, help="dataset directory (holds data/ and manifest/)")
+    parser.add_argument("dir", help="dataset: a directory (holds data/ and manifest/), s3:// or gs:// URL")
     parser.add_argument(
         "--allow-incomplete", action="store_true", help="uncommitted level batches are notes, not problems"
     )
@@ -32,13 +32,14 @@ def main(argv: Sequence[str] | None = None, prog: str | None = None) -> None:
         CONFIG_FILE,
         DatasetError,
         format_report,
+        is_remote,
         open_dataset,
         shard_name,
         verify_dataset,
         withdraw_bad_batches,
     )
 
-    rerun = f"kforge run {args.dir / CONFIG_FILE}"
+    rerun = "the same kforge run command" if is_remote(args.dir) else f"kforge run {Path(args.dir) / CONFIG_FILE}"
     try:
         reports = verify_dataset(args.dir, allow_incomplete=args.allow_incomplete or args.repair)
         batches_per_shard = open_dataset(args.dir).geometry.batches_per_shard

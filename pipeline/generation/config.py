@@ -28,6 +28,7 @@ import configs
 from agents import PPOConfig
 from engine import KINETIX_SIZES
 from env import EnvParams, StaticEnvParams
+from pipeline.storage import DEFAULT_HEARTBEAT_S, DEFAULT_STALE_AFTER_S
 
 
 @dataclasses.dataclass
@@ -105,6 +106,14 @@ class RayConfig:
     gpus_per_worker: float = 0.0  # GPUs Ray reserves per worker actor (1.0: one GPU each; JAX then runs on it)
 
 
+@dataclasses.dataclass
+class LeaseConfig:
+    """The job's lease on its dataset (one job per dataset, docs/object-storage.md); none of these change the data."""
+
+    stale_after_s: float = DEFAULT_STALE_AFTER_S  # [s] a lease whose heartbeat is older is taken over
+    heartbeat_s: float = DEFAULT_HEARTBEAT_S  # [s] interval between the running job's heartbeats
+
+
 TRACKING_MODES = ("offline", "online", "disabled")
 """Values of `tracking.wandb`."""
 
@@ -116,7 +125,7 @@ class TrackingConfig:
     wandb: str = "offline"  # offline: local run files (`wandb sync` uploads them); online: needs a login; disabled
     project: str = "kforge"  # wandb project
     name: str | None = None  # wandb run name; None: wandb picks one
-    dir: str | None = None  # directory that receives wandb/<run>; None: <output_dir>/logs, beside the run logs
+    dir: str | None = None  # directory that receives wandb/<run>; None: the dataset's log folder, beside the run logs
 
 
 @dataclasses.dataclass
@@ -132,6 +141,7 @@ class JobConfig:
     ppo: PPOSection = dataclasses.field(default_factory=PPOSection)
     collect: CollectConfig = dataclasses.field(default_factory=CollectConfig)
     ray: RayConfig = dataclasses.field(default_factory=RayConfig)
+    lease: LeaseConfig = dataclasses.field(default_factory=LeaseConfig)
     tracking: TrackingConfig = dataclasses.field(default_factory=TrackingConfig)
 
 
@@ -312,6 +322,11 @@ def check_config(job: JobConfig) -> None:
         raise ConfigError(f"filter.noop_steps must be in [1, 256], got {job.filter.noop_steps}")
     if job.ray.num_workers < 1:
         raise ConfigError(f"ray.num_workers must be >= 1, got {job.ray.num_workers}")
+    if not 0 < job.lease.heartbeat_s < job.lease.stale_after_s:
+        raise ConfigError(
+            f"lease.heartbeat_s ({job.lease.heartbeat_s}) must be > 0 and below lease.stale_after_s "
+            f"({job.lease.stale_after_s})"
+        )
     if job.tracking.wandb not in TRACKING_MODES:
         raise ConfigError(f"tracking.wandb must be one of {', '.join(TRACKING_MODES)}, got {job.tracking.wandb!r}")
     try:

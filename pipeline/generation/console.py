@@ -12,10 +12,22 @@ from pathlib import Path
 from tqdm import tqdm
 
 from pipeline.generation.coordinator import COMPILING, STARTING
-from pipeline.storage import CONFIG_FILE, DATA_DIR, FAILED, FILTERED_PREFIX, KEPT, MANIFEST_DIR, UNSOLVED
+from pipeline.storage import CONFIG_FILE, DATA_DIR, FAILED, FILTERED_PREFIX, KEPT, MANIFEST_DIR, UNSOLVED, is_remote
 
 LOG_DIR = "logs"
 """The dataset's folder of run logs (`run-<UTC time>.log`) and, by default, wandb's run folders."""
+
+REMOTE_LOG_ROOT = Path("outputs") / "remote-logs"
+"""Local folder of the logs of datasets on object storage: REMOTE_LOG_ROOT/<bucket>/<prefix>/logs."""
+
+
+def log_dir(output_dir: str | os.PathLike) -> Path:
+    """The local folder of a dataset's run logs: `<output_dir>/logs` on a filesystem; for a dataset on object storage
+    (`s3://bucket/prefix`), `outputs/remote-logs/bucket/prefix/logs` on this machine (logs stay out of the bucket)."""
+    if is_remote(output_dir):
+        return REMOTE_LOG_ROOT / str(output_dir).split("://", 1)[1].strip("/") / LOG_DIR
+    return Path(output_dir) / LOG_DIR
+
 
 THIRD_PARTY_LOGGERS = ("ray", "wandb", "jax", "absl", "filelock", "urllib3", "git")
 """Python loggers of libraries whose messages go to the run's log file (the terminal too with --verbose)."""
@@ -28,9 +40,9 @@ LISTED_BATCHES = 4
 
 
 def start_log_file(output_dir: str | os.PathLike, verbose: bool) -> Path:
-    """Send the third-party loggers to `<output_dir>/logs/run-<UTC time>.log` (and the terminal if `verbose`);
-    returns the log file's path."""
-    directory = Path(output_dir) / LOG_DIR
+    """Send the third-party loggers to `run-<UTC time>.log` in the dataset's log folder (`log_dir`; and to the
+    terminal if `verbose`); returns the log file's path."""
+    directory = log_dir(output_dir)
     directory.mkdir(parents=True, exist_ok=True)
     path = directory / time.strftime("run-%Y%m%d-%H%M%S.log", time.gmtime())
     handler = logging.FileHandler(path)
@@ -128,11 +140,12 @@ def closing_summary(summary: dict, output_dir: str | os.PathLike) -> str:
     outcomes = summary["outcomes"]
     filtered = {key.removeprefix(FILTERED_PREFIX): n for key, n in outcomes.items() if key.startswith(FILTERED_PREFIX)}
     by_reason = ", ".join(f"{reason} {n}" for reason, n in sorted(filtered.items()))
-    root = Path(output_dir)
+    remote = is_remote(output_dir)
+    root = str(output_dir) if remote else Path(output_dir)
     total, remaining = summary["total_batches"], summary["total_batches"] - summary["committed_batches"]
     status = "complete" if remaining == 0 else f"incomplete: {remaining} of {total} level batches remain"
     lines = [
-        f"dataset {status}: {root} ({_size(root)})",
+        f"dataset {status}: {root} ({'on object storage' if remote else _size(root)})",
         f"levels: {summary['levels']} sampled, {sum(filtered.values())} filtered"
         + (f" ({by_reason})" if by_reason else "")
         + f", {outcomes.get(KEPT, 0)} kept, {outcomes.get(UNSOLVED, 0)} unsolved, {outcomes.get(FAILED, 0)} failed",
@@ -144,7 +157,11 @@ def closing_summary(summary: dict, output_dir: str | os.PathLike) -> str:
         lines.append(f"third-party logs: {summary['log_file']}")
     lines.append("next:")
     if remaining:
-        lines.append(f"  kforge run {root / CONFIG_FILE}    # continue")
+        lines.append(
+            "  the same kforge run command again    # continue"
+            if remote
+            else f"  kforge run {root / CONFIG_FILE}    # continue"
+        )
     lines += [
         f"  kforge verify {root}",
         f"  kforge stats {root}",

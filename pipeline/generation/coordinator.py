@@ -9,7 +9,7 @@ from __future__ import annotations
 import dataclasses
 import os
 
-from pipeline.storage import committed_batches, read_record, record_path, write_record
+from pipeline.storage import all_committed, read_record, record_exists, write_record
 
 COMPILING = "compiling"
 """State of a claimed level batch before its first training report, while its worker has committed nothing in this
@@ -30,12 +30,20 @@ class Coordinator:
     """Shard leases and commits for one dataset directory."""
 
     def __init__(
-        self, root: str | os.PathLike, num_shards: int, batches_per_shard: int, max_batches: int | None = None
+        self,
+        root: str | os.PathLike,
+        num_shards: int,
+        batches_per_shard: int,
+        max_batches: int | None = None,
+        job_id: str | None = None,
     ):
-        """`max_batches` caps the level batches handed out in this run (None: all), e.g. for time-boxed allocations."""
+        """`max_batches` caps the level batches handed out in this run (None: all), e.g. for time-boxed allocations;
+        `job_id` names the job whose lease on the dataset the workers write under."""
         self._root = root
+        self._job_id = job_id
         self._batches_per_shard = batches_per_shard
-        self._committed = {shard: set(committed_batches(root, shard)) for shard in range(num_shards)}
+        committed = all_committed(root)
+        self._committed = {shard: set(committed.get(shard, ())) for shard in range(num_shards)}
         self._leased: dict[int, str] = {}
         self._claimed: set[tuple[int, int]] = set()
         self._abandoned: set[int] = set()
@@ -89,7 +97,7 @@ class Coordinator:
 
         Idempotent: a retried commit of the same batch changes nothing.
         """
-        if batch in self._committed[shard] and record_path(self._root, shard, batch).exists():
+        if batch in self._committed[shard] and record_exists(self._root, shard, batch):
             return False
         stored = write_record(self._root, shard, batch, record)
         self._committed[shard].add(batch)
@@ -99,6 +107,10 @@ class Coordinator:
         self._training.pop((shard, batch), None)
         self._unreported.append(Commit(stored, len(self._committed[shard]) == self._batches_per_shard))
         return True
+
+    def job_id(self) -> str | None:
+        """The job whose lease the workers write under (their cleanup checks that it still holds it)."""
+        return self._job_id
 
     def take_commits(self) -> list[Commit]:
         """The commits since the last call, in commit order (a restarted coordinator forgets unreported ones; the

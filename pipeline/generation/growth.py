@@ -11,8 +11,6 @@ they are accepted when their stored definition matches, and get the current fing
 
 from __future__ import annotations
 
-from pathlib import Path
-
 from pipeline.generation.config import GROWABLE_KEY, definition_fingerprint, legacy_fingerprint
 from pipeline.storage import DatasetSpec, committed_batches, grow_dataset, open_dataset, withdraw_commit
 
@@ -26,11 +24,10 @@ DEFINITION = "data_config"
 """Keys of the data fingerprint and the data definition among a dataset's attributes."""
 
 
-def reconcile_dataset(root: str | Path, spec: DatasetSpec) -> list[tuple[int, int]]:
+def reconcile_dataset(root: str, spec: DatasetSpec) -> list[tuple[int, int]]:
     """Check that the dataset at `root` holds the data `spec` (the job's) defines, and grow it to `spec` if the job
     has more levels; returns the (shard, batch) commits withdrawn by growing. `ResumeRefused` naming the keys that
     differ, or both level counts if the job has fewer levels."""
-    root = Path(root)
     stored = open_dataset(root).spec
     old, new = stored.attributes.get(DEFINITION, {}), spec.attributes[DEFINITION]
     fingerprint = stored.attributes.get(FINGERPRINT)
@@ -57,7 +54,7 @@ def reconcile_dataset(root: str | Path, spec: DatasetSpec) -> list[tuple[int, in
     return withdrawn
 
 
-def _withdraw_padding_batches(root: Path, stored: DatasetSpec, old_levels: int, new_levels: int):
+def _withdraw_padding_batches(root: str, stored: DatasetSpec, old_levels: int, new_levels: int):
     """Withdraw the commits of the stored level batches whose padding slots (level ids >= old_levels) become levels."""
     geometry = stored.geometry
     withdrawn = []

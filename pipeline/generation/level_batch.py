@@ -17,7 +17,7 @@ import numpy as np
 from agents import ProgressListener, collect_windows, train_levels, training_progress
 from env import FilterReason, Level, filter_levels, sample_levels
 from pipeline.generation.config import JobConfig, environment, ppo_config
-from pipeline.storage import FAILED, FILTERED_PREFIX, KEPT, PADDING, UNSOLVED, BatchTrajectories, learning_curves
+from pipeline.storage import BatchTrajectories, Outcome, learning_curves
 
 
 class KeyPurpose(enum.IntEnum):
@@ -105,7 +105,7 @@ def run_level_batch(
         action=window.actions,
         done=window.done,
         success=window.success,
-        kept=np.array([outcome == KEPT for outcome in outcomes]),
+        kept=np.array([outcome == Outcome.KEPT for outcome in outcomes]),
         level_id=indices,
         level_seed=np.full(indices.shape, job.split.seed),
         expert_success_rate=selection.at_best(selection.success_rate).astype(np.float32),
@@ -135,15 +135,15 @@ class PhaseClock:
         self._last = now
 
 
-def level_outcome(in_split: bool, dropped: bool, reason: int, finite: bool, successful: bool) -> str:
-    """Why a level was or was not kept: "kept", "padding", "filtered:<reason>", "failed" or "unsolved"."""
+def level_outcome(in_split: bool, dropped: bool, reason: int, finite: bool, successful: bool) -> Outcome:
+    """Why a level was or was not kept: kept, padding, filtered:<reason>, failed or unsolved."""
     if not in_split:
-        return PADDING
+        return Outcome.PADDING
     if dropped:
-        return f"{FILTERED_PREFIX}{FilterReason(reason).name.lower()}"
+        return Outcome.filtered(FilterReason(reason).name.lower())
     if not finite:
-        return FAILED
-    return KEPT if successful else UNSOLVED
+        return Outcome.FAILED
+    return Outcome.KEPT if successful else Outcome.UNSOLVED
 
 
 def _finite_per_level(tree) -> np.ndarray:

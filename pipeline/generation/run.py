@@ -9,9 +9,7 @@ import os
 import signal
 import threading
 import time
-import uuid
 import warnings
-from pathlib import Path
 
 from env import ActionType
 from pipeline.generation.config import (
@@ -32,11 +30,14 @@ from pipeline.storage import (
     DatasetError,
     DatasetSpec,
     Geometry,
+    Lease,
+    Outcome,
     committed_batches,
     create_dataset,
     damaged_commits,
     iter_records,
     make_layout,
+    open_store,
 )
 
 RAY_NAMESPACE = "kforge"
@@ -63,12 +64,15 @@ def dataset_spec(job: JobConfig) -> DatasetSpec:
 
 def prepare_output(job: JobConfig) -> list[tuple[int, int]]:
     """Create the dataset, or check that an existing one was made with the same data-defining config and grow it if
-    the job has more levels (`reconcile_dataset`); returns the commits growing withdrew."""
-    root = Path(job.output_dir)
+    the job has more levels (`reconcile_dataset`); returns the commits growing withdrew.
+
+    Call it under the job's lease on the dataset (`Lease.acquire`). config.yaml is written as one object (atomic on
+    a filesystem and on object stores)."""
+    store = open_store(job.output_dir)
     spec = dataset_spec(job)
-    withdrawn = reconcile_dataset(root, spec) if (root / "data").exists() else []
-    create_dataset(root, spec)
-    write_config(root, to_yaml(job))
+    withdrawn = reconcile_dataset(job.output_dir, spec) if store.exists("data/zarr.json") else []
+    create_dataset(store, spec)
+    store.write(CONFIG_FILE, to_yaml(job).encode())
     return withdrawn
 
 
@@ -82,7 +86,17 @@ def run_job(
     """Generate (or resume, or grow) the job's dataset; returns the summary. `max_batches` stops after that many
     level batches. Third-party logs go to the dataset's log file (and the terminal too if `verbose`); `report` gets
     the lines an operator reads (what a resumed run found). SIGINT and SIGTERM end it with `JobInterrupted`; a
-    dataset whose commits name missing or damaged files is refused with `DatasetDamaged`."""
+    dataset whose commits name missing or damaged files is refused with `DatasetDamaged`. The job holds the
+    dataset's lease while it runs (`LeaseHeld` if another job does)."""
+    lease = Lease.acquire(job.output_dir, job.lease.stale_after_s, job.lease.heartbeat_s)
+    try:
+        return _run_leased(job, lease, max_batches, show_progress, verbose, report)
+    finally:
+        lease.release()
+
+
+def _run_leased(job: JobConfig, lease: Lease, max_batches: int | None, show_progress: bool, verbose: bool, report):
+    """`run_job` while holding the dataset's lease."""
     import ray
 
     withdrawn = prepare_output(job)
@@ -117,7 +131,7 @@ def run_job(
         coordinator = (
             ray.remote(Coordinator)
             .options(num_cpus=0)
-            .remote(job.output_dir, num_shards(job), batches_per_shard(job), max_batches)
+            .remote(job.output_dir, num_shards(job), batches_per_shard(job), max_batches, lease.holder.job_id)
         )
         worker_class = ray.remote(Worker).options(num_cpus=job.ray.cpus_per_worker, num_gpus=job.ray.gpus_per_worker)
         in_flight = {}
@@ -132,6 +146,7 @@ def run_job(
         bar = ProgressBar(found, total, enabled=show_progress)
         try:
             while in_flight:
+                lease.check()
                 ready, _ = ray.wait(list(in_flight), timeout=PROGRESS_POLL_SECONDS)
                 for ref in ready:
                     worker, name, shard = in_flight.pop(ref)
@@ -196,14 +211,6 @@ class DatasetDamaged(DatasetError):
     """Committed level batches of the output directory have missing, unreadable or damaged files."""
 
 
-def write_config(root: Path, text: str) -> None:
-    """Write the dataset's config.yaml atomically (a temporary file renamed over it)."""
-    path = root / CONFIG_FILE
-    temp = path.with_name(f"{path.name}.tmp-{uuid.uuid4().hex}")
-    temp.write_text(text)
-    os.replace(temp, path)
-
-
 def _committed_count(job: JobConfig) -> int:
     return sum(len(committed_batches(job.output_dir, shard)) for shard in range(num_shards(job)))
 
@@ -237,6 +244,6 @@ def summarize(root) -> dict:
     batches = 0
     for record in iter_records(root):
         batches += 1
-        outcomes.update(level["outcome"] for level in record["levels"])
-    levels = sum(count for outcome, count in outcomes.items() if outcome != "padding")
+        outcomes.update(str(level.outcome) for level in record.levels)
+    levels = sum(count for outcome, count in outcomes.items() if outcome != Outcome.PADDING)
     return {"committed_batches": batches, "levels": levels, "outcomes": dict(sorted(outcomes.items()))}

@@ -19,16 +19,13 @@ from pathlib import Path
 
 from env import FilterReason
 from pipeline.generation.config import TRACKING_MODES, ConfigError, JobConfig, data_fingerprint
+from pipeline.generation.console import log_dir
 from pipeline.generation.coordinator import Commit
 from pipeline.generation.level_batch import batches_per_shard
-from pipeline.storage import FAILED, FILTERED_PREFIX, KEPT, PADDING, PROVENANCE, UNSOLVED, read_record
+from pipeline.storage import FAILED, FILTERED_PREFIX, KEPT, PADDING, PROVENANCE, UNSOLVED, read_record_json
 
 WANDB_MODE_ENV = "WANDB_MODE"
 """Environment variable that overrides `tracking.wandb` when set (wandb's own name for it)."""
-
-TRACKING_DIR = "logs"
-"""Default folder, inside the dataset directory, of wandb's run folders (`<output_dir>/logs/wandb/offline-run-*`, one
-per run): beside the run logs, apart from the data."""
 
 WANDB_DISABLE_WEAVE_ENV = "WANDB_DISABLE_WEAVE"
 """Set by the tracker: wandb takes our `agents` package for the LLM library of that name and advertises Weave."""
@@ -165,7 +162,9 @@ class Tracker:
 
     def _log_shard(self, shard: int) -> None:
         """Log a completed shard's metrics over all its level batches, read from the manifest."""
-        records = [read_record(self._job.output_dir, shard, batch) for batch in range(batches_per_shard(self._job))]
+        records = [
+            read_record_json(self._job.output_dir, shard, batch) for batch in range(batches_per_shard(self._job))
+        ]
         metrics = batch_metrics(records, self._job)
         self._run.log(
             {SHARD_STEP: self._totals.shards, "shard/index": shard}
@@ -193,7 +192,7 @@ def start_tracking(job: JobConfig) -> Tracker:
         return Tracker(job)
     import wandb
 
-    directory = Path(job.tracking.dir or Path(job.output_dir) / TRACKING_DIR)
+    directory = Path(job.tracking.dir) if job.tracking.dir else log_dir(job.output_dir)
     directory.mkdir(parents=True, exist_ok=True)
     os.environ.setdefault(WANDB_DISABLE_WEAVE_ENV, "true")
     run = wandb.init(

@@ -43,7 +43,8 @@ class Worker:
         `coordinator` is the coordinator actor handle (or a local object with the same methods, for tests).
         """
         dataset = open_dataset(self._job.output_dir)
-        clean_uncommitted(dataset.root, shard)  # safe: the shard's lease makes this worker its only writer
+        # Safe under the job's lease on the dataset; the coordinator's shard lease makes this worker its only writer.
+        clean_uncommitted(dataset.store, shard, _call(coordinator.job_id))
         summaries = []
         while (batch := _call(coordinator.claim_batch, shard)) is not None:
             started = time.perf_counter()

@@ -36,6 +36,7 @@ from pipeline.storage import (
     STATE_PREFIX,
     DatasetError,
     Layout,
+    is_remote,
     iter_records,
     open_dataset,
     static_to_json,
@@ -111,10 +112,10 @@ def kinetix_records(
 def kept_trajectories(root: str | os.PathLike) -> list[KeptTrajectory]:
     """The committed, kept trajectories of a dataset, by slot (from its commit records)."""
     kept = [
-        KeptTrajectory(int(level["slot"]), int(level["level_id"]), int(level["level_seed"]))
+        KeptTrajectory(level.slot, level.level_id, level.level_seed)
         for record in iter_records(root)
-        for level in record["levels"]
-        if level["kept"]
+        for level in record.levels
+        if level.kept
     ]
     return sorted(kept, key=lambda trajectory: trajectory.slot)
 
@@ -167,7 +168,7 @@ def export_kinetix(
     staging = group.parent / f".{group.name}.partial-{uuid.uuid4().hex}"
     attributes = {
         "format": "Kinetix-Offline trajectories (kinetix-env 3.0.2 TrajectoryDatasetManager)",
-        "source": str(Path(dataset_dir).resolve()),
+        "source": str(dataset_dir) if is_remote(dataset_dir) else str(Path(dataset_dir).resolve()),
         "split": split,
         "data_fingerprint": dataset.spec.attributes.get("data_fingerprint"),
         "seed": seed,

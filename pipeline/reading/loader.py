@@ -68,9 +68,7 @@ class TrajectoryDatasetManager:
         self.batch_size, self.seed = batch_size, seed
         self.shard_index, self.total_shard_count = shard_index, total_shard_count
         self.slots = np.array(
-            sorted(
-                level["slot"] for record in iter_records(dataset_dir) for level in record["levels"] if level["kept"]
-            ),
+            sorted(slot for record in iter_records(self.dataset.store) for slot in record.kept_slots),
             np.int64,
         )
         self.length = len(self.slots) // total_shard_count

@@ -2,7 +2,8 @@
 
 Everything comes from the dataset directory: the commit records (level outcomes, expert success rates, episode
 lengths, learning curves, per-phase wall times), the zarr attributes (data fingerprint), config.yaml (the resolved
-config with its scale) and the sizes of the files on disk. Only committed level batches count, so a partial dataset
+config with its scale) and the sizes of the stored objects. The dataset and the card's folder may be local paths or
+object-store URLs (`s3://`, `gs://`). Only committed level batches count, so a partial dataset
 gets a card of what it holds so far.
 """
 
@@ -11,6 +12,7 @@ from __future__ import annotations
 import collections
 import csv
 import dataclasses
+import io
 import os
 import warnings
 from pathlib import Path
@@ -26,14 +28,14 @@ from pipeline.storage import (
     FILTERED_PREFIX,
     KEPT,
     MANIFEST_DIR,
-    PADDING,
-    PROVENANCE,
     UNSOLVED,
     DatasetError,
-    committed_batches,
+    Outcome,
+    Store,
+    all_committed,
     open_dataset,
+    open_store,
     read_record,
-    recorded_shards,
 )
 
 CARD_FILE = "card.md"
@@ -106,7 +108,7 @@ KEY_CONFIG_VALUES = (
 class DatasetStats:
     """What a card reports, gathered from one dataset directory."""
 
-    root: Path
+    root: str  # where the dataset lives (a local path or a URL)
     split: str
     fingerprint: str
     config: dict  # resolved config (config.yaml), or the data-defining sections if that file is missing
@@ -185,25 +187,22 @@ def _float(value: float | None) -> float:
     return np.nan if value is None else float(value)
 
 
-def directory_bytes(path: Path) -> int:
-    """Total size of the regular files under `path` (0 if it does not exist)."""
-    total = 0
-    for folder, _, files in os.walk(path):
-        total += sum(os.lstat(os.path.join(folder, name)).st_size for name in files)
-    return total
+def stored_bytes(store: Store, prefix: str) -> int:
+    """Total size of the objects below `prefix` (0 if there are none)."""
+    return sum(store.size(key) for key in store.list(prefix))
 
 
 def collect_stats(root: str | os.PathLike, show_progress: bool = True) -> DatasetStats:
     """Read a dataset's records, attributes and file sizes; `DatasetError` if `root` is not a dataset."""
-    root = Path(root)
     dataset = open_dataset(root)
+    store, root = dataset.store, dataset.root
     attributes = dataset.spec.attributes
-    config_path = root / CONFIG_FILE
-    if config_path.is_file():
-        config = OmegaConf.to_container(OmegaConf.load(config_path))
+    config_text = store.read(CONFIG_FILE)
+    if config_text is not None:
+        config = OmegaConf.to_container(OmegaConf.create(config_text.decode()))
     else:
         config = dict(attributes.get("data_config", {}))
-    batches = [(shard, batch) for shard in recorded_shards(root) for batch in committed_batches(root, shard)]
+    batches = [(shard, batch) for shard, found in all_committed(store).items() for batch in found]
     outcomes, rates, curves, curve_steps, workers = collections.Counter(), [], [], None, set()
     lengths = {outcome: collections.Counter() for outcome in WINDOW_OUTCOMES}
     curve_stride = -(-dataset.geometry.num_slots // MAX_CURVE_LEVELS)
@@ -211,31 +210,31 @@ def collect_stats(root: str | os.PathLike, show_progress: bool = True) -> Datase
     shards: dict[int, collections.Counter] = collections.defaultdict(collections.Counter)
     progress = show_progress and len(batches) >= PROGRESS_MIN_RECORDS
     for shard, batch in tqdm(batches, desc="commit records", unit="record", disable=not progress):
-        record = read_record(root, shard, batch)
+        record = read_record(store, shard, batch)
         shard_counts = shards[shard]
         shard_counts["batches"] += 1
-        for level in record["levels"]:
-            outcome = level["outcome"]
-            if outcome == PADDING:
+        for level in record.levels:
+            outcome = level.outcome
+            if outcome == Outcome.PADDING:
                 continue
             outcomes[outcome] += 1
             shard_counts["sampled"] += 1
             shard_counts[outcome] += 1
-            trained = outcome in TRAINED_OUTCOMES
+            trained = outcome.is_trained
             shard_counts["trained"] += trained
-            shard_counts["solved"] += trained and _float(level["expert_success_rate"]) > SOLVED_ABOVE
-            if outcome in WINDOW_OUTCOMES:
-                lengths[outcome].update(level["episode_lengths"])
-            if outcome in TRAINED_OUTCOMES:
-                rates.append(_float(level["expert_success_rate"]))
-                if "learning_curve" in level and level["level_id"] % curve_stride == 0:
-                    curves.append([_float(value) for value in level["learning_curve"]["success_rate"]])
-        steps = record.get("curve_env_steps")
+            shard_counts["solved"] += trained and _float(level.expert_success_rate) > SOLVED_ABOVE
+            if outcome.has_window:
+                lengths[outcome].update(level.episode_lengths)
+            if trained:
+                rates.append(_float(level.expert_success_rate))
+                if level.curve_success_rate is not None and level.level_id % curve_stride == 0:
+                    curves.append([_float(value) for value in level.curve_success_rate])
+        steps = None if record.curve_env_steps is None else list(record.curve_env_steps)
         if steps is not None:
             if curve_steps is not None and steps != curve_steps:
                 raise DatasetError(f"{root}: shard {shard} batch {batch} has other learning-curve steps than the rest")
             curve_steps = steps
-        provenance = record.get(PROVENANCE)
+        provenance = record.provenance
         if provenance and "total" in provenance.get("seconds", {}):
             timed += 1
             seconds.update(provenance["seconds"])
@@ -259,8 +258,8 @@ def collect_stats(root: str | os.PathLike, show_progress: bool = True) -> Datase
         seconds=dict(seconds),
         timed_batches=timed,
         workers=sorted(workers),
-        data_bytes=directory_bytes(root / DATA_DIR),
-        manifest_bytes=directory_bytes(root / MANIFEST_DIR),
+        data_bytes=stored_bytes(store, f"{DATA_DIR}/"),
+        manifest_bytes=stored_bytes(store, f"{MANIFEST_DIR}/"),
         shards=dict(shards),
     )
 
@@ -277,14 +276,15 @@ def shard_columns(stats: DatasetStats) -> list[str]:
     return ["batches", "sampled", *filtered, "trained", "solved", KEPT, UNSOLVED, FAILED, *timings]
 
 
-def write_shard_table(stats: DatasetStats, path: Path) -> None:
-    """The per-shard counts and timings as CSV (seconds with millisecond resolution)."""
+def shard_table(stats: DatasetStats) -> str:
+    """The per-shard counts and timings as CSV text (seconds with millisecond resolution)."""
     columns = shard_columns(stats)
-    with open(path, "w", newline="") as file:
-        writer = csv.writer(file)
-        writer.writerow(["shard", *columns])
-        for shard, counts in sorted(stats.shards.items()):
-            writer.writerow([shard, *(_csv_value(counts[column]) for column in columns)])
+    text = io.StringIO(newline="")
+    writer = csv.writer(text)
+    writer.writerow(["shard", *columns])
+    for shard, counts in sorted(stats.shards.items()):
+        writer.writerow([shard, *(_csv_value(counts[column]) for column in columns)])
+    return text.getvalue()
 
 
 def _csv_value(value: float) -> str:
@@ -423,7 +423,7 @@ def _no_data(axes, message: str) -> None:
     axes.text(0.5, 0.5, message, ha="center", va="center", transform=axes.transAxes)
 
 
-def plot_outcomes(stats: DatasetStats, path: Path) -> None:
+def plot_outcomes(stats: DatasetStats, out: Path | io.BytesIO) -> None:
     """Bar chart: levels per outcome (kept, unsolved, failed, each filter reason)."""
     figure, axes = _figure()
     outcomes = stats.outcomes
@@ -435,10 +435,10 @@ def plot_outcomes(stats: DatasetStats, path: Path) -> None:
     axes.set_ylabel("levels")
     axes.set_title(f"Outcomes of {stats.sampled:,} sampled levels (solved in training: {stats.solved:,})")
     axes.tick_params(axis="x", labelrotation=20)
-    figure.savefig(path)
+    figure.savefig(out, format="png")
 
 
-def plot_success_rates(stats: DatasetStats, path: Path) -> None:
+def plot_success_rates(stats: DatasetStats, out: Path | io.BytesIO) -> None:
     """Histogram of the trained levels' selected experts' evaluation success rates."""
     figure, axes = _figure()
     known = stats.success_rates[np.isfinite(stats.success_rates)]
@@ -450,10 +450,10 @@ def plot_success_rates(stats: DatasetStats, path: Path) -> None:
     axes.set_ylabel("levels")
     unknown = len(stats.success_rates) - len(known)
     axes.set_title(f"{len(stats.success_rates):,} trained levels; {unknown:,} without a success rate")
-    figure.savefig(path)
+    figure.savefig(out, format="png")
 
 
-def plot_episode_lengths(stats: DatasetStats, path: Path) -> None:
+def plot_episode_lengths(stats: DatasetStats, out: Path | io.BytesIO) -> None:
     """Histograms of the episode lengths in the experts' windows: kept and unsolved levels."""
     figure, axes = _figure()
     bins = np.linspace(0, stats.window_steps, min(EPISODE_LENGTH_BINS, stats.window_steps) + 1)
@@ -472,10 +472,10 @@ def plot_episode_lengths(stats: DatasetStats, path: Path) -> None:
     axes.set_xlabel("episode length [env steps]")
     axes.set_ylabel("episodes")
     axes.set_title(f"Episodes ending inside the {stats.window_steps}-step windows")
-    figure.savefig(path)
+    figure.savefig(out, format="png")
 
 
-def plot_learning_curves(stats: DatasetStats, path: Path) -> None:
+def plot_learning_curves(stats: DatasetStats, out: Path | io.BytesIO) -> None:
     """Mean and quantile band over trained levels of the training success rate against env steps per level."""
     figure, axes = _figure()
     curves = stats.curves
@@ -497,7 +497,7 @@ def plot_learning_curves(stats: DatasetStats, path: Path) -> None:
     axes.set_ylabel("success rate of ended episodes")
     every = f", every {stats.curve_stride:,}th level id" if stats.curve_stride > 1 else ""
     axes.set_title(f"Training curves of {len(curves):,} trained levels{every}")
-    figure.savefig(path)
+    figure.savefig(out, format="png")
 
 
 PLOTS = {
@@ -509,16 +509,17 @@ PLOTS = {
 """File stem -> (title on the card, function drawing it)."""
 
 
-def write_card(stats: DatasetStats, out_dir: str | os.PathLike) -> Path:
-    """Write the plots into `out_dir`/card/ and the card into `out_dir`/card.md; returns the card's path."""
-    out_dir = Path(out_dir)
-    (out_dir / FIGURES_DIR).mkdir(parents=True, exist_ok=True)
-    write_shard_table(stats, out_dir / FIGURES_DIR / SHARDS_FILE)
+def write_card(stats: DatasetStats, out_dir: str | os.PathLike) -> str:
+    """Write the plots into `out_dir`/card/ and the card into `out_dir`/card.md (a local folder or an object-store
+    URL); returns where the card is."""
+    store = open_store(out_dir)
+    store.write(f"{FIGURES_DIR}/{SHARDS_FILE}", shard_table(stats).encode())
     figures = {}
     for stem, (title, plot) in PLOTS.items():
         relative = f"{FIGURES_DIR}/{stem}.png"
-        plot(stats, out_dir / relative)
+        image = io.BytesIO()
+        plot(stats, image)
+        store.write(relative, image.getvalue())
         figures[title] = relative
-    path = out_dir / CARD_FILE
-    path.write_text(card_markdown(stats, figures))
-    return path
+    store.write(CARD_FILE, card_markdown(stats, figures).encode())
+    return store.url(CARD_FILE)

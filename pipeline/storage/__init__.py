@@ -23,16 +23,40 @@ from pipeline.storage.layout import (
     static_to_json,
     unflatten_state,
 )
+from pipeline.storage.lease import (
+    DEFAULT_HEARTBEAT_S,
+    DEFAULT_STALE_AFTER_S,
+    LEASE_KEY,
+    Lease,
+    LeaseHeld,
+    LeaseHolder,
+    LeaseLost,
+    read_holder,
+)
 from pipeline.storage.manifest import (
+    all_committed,
     committed_batches,
     iter_records,
     read_record,
-    record_path,
+    read_record_json,
+    record_exists,
+    record_key,
     recorded_shards,
     shard_name,
     write_record,
 )
-from pipeline.storage.records import FAILED, FILTERED_PREFIX, KEPT, PADDING, PROVENANCE, UNSOLVED
+from pipeline.storage.records import (
+    FAILED,
+    FILTERED_PREFIX,
+    KEPT,
+    PADDING,
+    PROVENANCE,
+    UNSOLVED,
+    ArrayEntry,
+    BatchRecord,
+    LevelRecord,
+    Outcome,
+)
 from pipeline.storage.repair import Withdrawal, damaged_commits, withdraw_bad_batches, withdraw_commit
 from pipeline.storage.shard_store import (
     BLOSC_LEVEL,
@@ -47,6 +71,7 @@ from pipeline.storage.shard_store import (
     open_dataset,
 )
 from pipeline.storage.state_codec import encode, is_coded
+from pipeline.storage.store import Store, StoreError, is_remote, join, open_store
 from pipeline.storage.verify import ShardReport, format_report, verify_dataset
 from pipeline.storage.writer import (
     BatchTrajectories,
@@ -58,6 +83,23 @@ from pipeline.storage.writer import (
 )
 
 __all__ = [
+    "ArrayEntry",
+    "BatchRecord",
+    "LevelRecord",
+    "Outcome",
+    "DEFAULT_HEARTBEAT_S",
+    "DEFAULT_STALE_AFTER_S",
+    "LEASE_KEY",
+    "Lease",
+    "LeaseHeld",
+    "LeaseHolder",
+    "LeaseLost",
+    "Store",
+    "StoreError",
+    "is_remote",
+    "join",
+    "open_store",
+    "read_holder",
     "ACTION",
     "ACTION_MASK",
     "BLOSC_LEVEL",
@@ -90,6 +132,7 @@ __all__ = [
     "LearningCurves",
     "ShardReport",
     "clean_uncommitted",
+    "all_committed",
     "committed_batches",
     "create_dataset",
     "damaged_commits",
@@ -102,7 +145,9 @@ __all__ = [
     "make_layout",
     "open_dataset",
     "read_record",
-    "record_path",
+    "read_record_json",
+    "record_exists",
+    "record_key",
     "recorded_shards",
     "shard_name",
     "stage_level_batch",

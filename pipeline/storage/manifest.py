@@ -1,32 +1,31 @@
-"""Commit records: one small JSON file per committed level batch, `manifest/shard-000012/batch-003.json`.
+"""Commit records: one small JSON object per committed level batch, `manifest/shard-000012/batch-003.json`.
 
-A level batch is committed exactly when its record exists: data files are written first, the record last, by an
-atomic rename. The manifest, not any scheduler, is the truth about what a dataset holds.
+A level batch is committed exactly when its record exists: data objects are written first, the record last, as one
+object (atomic on every store). The manifest, not any scheduler, is the truth about what a dataset holds.
 """
 
 from __future__ import annotations
 
 import json
-import os
 import re
-import uuid
 from collections.abc import Iterator
-from pathlib import Path
 
 from pipeline.storage.layout import DatasetError
+from pipeline.storage.records import BatchRecord
 from pipeline.storage.shard_store import MANIFEST_DIR
+from pipeline.storage.store import Location, StoreError, open_store
 
 RECORD_VERSION = 1
 """Version of the record format written by this code."""
 
-_SHARD_DIR = re.compile(r"shard-(\d{6})")
-_RECORD_FILE = re.compile(r"batch-(\d{3,})\.json")
+_RECORD_KEY = re.compile(rf"{MANIFEST_DIR}/shard-(\d{{6}})/batch-(\d{{3,}})\.json")
+_SHARD_KEY = re.compile(rf"{MANIFEST_DIR}/shard-(\d{{6}})/")
 TEMP_MARKER = ".tmp-"
-"""Infix of a record being written (`batch-003.json.tmp-<uuid>`); such a file is never a commit."""
+"""Infix of a record left half-written by older versions of this code (`batch-003.json.tmp-<uuid>`); never a commit."""
 
 
-def shard_dir(root: str | os.PathLike, shard: int) -> Path:
-    return Path(root) / MANIFEST_DIR / f"shard-{shard:06d}"
+def shard_prefix(shard: int) -> str:
+    return f"{MANIFEST_DIR}/{shard_name(shard)}/"
 
 
 def shard_name(shard: int) -> str:
@@ -34,83 +33,88 @@ def shard_name(shard: int) -> str:
     return f"shard-{shard:06d}"
 
 
-def record_path(root: str | os.PathLike, shard: int, batch: int) -> Path:
-    return shard_dir(root, shard) / f"batch-{batch:03d}.json"
+def record_key(shard: int, batch: int) -> str:
+    """The key of a level batch's commit record below the dataset root."""
+    return f"{shard_prefix(shard)}batch-{batch:03d}.json"
 
 
-def write_record(root: str | os.PathLike, shard: int, batch: int, record: dict) -> dict:
-    """Commit a level batch: write its record to a temporary name, fsync, rename into place (atomic).
-
-    Returns the record as stored (with its version)."""
-    path = record_path(root, shard, batch)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    temp = path.with_name(f"{path.name}{TEMP_MARKER}{uuid.uuid4().hex}")
+def write_record(root: Location, shard: int, batch: int, record: dict | BatchRecord) -> dict:
+    """Commit a level batch: write its record (`BatchRecord` or its JSON) as one object. Returns the JSON as stored
+    (with its version)."""
+    if isinstance(record, BatchRecord):
+        record = record.to_json()
     record = {"record_version": RECORD_VERSION, **record}
-    payload = json.dumps(record, indent=1, sort_keys=True)
-    with open(temp, "w") as file:
-        file.write(payload)
-        file.flush()
-        os.fsync(file.fileno())
-    os.replace(temp, path)
-    directory = os.open(path.parent, os.O_RDONLY)
-    try:
-        os.fsync(directory)
-    finally:
-        os.close(directory)
+    open_store(root).write(record_key(shard, batch), json.dumps(record, indent=1, sort_keys=True).encode())
     return record
 
 
-def remove_record(root: str | os.PathLike, shard: int, batch: int) -> bool:
+def remove_record(root: Location, shard: int, batch: int) -> bool:
     """Uncommit a level batch (before it is rewritten); True if a record existed."""
-    try:
-        record_path(root, shard, batch).unlink()
-    except FileNotFoundError:
+    store = open_store(root)
+    key = record_key(shard, batch)
+    if not store.exists(key):
         return False
+    store.delete(key)
     return True
 
 
-def read_record(root: str | os.PathLike, shard: int, batch: int) -> dict:
+def record_exists(root: Location, shard: int, batch: int) -> bool:
+    return open_store(root).exists(record_key(shard, batch))
+
+
+def read_record(root: Location, shard: int, batch: int) -> BatchRecord:
     """The commit record of a level batch; `DatasetError` if it is missing or unreadable."""
-    path = record_path(root, shard, batch)
+    key = record_key(shard, batch)
+    where = f"{shard_name(shard)} batch {batch}: record {key}"
+    return BatchRecord.from_json(read_record_json(root, shard, batch), where)
+
+
+def read_record_json(root: Location, shard: int, batch: int) -> dict:
+    """The commit record of a level batch as stored (JSON), checked only for its version and batch."""
+    store = open_store(root)
+    key = record_key(shard, batch)
     try:
-        record = json.loads(path.read_text())
-    except FileNotFoundError as error:
-        raise DatasetError(f"{shard_name(shard)} batch {batch}: not committed (no {path.name})") from error
-    except (json.JSONDecodeError, UnicodeDecodeError) as error:
-        raise DatasetError(f"{shard_name(shard)} batch {batch}: unreadable record {path} ({error})") from error
+        record = store.read_json(key)
+    except StoreError as error:
+        raise DatasetError(f"{shard_name(shard)} batch {batch}: unreadable record ({error})") from error
+    if record is None:
+        raise DatasetError(f"{shard_name(shard)} batch {batch}: not committed (no {store.url(key)})")
     if not isinstance(record, dict) or record.get("record_version") != RECORD_VERSION:
-        raise DatasetError(f"{shard_name(shard)} batch {batch}: record {path} is not of version {RECORD_VERSION}")
+        raise DatasetError(f"{shard_name(shard)} batch {batch}: record {key} is not of version {RECORD_VERSION}")
     if record.get("shard") != shard or record.get("batch") != batch:
-        raise DatasetError(f"{shard_name(shard)} batch {batch}: record {path} names another batch")
+        raise DatasetError(f"{shard_name(shard)} batch {batch}: record {key} names another batch")
     return record
 
 
-def committed_batches(root: str | os.PathLike, shard: int) -> list[int]:
+def committed_batches(root: Location, shard: int) -> list[int]:
     """Sorted level batches of `shard` that have a commit record (resume continues with the others)."""
-    directory = shard_dir(root, shard)
-    if not directory.is_dir():
-        return []
-    return sorted(int(match[1]) for path in directory.iterdir() if (match := _RECORD_FILE.fullmatch(path.name)))
+    keys = open_store(root).list(shard_prefix(shard))
+    return sorted(int(match[2]) for key in keys if (match := _RECORD_KEY.fullmatch(key)))
 
 
-def recorded_shards(root: str | os.PathLike) -> list[int]:
-    """Sorted shards with a manifest folder (committed or once started)."""
-    directory = Path(root) / MANIFEST_DIR
-    if not directory.is_dir():
-        return []
-    return sorted(int(match[1]) for path in directory.iterdir() if (match := _SHARD_DIR.fullmatch(path.name)))
+def all_committed(root: Location) -> dict[int, list[int]]:
+    """Shard -> its sorted committed level batches, for every shard with one (one listing of the manifest)."""
+    found: dict[int, list[int]] = {}
+    for key in open_store(root).list(f"{MANIFEST_DIR}/"):
+        if match := _RECORD_KEY.fullmatch(key):
+            found.setdefault(int(match[1]), []).append(int(match[2]))
+    return {shard: sorted(batches) for shard, batches in sorted(found.items())}
 
 
-def iter_records(root: str | os.PathLike) -> Iterator[dict]:
+def recorded_shards(root: Location) -> list[int]:
+    """Sorted shards with a manifest entry (committed or once started)."""
+    keys = open_store(root).list(f"{MANIFEST_DIR}/")
+    return sorted({int(match[1]) for key in keys if (match := _SHARD_KEY.match(key))})
+
+
+def iter_records(root: Location) -> Iterator[BatchRecord]:
     """Every commit record of the dataset, by shard then batch."""
-    for shard in recorded_shards(root):
-        for batch in committed_batches(root, shard):
-            yield read_record(root, shard, batch)
+    store = open_store(root)
+    for shard, batches in all_committed(store).items():
+        for batch in batches:
+            yield read_record(store, shard, batch)
 
 
-def temp_records(root: str | os.PathLike, shard: int) -> list[Path]:
-    """Records of `shard` left half-written by a crash (never commits)."""
-    directory = shard_dir(root, shard)
-    if not directory.is_dir():
-        return []
-    return sorted(path for path in directory.iterdir() if TEMP_MARKER in path.name)
+def temp_records(root: Location, shard: int) -> list[str]:
+    """Keys of records of `shard` left half-written by a crash (never commits)."""
+    return [key for key in open_store(root).list(shard_prefix(shard)) if TEMP_MARKER in key]

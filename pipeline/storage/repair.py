@@ -9,16 +9,16 @@ from __future__ import annotations
 
 import concurrent.futures
 import dataclasses
-import os
 from collections.abc import Sequence
 
 from pipeline.storage.layout import DatasetError
 from pipeline.storage.manifest import committed_batches, read_record, remove_record, shard_name
-from pipeline.storage.shard_store import file_digest, open_dataset
+from pipeline.storage.shard_store import object_digest, open_dataset
+from pipeline.storage.store import Location
 from pipeline.storage.verify import ShardReport
 
 HASH_THREADS = 4
-"""Files hashed at once by `damaged_commits` (hashlib releases the GIL on large buffers)."""
+"""Objects read and hashed at once by `damaged_commits` (I/O and hashlib release the GIL)."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -35,16 +35,16 @@ class Withdrawal:
         return f"{where}: {'; '.join(problem.removeprefix(f'{where}: ') for problem in self.problems)}"
 
 
-def withdraw_commit(root: str | os.PathLike, shard: int, batch: int) -> bool:
+def withdraw_commit(root: Location, shard: int, batch: int) -> bool:
     """Withdraw a level batch's commit (remove its record), so that the next run regenerates the batch; True if it
     was committed."""
     return remove_record(root, shard, batch)
 
 
-def withdraw_bad_batches(root: str | os.PathLike, reports: Sequence[ShardReport]) -> list[Withdrawal]:
+def withdraw_bad_batches(root: Location, reports: Sequence[ShardReport]) -> list[Withdrawal]:
     """Withdraw the commit of every level batch the reports (`verify_dataset`) found bad; returns what was withdrawn.
 
-    Only commit records are removed (atomically, one file each); the batches' data files are left for the next run,
+    Only commit records are removed (one object each); the batches' data objects are left for the next run,
     which removes them before it regenerates the batches (`clean_uncommitted`).
     """
     withdrawn = []
@@ -55,10 +55,10 @@ def withdraw_bad_batches(root: str | os.PathLike, reports: Sequence[ShardReport]
     return withdrawn
 
 
-def damaged_commits(root: str | os.PathLike) -> list[str]:
+def damaged_commits(root: Location) -> list[str]:
     """Committed level batches whose record does not read, or whose recorded data files are missing or differ from
     their recorded sha256 (a flipped byte), one line each ("shard-000001 batch 1: file data/done/c/3/0 missing");
-    empty for an intact dataset. Reads every data file once (hashed in parallel); decoding and content checks are
+    empty for an intact dataset. Reads every data object once (in parallel); decoding and content checks are
     `kforge verify`'s."""
     dataset = open_dataset(root)
     geometry = dataset.geometry
@@ -74,21 +74,21 @@ def damaged_commits(root: str | os.PathLike) -> list[str]:
             if batch >= geometry.batches_per_shard:
                 damaged.append(f"{where}: outside the dataset's {geometry.batches_per_shard} batches per shard")
                 continue
-            arrays = record.get("arrays", {})
+            arrays = record.arrays
             missing = [spec.name for spec in dataset.layout.fields if spec.name not in arrays]
             if missing:
                 damaged.append(f"{where}: {missing[0]} not in the record")
                 continue
             global_batch = geometry.global_batch(shard, batch)
             for spec in dataset.layout.fields:
-                if arrays[spec.name].get("sha256") is not None:
-                    expected.append((where, dataset.batch_file(spec.name, global_batch), arrays[spec.name]["sha256"]))
+                if arrays[spec.name].sha256 is not None:
+                    expected.append((where, dataset.batch_key(spec.name, global_batch), arrays[spec.name].sha256))
     with concurrent.futures.ThreadPoolExecutor(HASH_THREADS) as pool:
-        digests = list(pool.map(file_digest, [path for _, path, _ in expected]))
+        digests = list(pool.map(lambda key: object_digest(dataset.store, key), [key for _, key, _ in expected]))
     bad_batches = set()
-    for (where, path, recorded), digest in zip(expected, digests, strict=True):
+    for (where, key, recorded), digest in zip(expected, digests, strict=True):
         if digest != recorded and where not in bad_batches:
             bad_batches.add(where)
             what = "missing" if digest is None else "sha256 mismatch"
-            damaged.append(f"{where}: file {path.relative_to(dataset.root)} {what}")
+            damaged.append(f"{where}: file {key} {what}")
     return damaged

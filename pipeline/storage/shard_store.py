@@ -1,6 +1,6 @@
 """The zarr v3 store of a dataset: one array per stored field, one shard file per level batch, written with tensorstore.
 
-Directory of a dataset:
+A dataset lives at a local path or an object-store URL (`pipeline.storage.store`); its keys:
 
     <root>/data/                      zarr v3 group; its attributes hold the `DatasetSpec` (layout, geometry, split)
     <root>/data/<field>/zarr.json     one array per field, shape (num_slots, [num_steps,] *field shape)
@@ -20,10 +20,7 @@ import dataclasses
 import hashlib
 import json
 import os
-import shutil
-import uuid
 from collections.abc import Iterable, Mapping, Sequence
-from pathlib import Path
 
 import numpy as np
 import tensorstore as ts
@@ -32,6 +29,7 @@ from zarr.codecs import BloscCodec, Crc32cCodec, TransposeCodec
 
 from pipeline.storage.layout import DONE, VALID, DatasetError, FieldSpec, Layout, check_layout
 from pipeline.storage.state_codec import decode_arrays, encode_arrays, is_coded, stored_dtype
+from pipeline.storage.store import Store, StoreError, open_store
 
 FORMAT_VERSION = 2
 """Version of the on-disk format written by this code; a dataset of another version is refused.
@@ -39,6 +37,8 @@ FORMAT_VERSION = 2
 2: per-step state fields stored as prediction residuals (`pipeline.storage.state_codec`)."""
 
 DATA_DIR = "data"
+GROUP_METADATA = f"{DATA_DIR}/zarr.json"
+"""Key of the zarr group's metadata; written last when a dataset is created, so its presence means a dataset."""
 MANIFEST_DIR = "manifest"
 CONFIG_FILE = "config.yaml"
 """The resolved config of the latest run, saved in the dataset directory."""
@@ -110,7 +110,7 @@ class DatasetSpec:
     def from_json(cls, data: Mapping, where: str) -> DatasetSpec:
         version = data.get("format_version")
         if version != FORMAT_VERSION:
-            raise DatasetError(f"{where}: format version {version!r}, this code reads version {FORMAT_VERSION}")
+            raise DatasetError(f"{where}: dataset format version {version}; this code reads version {FORMAT_VERSION}")
         try:
             return cls(
                 layout=Layout.from_json(data["layout"]),
@@ -148,63 +148,61 @@ def _create_array(group: zarr.Group, spec: FieldSpec, layout: Layout, geometry: 
     )
 
 
-def create_dataset(root: str | os.PathLike, spec: DatasetSpec) -> Dataset:
+def create_dataset(root: str | os.PathLike | Store, spec: DatasetSpec) -> Dataset:
     """Create the dataset's group and arrays (all slots empty), or open it if it exists with the same spec.
 
-    The metadata is built in a staging folder and moved into place in one rename, so a crash never leaves a
-    half-created dataset. Call it once (e.g. in the coordinator) before workers write.
+    The zarr metadata is built in memory and written object by object, the group's metadata last: until then
+    `open_dataset` sees no dataset, so a crash never leaves a half-created one (a rerun writes the same objects).
+    Call it once (e.g. under the job's lease) before workers write.
     """
-    root = Path(root)
-    if (root / DATA_DIR).exists():
-        return _open_matching(root, spec)
-    root.mkdir(parents=True, exist_ok=True)
-    staging = root / f".staging-{uuid.uuid4().hex}"
-    try:
-        group = zarr.create_group(str(staging / DATA_DIR), zarr_format=3, attributes={SPEC_ATTRIBUTE: spec.to_json()})
-        for field in spec.layout.fields:
-            _create_array(group, field, spec.layout, spec.geometry)
-        try:
-            os.rename(staging / DATA_DIR, root / DATA_DIR)
-        except OSError:
-            if not (root / DATA_DIR).exists():
-                raise
-            return _open_matching(root, spec)  # another process created it first
-    finally:
-        shutil.rmtree(staging, ignore_errors=True)
-    (root / MANIFEST_DIR).mkdir(exist_ok=True)
-    return Dataset(root, spec)
+    store = open_store(root)
+    if store.exists(GROUP_METADATA):
+        return _open_matching(store, spec)
+    buffers = {}
+    group = zarr.create_group(
+        zarr.storage.MemoryStore(buffers), zarr_format=3, attributes={SPEC_ATTRIBUTE: spec.to_json()}
+    )
+    for field in spec.layout.fields:
+        _create_array(group, field, spec.layout, spec.geometry)
+    objects = {key: buffer.to_bytes() for key, buffer in buffers.items()}
+    group_metadata = objects.pop("zarr.json")
+    for key, value in sorted(objects.items()):
+        store.write(f"{DATA_DIR}/{key}", value)
+    if store.create_exclusive(GROUP_METADATA, group_metadata) is None:
+        return _open_matching(store, spec)  # another process created it first
+    return Dataset(store, spec)
 
 
-def _open_matching(root: Path, spec: DatasetSpec) -> Dataset:
-    dataset = open_dataset(root)
+def _open_matching(store: Store, spec: DatasetSpec) -> Dataset:
+    dataset = open_dataset(store)
     if dataset.spec.to_json() != spec.to_json():
-        raise DatasetError(f"{root}: a dataset with a different spec already exists there")
+        raise DatasetError(f"{store.location}: a dataset with a different spec already exists there")
     return dataset
 
 
-def open_dataset(root: str | os.PathLike) -> Dataset:
-    """Open an existing dataset; raise `DatasetError` if it is missing, of another format, or its layout differs
-    from the one this code derives for its sizes."""
-    root = Path(root)
-    meta_path = root / DATA_DIR / "zarr.json"
-    if not meta_path.is_file():
-        raise DatasetError(f"{root}: not a dataset (no {DATA_DIR}/zarr.json)")
+def open_dataset(root: str | os.PathLike | Store) -> Dataset:
+    """Open an existing dataset (a local path or an `s3://`, `gs://` URL); raise `DatasetError` if it is missing,
+    of another format, or its layout differs from the one this code derives for its sizes."""
     try:
-        meta = json.loads(meta_path.read_text())
+        store = open_store(root)
+        meta = store.read_json(GROUP_METADATA)
+    except StoreError as error:
+        raise DatasetError(f"{root}: unreadable dataset metadata ({error})") from error
+    if meta is None:
+        raise DatasetError(f"{store.location}: not a dataset (no {GROUP_METADATA})")
+    try:
         spec_json = meta["attributes"][SPEC_ATTRIBUTE]
-    except (json.JSONDecodeError, KeyError, TypeError) as error:
-        raise DatasetError(f"{meta_path}: unreadable dataset metadata ({error!r})") from error
-    spec = DatasetSpec.from_json(spec_json, str(root))
-    check_layout(spec.layout, str(root))
-    return Dataset(root, spec)
+    except (KeyError, TypeError) as error:
+        raise DatasetError(f"{store.url(GROUP_METADATA)}: unreadable dataset metadata ({error!r})") from error
+    spec = DatasetSpec.from_json(spec_json, store.location)
+    check_layout(spec.layout, store.location)
+    return Dataset(store, spec)
 
 
-def file_digest(path: Path) -> str | None:
-    """sha256 hex digest of a file's bytes, or None if it does not exist."""
-    try:
-        return hashlib.sha256(path.read_bytes()).hexdigest()
-    except FileNotFoundError:
-        return None
+def object_digest(store: Store, key: str) -> str | None:
+    """sha256 hex digest of an object's bytes, or None if it does not exist."""
+    data = store.read(key)
+    return None if data is None else hashlib.sha256(data).hexdigest()
 
 
 def array_digest(array: np.ndarray) -> str:
@@ -215,8 +213,10 @@ def array_digest(array: np.ndarray) -> str:
 class Dataset:
     """An open dataset: its spec and tensorstore handles of its arrays (opened on first use)."""
 
-    def __init__(self, root: Path, spec: DatasetSpec):
-        self.root = Path(root)
+    def __init__(self, store: Store, spec: DatasetSpec):
+        self.store = store
+        self.root = store.location
+        """Where the dataset lives (a local path or a URL), as given."""
         self.spec = spec
         self._context = ts.Context(
             {
@@ -234,12 +234,10 @@ class Dataset:
     def geometry(self) -> Geometry:
         return self.spec.geometry
 
-    @property
-    def manifest_dir(self) -> Path:
-        return self.root / MANIFEST_DIR
-
-    def array_dir(self, name: str) -> Path:
-        return self.root / DATA_DIR / name
+    @staticmethod
+    def array_prefix(name: str) -> str:
+        """Key prefix of field `name`'s array."""
+        return f"{DATA_DIR}/{name}/"
 
     def array(self, name: str) -> ts.TensorStore:
         """The tensorstore handle of field `name` (opened once); its shape and dtype are checked against the layout."""
@@ -251,7 +249,7 @@ class Dataset:
         spec = self.layout.field(name)
         try:
             store = ts.open(
-                {"driver": "zarr3", "kvstore": {"driver": "file", "path": str(self.array_dir(name))}},
+                {"driver": "zarr3", "kvstore": self.store.child_spec(self.array_prefix(name))},
                 context=self._context,
                 open=True,
             ).result()
@@ -267,10 +265,10 @@ class Dataset:
             )
         return store
 
-    def batch_file(self, name: str, global_batch: int) -> Path:
-        """The shard file of `global_batch` in field `name`'s array."""
+    def batch_key(self, name: str, global_batch: int) -> str:
+        """The key of the shard object of `global_batch` in field `name`'s array."""
         ndim = len(_array_shape(self.layout.field(name), self.layout, 1))
-        return self.array_dir(name).joinpath("c", str(global_batch), *(["0"] * (ndim - 1)))
+        return self.array_prefix(name) + "/".join(["c", str(global_batch), *(["0"] * (ndim - 1))])
 
     def write_batch(self, global_batch: int, arrays: Mapping[str, np.ndarray]) -> None:
         """Write whole shard files of one level batch: `arrays[name]` has shape (levels_per_batch, ...) per field.

@@ -26,8 +26,9 @@ from pipeline.storage.layout import (
     DatasetError,
 )
 from pipeline.storage.manifest import committed_batches, read_record, shard_name, temp_records
-from pipeline.storage.shard_store import Dataset, array_digest, file_digest, open_dataset
-from pipeline.storage.writer import LOCK_SUFFIX, episode_lengths
+from pipeline.storage.records import BatchRecord
+from pipeline.storage.shard_store import Dataset, array_digest, object_digest, open_dataset
+from pipeline.storage.writer import episode_lengths
 
 TIMESTEP = f"{STATE_PREFIX}/timestep"
 
@@ -57,21 +58,22 @@ def verify_dataset(root: str | os.PathLike, allow_incomplete: bool = False) -> l
 def verify_shard(dataset: Dataset, shard: int, allow_incomplete: bool = False) -> ShardReport:
     """Check every committed level batch of `shard`; see the module docstring."""
     geometry = dataset.geometry
-    report = ShardReport(shard, committed_batches(dataset.root, shard))
+    report = ShardReport(shard, committed_batches(dataset.store, shard))
     missing = [b for b in range(geometry.batches_per_shard) if b not in report.committed]
     if missing:
         message = f"level batches {missing} not committed"
         (report.notes if allow_incomplete else report.problems).append(message)
-    for path in temp_records(dataset.root, shard):
-        report.notes.append(f"half-written record {path.name} (removed on resume)")
+    store = dataset.store
+    for key in temp_records(store, shard):
+        report.notes.append(f"half-written record {key.rsplit('/', 1)[-1]} (removed on resume)")
     for batch in range(geometry.batches_per_shard):
         global_batch = geometry.global_batch(shard, batch)
         for spec in dataset.layout.fields:
-            path = dataset.batch_file(spec.name, global_batch)
-            if batch not in report.committed and path.exists():
-                report.notes.append(f"batch {batch}: uncommitted data file {path.relative_to(dataset.root)}")
-            if path.parent.is_dir() and any(p.name.startswith(path.name + LOCK_SUFFIX) for p in path.parent.iterdir()):
-                report.notes.append(f"batch {batch}: stale lock file beside {path.relative_to(dataset.root)}")
+            key = dataset.batch_key(spec.name, global_batch)
+            if batch not in report.committed and key in store.list(key):
+                report.notes.append(f"batch {batch}: uncommitted data file {key}")
+            if store.partial_writes(key):
+                report.notes.append(f"batch {batch}: stale lock file beside {key}")
     for batch in report.committed:
         try:
             problems, num_kept = _verify_batch(dataset, shard, batch)
@@ -85,59 +87,59 @@ def verify_shard(dataset: Dataset, shard: int, allow_incomplete: bool = False) -
 
 
 def _verify_batch(dataset: Dataset, shard: int, batch: int) -> tuple[list[str], int]:
-    record = read_record(dataset.root, shard, batch)
+    record = read_record(dataset.store, shard, batch)
     layout, geometry = dataset.layout, dataset.geometry
     slots = geometry.slots(shard, batch)
     problems = []
-    if record.get("slots") != [slots.start, slots.stop] or len(record.get("levels", ())) != len(slots):
-        return [f"record slots {record.get('slots')} do not match the dataset geometry {[slots.start, slots.stop]}"], 0
-    files = record.get("arrays", {})
+    if record.slots != (slots.start, slots.stop) or len(record.levels) != len(slots):
+        return [f"record slots {list(record.slots)} do not match the dataset geometry {[slots.start, slots.stop]}"], 0
+    files = record.arrays
     arrays = {}
     for spec in layout.fields:
         entry = files.get(spec.name)
         if entry is None:
             problems.append(f"{spec.name}: not in the record")
             continue
-        path = dataset.batch_file(spec.name, geometry.global_batch(shard, batch))
-        digest = file_digest(path)
-        if digest != entry.get("sha256"):
-            what = "missing" if digest is None else ("unexpected" if entry.get("sha256") is None else "sha256 mismatch")
-            problems.append(f"{spec.name}: file {path.relative_to(dataset.root)} {what}")
+        key = dataset.batch_key(spec.name, geometry.global_batch(shard, batch))
+        digest = object_digest(dataset.store, key)
+        if digest != entry.sha256:
+            what = "missing" if digest is None else ("unexpected" if entry.sha256 is None else "sha256 mismatch")
+            problems.append(f"{spec.name}: file {key} {what}")
         try:
             arrays[spec.name] = dataset.read([spec.name], slots)[spec.name]
         except ValueError as error:
             problems.append(f"{spec.name}: cannot decode ({error})")
             continue
-        if array_digest(arrays[spec.name]) != entry.get("data_sha256"):
+        if array_digest(arrays[spec.name]) != entry.data_sha256:
             problems.append(f"{spec.name}: decoded content differs from the record")
     if problems:
         return problems, 0
     return _check_content(layout, record, arrays), int(arrays[VALID].sum())
 
 
-def _check_content(layout, record: dict, arrays: dict[str, np.ndarray]) -> list[str]:
+def _check_content(layout, record: BatchRecord, arrays: dict[str, np.ndarray]) -> list[str]:
     problems = []
-    levels = record["levels"]
+    levels = record.levels
     kept = arrays[VALID]
-    recorded_kept = np.array([bool(level["kept"]) for level in levels])
-    if not np.array_equal(kept, recorded_kept) or int(kept.sum()) != record.get("num_kept"):
+    recorded_kept = np.array([level.kept for level in levels])
+    if not np.array_equal(kept, recorded_kept) or int(kept.sum()) != record.num_kept:
         problems.append(f"kept flags {kept.astype(int).tolist()} differ from the record's")
     for i, level in enumerate(levels):
-        where = f"slot {level['slot']}"
+        where = f"slot {level.slot}"
         if not kept[i]:
             for spec in layout.fields:
                 fill = np.full_like(arrays[spec.name][i], spec.fill_value)
                 if not np.array_equal(arrays[spec.name][i], fill, equal_nan=fill.dtype.kind == "f"):
                     problems.append(f"{where}: empty slot holds data in {spec.name}")
             continue
-        for name, key in ((LEVEL_ID, "level_id"), (LEVEL_SEED, "level_seed")):
-            if int(arrays[name][i]) != level[key]:
-                problems.append(f"{where}: {name} {int(arrays[name][i])} but the record says {level[key]}")
+        for name, recorded in ((LEVEL_ID, level.level_id), (LEVEL_SEED, level.level_seed)):
+            if int(arrays[name][i]) != recorded:
+                problems.append(f"{where}: {name} {int(arrays[name][i])} but the record says {recorded}")
         for spec in layout.fields:
             value = arrays[spec.name][i]
             if value.dtype.kind == "f" and not np.all(np.isfinite(value)):
                 problems.append(f"{where}: {spec.name} holds non-finite values")
-        problems += [f"{where}: {problem}" for problem in _check_episodes(arrays, i, level["episode_lengths"])]
+        problems += [f"{where}: {problem}" for problem in _check_episodes(arrays, i, list(level.episode_lengths))]
     return problems
 
 

@@ -6,7 +6,6 @@ import dataclasses
 import math
 import os
 from collections.abc import Sequence
-from pathlib import Path
 
 import jax
 import numpy as np
@@ -28,12 +27,11 @@ from pipeline.storage.layout import (
     flatten_state,
     unflatten_state,
 )
+from pipeline.storage.lease import require_lease
 from pipeline.storage.manifest import committed_batches, remove_record, temp_records, write_record
-from pipeline.storage.records import KEPT, PROVENANCE
-from pipeline.storage.shard_store import Dataset, array_digest, file_digest, open_dataset
-
-LOCK_SUFFIX = ".__lock"
-"""Suffix of the file tensorstore writes before renaming it over the key; left behind only by a crash."""
+from pipeline.storage.records import KEPT, ArrayEntry, BatchRecord, LevelRecord, Outcome
+from pipeline.storage.shard_store import Dataset, array_digest, object_digest, open_dataset
+from pipeline.storage.store import Store
 
 
 @dataclasses.dataclass(frozen=True)
@@ -208,73 +206,61 @@ def stage_level_batch(dataset: Dataset, shard: int, batch: int, result: BatchTra
 
     files = {}
     for name, value in arrays.items():
-        path = dataset.batch_file(name, global_batch)
-        digest = file_digest(path)
-        files[name] = {
-            "file": path.relative_to(dataset.root).as_posix() if digest else None,
-            "sha256": digest,
-            "data_sha256": array_digest(value),
-        }
+        key = dataset.batch_key(name, global_batch)
+        digest = object_digest(dataset.store, key)
+        files[name] = ArrayEntry(key if digest else None, digest, array_digest(value))
     slots = geometry.slots(shard, batch)
-    levels = [
-        {
-            "slot": slot,
-            "kept": result.outcome[i] == KEPT,
-            "outcome": str(result.outcome[i]),
-            "level_id": int(result.level_id[i]),
-            "level_seed": int(result.level_seed[i]),
-            "expert_success_rate": _json_number(result.expert_success_rate[i]),
-            "episode_lengths": episode_lengths(np.asarray(result.done[i])).tolist(),
-        }
-        | _expert_env_steps_entry(result.expert_env_steps, i)
-        | _curve_entry(result.curves, i)
+    curves = result.curves
+    levels = tuple(
+        LevelRecord(
+            slot=slot,
+            outcome=Outcome(result.outcome[i]),
+            level_id=int(result.level_id[i]),
+            level_seed=int(result.level_seed[i]),
+            expert_success_rate=_json_number(result.expert_success_rate[i]),
+            episode_lengths=tuple(episode_lengths(np.asarray(result.done[i])).tolist()),
+            expert_env_steps=None if result.expert_env_steps is None else int(result.expert_env_steps[i]),
+            curve_success_rate=None if curves is None else tuple(_json_number(v) for v in curves.success_rate[i]),
+            curve_mean_return=None if curves is None else tuple(_json_number(v) for v in curves.mean_return[i]),
+        )
         for i, slot in enumerate(slots)
-    ]
-    record = {
-        "shard": shard,
-        "batch": batch,
-        "global_batch": global_batch,
-        "slots": [slots.start, slots.stop],
-        "num_kept": int(arrays[VALID].sum()),
-        "levels": levels,
-        "arrays": files,
-    }
-    if result.curves is not None:
-        record["curve_env_steps"] = result.curves.env_steps.tolist()
-    if result.seconds:
-        record[PROVENANCE] = {"seconds": dict(result.seconds)}
-    return record
+    )
+    record = BatchRecord(
+        shard=shard,
+        batch=batch,
+        global_batch=global_batch,
+        slots=(slots.start, slots.stop),
+        num_kept=int(arrays[VALID].sum()),
+        levels=levels,
+        arrays=files,
+        curve_env_steps=None if curves is None else tuple(curves.env_steps.tolist()),
+        provenance={"seconds": dict(result.seconds)} if result.seconds else None,
+    )
+    return record.to_json()
 
 
-def _expert_env_steps_entry(env_steps: np.ndarray | None, level: int) -> dict:
-    return {} if env_steps is None else {"expert_env_steps": int(env_steps[level])}
+def clean_uncommitted(root: str | os.PathLike | Store, shard: int, job_id: str) -> list[str]:
+    """Remove what a crash left in `shard`: data objects of level batches without a record, half-done local writes
+    (tensorstore lock files) and half-written records. Returns the removed keys.
 
-
-def _curve_entry(curves: LearningCurves | None, level: int) -> dict:
-    if curves is None:
-        return {}
-    return {
-        "learning_curve": {
-            "success_rate": [_json_number(v) for v in curves.success_rate[level]],
-            "mean_return": [_json_number(v) for v in curves.mean_return[level]],
-        }
-    }
-
-
-def clean_uncommitted(root: str | os.PathLike, shard: int) -> list[Path]:
-    """Remove what a crash left in `shard`: data files of level batches without a record, tensorstore lock
-    files and half-written records. Returns the removed paths. Only the shard's single writer may call it."""
+    Only the shard's single writer may call it, under its job's lease (`LeaseLost` if job `job_id` does not hold the
+    dataset's lease): a second job's worker would otherwise delete data another job is about to commit.
+    """
     dataset = open_dataset(root)
-    committed = set(committed_batches(root, shard))
-    removed = list(temp_records(root, shard))
+    require_lease(dataset.store, job_id)
+    store = dataset.store
+    committed = set(committed_batches(store, shard))
+    removed = list(temp_records(store, shard))
+    partial = []
     for batch in range(dataset.geometry.batches_per_shard):
         global_batch = dataset.geometry.global_batch(shard, batch)
         for spec in dataset.layout.fields:
-            path = dataset.batch_file(spec.name, global_batch)
-            if path.parent.is_dir():
-                removed += [p for p in path.parent.iterdir() if p.name.startswith(path.name + LOCK_SUFFIX)]
-            if batch not in committed and path.exists():
-                removed.append(path)
-    for path in removed:
-        path.unlink(missing_ok=True)
-    return removed
+            key = dataset.batch_key(spec.name, global_batch)
+            partial += store.partial_writes(key)
+            if batch not in committed and key in store.list(key):
+                removed.append(key)
+    for key in removed:
+        store.delete(key)
+    for key in partial:
+        store.delete_partial(key)
+    return sorted(removed + partial)

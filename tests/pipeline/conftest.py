@@ -8,12 +8,20 @@ The rollout runs once per test session.
 
 from __future__ import annotations
 
+import contextlib
+import json
+import os
+import signal
+import subprocess
 import sys
+import time
+from pathlib import Path
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+import zarr
 
 from engine import SceneBuilder
 from env import ActionType, EnvParams, Role, StaticEnvParams, build_level, random_action, reset, step
@@ -22,6 +30,7 @@ from pipeline.generation.coordinator import Coordinator
 from pipeline.generation.level_batch import batches_per_shard, num_shards
 from pipeline.generation.run import prepare_output
 from pipeline.generation.worker import Worker
+from pipeline.storage import PROVENANCE, Lease, iter_records
 from pipeline.storage.layout import make_layout
 from pipeline.storage.shard_store import DatasetSpec, Geometry, create_dataset
 from pipeline.storage.writer import KEPT, BatchTrajectories, write_level_batch
@@ -164,10 +173,96 @@ def tiny_job(output_dir, *extra):
 
 
 def run_in_process(job, max_batches=None):
-    """The job's work loop without Ray: one worker takes shards from the coordinator until none is left."""
-    prepare_output(job)
-    coordinator = Coordinator(job.output_dir, num_shards(job), batches_per_shard(job), max_batches)
-    worker = Worker(job, "local")
-    while (shard := coordinator.next_shard("local")) is not None:
-        worker.run_shard(coordinator, shard)
-        coordinator.release(shard)
+    """The job's work loop without Ray, under the job's lease: one worker takes shards from the coordinator until
+    none is left."""
+    with Lease.acquire(job.output_dir) as lease:
+        prepare_output(job)
+        coordinator = Coordinator(
+            job.output_dir, num_shards(job), batches_per_shard(job), max_batches, lease.holder.job_id
+        )
+        worker = Worker(job, "local")
+        while (shard := coordinator.next_shard("local")) is not None:
+            worker.run_shard(coordinator, shard)
+            coordinator.release(shard)
+
+
+def batch_file(dataset, name: str, global_batch: int) -> Path:
+    """The local file of a level batch's shard object in field `name`'s array (tests that damage files)."""
+    return Path(dataset.root) / dataset.batch_key(name, global_batch)
+
+
+def session_processes(session: int) -> list[int]:
+    """Pids of the live processes of a Unix session (the job's driver and everything Ray started under it)."""
+    pids = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except (FileNotFoundError, ProcessLookupError, IndexError):
+            continue
+        if int(fields[3]) == session and fields[0] != "Z":  # fields after ")": state, ppid, pgrp, session
+            pids.append(int(stat.parent.name))
+    return pids
+
+
+def kill_session(session: int) -> None:
+    """SIGKILL every process of the session (a job killed without warning), and wait until they are gone."""
+    deadline = time.monotonic() + KILL_WAIT_SECONDS
+    while (pids := session_processes(session)) and time.monotonic() < deadline:
+        for pid in pids:
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(pid, signal.SIGKILL)
+        time.sleep(0.1)
+    assert not session_processes(session), "processes of the killed job survived"
+
+
+KILL_WAIT_SECONDS = 30.0
+POLL_SECONDS = 0.05
+JOB_TIMEOUT_SECONDS = 900.0
+
+
+def run_job_process(config_file: Path, until=None) -> str:
+    """Run `python -m pipeline run` in a session of its own; with `until`, SIGKILL the whole session as soon as
+    `until()` holds (the job dies mid-work), else wait for it to finish and check it succeeded."""
+    process = subprocess.Popen(
+        [sys.executable, "-m", "pipeline", "run", str(config_file), "--no-progress"],
+        start_new_session=True,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        env={**os.environ, "RAY_AUTH_MODE": "disabled"},
+    )
+    deadline = time.monotonic() + JOB_TIMEOUT_SECONDS
+    try:
+        while process.poll() is None and time.monotonic() < deadline:
+            if until is not None and until():
+                kill_session(process.pid)
+                process.wait()
+                return ""
+            time.sleep(POLL_SECONDS)
+        output = process.communicate(timeout=KILL_WAIT_SECONDS)[0].decode(errors="replace")
+        assert until is None, f"the job ended before the kill point:\n{output[-3000:]}"
+        assert process.returncode == 0, output[-3000:]
+        return output
+    finally:
+        kill_session(process.pid)
+
+
+def dataset_contents(root):
+    """Every stored array and every commit record of a dataset directory."""
+    group = zarr.open_group(str(root / "data"), mode="r")
+    arrays = {name: np.asarray(array[...]) for name, array in group.arrays()}
+    for name, array in group.groups():
+        arrays.update({f"{name}/{k}": np.asarray(v[...]) for k, v in array.arrays()})
+    records = sorted(
+        json.dumps({key: value for key, value in record.to_json().items() if key != PROVENANCE}, sort_keys=True)
+        for record in iter_records(root)
+    )
+    return arrays, records
+
+
+def assert_same_dataset(first, second):
+    arrays_a, records_a = dataset_contents(first)
+    arrays_b, records_b = dataset_contents(second)
+    assert sorted(arrays_a) == sorted(arrays_b)
+    for name in arrays_a:
+        np.testing.assert_array_equal(arrays_a[name], arrays_b[name], err_msg=name)
+    assert records_a == records_b

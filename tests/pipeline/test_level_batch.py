@@ -7,16 +7,14 @@ from pipeline_test_helpers import tiny_job
 
 from pipeline.generation.config import ppo_config
 from pipeline.generation.level_batch import (
-    FILTERED_PREFIX,
-    PADDING,
-    UNSOLVED,
     batch_level_indices,
     batches_per_shard,
     num_shards,
     run_level_batch,
     sample_batch,
 )
-from pipeline.storage.writer import KEPT, MAX_CURVE_POINTS, learning_curves
+from pipeline.storage import FILTERED_PREFIX, KEPT, PADDING, UNSOLVED
+from pipeline.storage.writer import MAX_CURVE_POINTS, learning_curves
 
 
 @pytest.fixture(scope="module")

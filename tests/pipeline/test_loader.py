@@ -7,7 +7,7 @@ import shutil
 import jax
 import numpy as np
 import pytest
-from pipeline_test_helpers import STATIC
+from pipeline_test_helpers import STATIC, batch_file
 
 from env import ObservationType, StaticEnvParams, observe
 from pipeline.reading.loader import TrajectoryDatasetManager
@@ -113,10 +113,10 @@ def test_a_missing_or_corrupt_data_file_is_a_named_error(dataset_dir, tmp_path):
     root = tmp_path / "ds"
     shutil.copytree(dataset_dir, root)
     dataset = open_dataset(root)
-    dataset.batch_file("meta/valid", 0).unlink()
+    batch_file(dataset, "meta/valid", 0).unlink()
     with pytest.raises(DatasetError, match=r"committed slots \[0\] read as empty .*kforge verify"):
         TrajectoryDatasetManager(root, batch_size=1).load_slots(np.array([0]))
-    path = dataset.batch_file("action", 1)
+    path = batch_file(dataset, "action", 1)
     data = bytearray(path.read_bytes())
     data[50] ^= 0xFF
     path.write_bytes(bytes(data))

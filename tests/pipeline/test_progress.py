@@ -18,6 +18,7 @@ from pipeline.generation.coordinator import Coordinator
 from pipeline.generation.level_batch import batches_per_shard, num_shards
 from pipeline.generation.run import prepare_output
 from pipeline.generation.worker import Worker
+from pipeline.storage import Lease
 
 
 def _coordinator(tmp_path, max_batches=None):
@@ -105,10 +106,12 @@ class _RecordingCoordinator(Coordinator):
 
 def test_a_worker_reports_each_batch_fully_trained_before_it_commits(tmp_path):
     job = tiny_job(tmp_path / "out")
-    prepare_output(job)
-    coordinator = _RecordingCoordinator(job.output_dir, num_shards(job), batches_per_shard(job))
-    shard = coordinator.next_shard("local")
-    Worker(job, "local").run_shard(coordinator, shard)
+    with Lease.acquire(job.output_dir) as lease:  # a worker writes under its job's lease
+        prepare_output(job)
+        args = (job.output_dir, num_shards(job), batches_per_shard(job), None, lease.holder.job_id)
+        coordinator = _RecordingCoordinator(*args)
+        shard = coordinator.next_shard("local")
+        Worker(job, "local").run_shard(coordinator, shard)
     # The tiny job: 256 env steps of 4 envs x 16 steps = 4 updates per level in one evaluation segment; the program
     # reports its start, the worker the end.
     assert coordinator.reports == [(shard, 0, 0, 4), (shard, 0, 4, 4), (shard, 1, 0, 4), (shard, 1, 4, 4)]

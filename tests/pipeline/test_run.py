@@ -16,10 +16,18 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
 import pytest
-import zarr
-from pipeline_test_helpers import run_in_process, tiny_job
+from pipeline_test_helpers import (
+    JOB_TIMEOUT_SECONDS,
+    KILL_WAIT_SECONDS,
+    POLL_SECONDS,
+    assert_same_dataset,
+    kill_session,
+    run_in_process,
+    run_job_process,
+    session_processes,
+    tiny_job,
+)
 
 import pipeline.generation.config
 from engine import SimParams
@@ -31,32 +39,10 @@ from pipeline.generation.growth import ResumeRefused
 from pipeline.generation.level_batch import run_level_batch
 from pipeline.generation.run import DatasetDamaged, prepare_output, run_job
 from pipeline.generation.worker import FAULT_INJECTION_ENV
-from pipeline.storage.manifest import committed_batches, iter_records, record_path
+from pipeline.storage.manifest import committed_batches, iter_records, record_key
 from pipeline.storage.shard_store import open_dataset
 from pipeline.storage.verify import verify_dataset
-from pipeline.storage.writer import PROVENANCE, stage_level_batch
-
-
-def dataset_contents(root):
-    """Every stored array and every commit record of a dataset directory."""
-    group = zarr.open_group(str(root / "data"), mode="r")
-    arrays = {name: np.asarray(array[...]) for name, array in group.arrays()}
-    for name, array in group.groups():
-        arrays.update({f"{name}/{k}": np.asarray(v[...]) for k, v in array.arrays()})
-    records = sorted(
-        json.dumps({key: value for key, value in record.items() if key != PROVENANCE}, sort_keys=True)
-        for record in iter_records(root)
-    )
-    return arrays, records
-
-
-def assert_same_dataset(first, second):
-    arrays_a, records_a = dataset_contents(first)
-    arrays_b, records_b = dataset_contents(second)
-    assert sorted(arrays_a) == sorted(arrays_b)
-    for name in arrays_a:
-        np.testing.assert_array_equal(arrays_a[name], arrays_b[name], err_msg=name)
-    assert records_a == records_b
+from pipeline.storage.writer import stage_level_batch
 
 
 @pytest.fixture(scope="module")
@@ -69,7 +55,7 @@ def uninterrupted(tmp_path_factory):
 def test_uninterrupted_run_commits_every_batch_and_verifies(uninterrupted):
     assert [committed_batches(uninterrupted, shard) for shard in range(2)] == [[0, 1], [0, 1]]
     assert all(report.ok for report in verify_dataset(uninterrupted))
-    outcomes = [level["outcome"] for record in iter_records(uninterrupted) for level in record["levels"]]
+    outcomes = [level.outcome for record in iter_records(uninterrupted) for level in record.levels]
     assert outcomes.count("padding") == 2 and len(outcomes) == 8
 
 
@@ -129,60 +115,6 @@ def test_a_worker_killed_mid_shard_is_replaced_and_nothing_is_lost_or_duplicated
     assert_same_dataset(uninterrupted, output)
 
 
-def _session_processes(session: int) -> list[int]:
-    """Pids of the live processes of a Unix session (the job's driver and everything Ray started under it)."""
-    pids = []
-    for stat in Path("/proc").glob("[0-9]*/stat"):
-        try:
-            fields = stat.read_text().rsplit(")", 1)[1].split()
-        except (FileNotFoundError, ProcessLookupError, IndexError):
-            continue
-        if int(fields[3]) == session and fields[0] != "Z":  # fields after ")": state, ppid, pgrp, session
-            pids.append(int(stat.parent.name))
-    return pids
-
-
-def _kill_session(session: int) -> None:
-    """SIGKILL every process of the session (a job killed without warning), and wait until they are gone."""
-    deadline = time.monotonic() + KILL_WAIT_SECONDS
-    while (pids := _session_processes(session)) and time.monotonic() < deadline:
-        for pid in pids:
-            with contextlib.suppress(ProcessLookupError):
-                os.kill(pid, signal.SIGKILL)
-        time.sleep(0.1)
-    assert not _session_processes(session), "processes of the killed job survived"
-
-
-KILL_WAIT_SECONDS = 30.0
-POLL_SECONDS = 0.05
-JOB_TIMEOUT_SECONDS = 900.0
-
-
-def _run_job_process(config_file: Path, until=None) -> None:
-    """Run `python -m pipeline run` in a session of its own; with `until`, SIGKILL the whole session as soon as
-    `until()` holds (the job dies mid-work), else wait for it to finish and check it succeeded."""
-    process = subprocess.Popen(
-        [sys.executable, "-m", "pipeline", "run", str(config_file), "--no-progress"],
-        start_new_session=True,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.STDOUT,
-        env={**os.environ, "RAY_AUTH_MODE": "disabled"},
-    )
-    deadline = time.monotonic() + JOB_TIMEOUT_SECONDS
-    try:
-        while process.poll() is None and time.monotonic() < deadline:
-            if until is not None and until():
-                _kill_session(process.pid)
-                process.wait()
-                return
-            time.sleep(POLL_SECONDS)
-        output = process.communicate(timeout=KILL_WAIT_SECONDS)[0].decode(errors="replace")
-        assert until is None, f"the job ended before the kill point:\n{output[-3000:]}"
-        assert process.returncode == 0, output[-3000:]
-    finally:
-        _kill_session(process.pid)
-
-
 def _committed(root: Path) -> int:
     return sum(len(committed_batches(root, shard)) for shard in range(2)) if (root / "manifest").is_dir() else 0
 
@@ -191,7 +123,8 @@ def _committed(root: Path) -> int:
 def test_a_job_killed_at_several_points_and_resumed_equals_an_uninterrupted_run(uninterrupted, tmp_path):
     output = tmp_path / "dataset"
     config_file = tmp_path / "job.yaml"
-    config_file.write_text(to_yaml(tiny_job(output)))
+    # A killed job leaves its lease behind: the next run takes it over once its heartbeat is a second old.
+    config_file.write_text(to_yaml(tiny_job(output, "lease.stale_after_s=1", "lease.heartbeat_s=0.25")))
     kill_points = {
         "dataset created, nothing committed": lambda: (output / "data" / "zarr.json").exists(),
         "first level batch committed": lambda: _committed(output) >= 1,
@@ -199,10 +132,10 @@ def test_a_job_killed_at_several_points_and_resumed_equals_an_uninterrupted_run(
     }
     for where, reached in kill_points.items():
         assert not reached(), f"already past the kill point '{where}' before the run"
-        _run_job_process(config_file, until=reached)
+        run_job_process(config_file, until=reached)
         assert reached(), where
     assert _committed(output) < 4  # the last kill came before the end
-    _run_job_process(config_file)
+    run_job_process(config_file)
     assert_same_dataset(uninterrupted, output)
     assert all(report.ok for report in verify_dataset(output))
 
@@ -221,7 +154,7 @@ def test_a_damaged_commit_is_refused_by_run_repaired_by_verify_and_regenerated_i
 ):
     root = tmp_path / "dataset"
     shutil.copytree(uninterrupted, root)
-    _flip_byte(record_path(root, 1, 0))  # the tiny job keeps no trajectory, so its damage is in a commit record
+    _flip_byte(Path(root) / record_key(1, 0))  # the tiny job keeps no trajectory, so its damage is in a commit record
     with pytest.raises(
         DatasetDamaged,
         match=r"1 committed level batches have missing, unreadable or damaged files .*"
@@ -292,7 +225,8 @@ def test_a_dataset_with_a_fingerprint_of_the_level_count_is_still_resumed(tmp_pa
 
 def test_the_config_is_written_atomically(tmp_path):
     prepare_output(tiny_job(tmp_path))
-    assert sorted(path.name for path in tmp_path.iterdir()) == ["config.yaml", "data", "manifest"]  # no temp file
+    # No temp file left; manifest/ comes with the first commit.
+    assert sorted(path.name for path in tmp_path.iterdir()) == ["config.yaml", "data"]
     assert load_config(tmp_path / "config.yaml").output_dir == str(tmp_path)
 
 
@@ -312,7 +246,7 @@ def test_a_failed_ray_start_finishes_the_tracked_run(tmp_path, monkeypatch):
 
 def _worker_started(session: int) -> bool:
     """A Ray worker actor of the job's session has started (the job is at work)."""
-    for pid in _session_processes(session):
+    for pid in session_processes(session):
         with contextlib.suppress(OSError):
             if b"ray::Worker" in Path(f"/proc/{pid}/cmdline").read_bytes():
                 return True
@@ -343,7 +277,7 @@ def test_a_signal_ends_the_job_with_one_line_naming_what_was_committed_and_how_t
             os.kill(process.pid, signal.SIGTERM)  # what a scheduler does
         out, err = process.communicate(timeout=KILL_WAIT_SECONDS * 4)
     finally:
-        _kill_session(process.pid)
+        kill_session(process.pid)
     err = err.decode()
     assert process.returncode == EXIT_INTERRUPTED, err[-3000:]
     assert out == b"" and "Traceback" not in err and "\x1b[" not in err  # no colour codes off a terminal

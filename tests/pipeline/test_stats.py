@@ -12,6 +12,7 @@ import csv
 import json
 import re
 import shutil
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -62,15 +63,13 @@ def _number(text: str) -> float:
 
 def expected_counts(root) -> dict[str, int]:
     """Level counts from the commit records, and kept from the stored valid flags."""
-    levels = [level for record in iter_records(root) for level in record["levels"] if level["outcome"] != "padding"]
-    outcomes = [level["outcome"] for level in levels]
-    trained = [level for level in levels if not level["outcome"].startswith("filtered:")]
+    levels = [level for record in iter_records(root) for level in record.levels if level.outcome != "padding"]
+    outcomes = [level.outcome for level in levels]
+    trained = [level for level in levels if not level.outcome.startswith("filtered:")]
     counts = {
         "sampled": len(levels),
         "trained": len(trained),
-        "solved": sum(
-            level["expert_success_rate"] is not None and level["expert_success_rate"] > 0 for level in trained
-        ),
+        "solved": sum(level.expert_success_rate is not None and level.expert_success_rate > 0 for level in trained),
         "kept": int(open_dataset(root).read([VALID], range(open_dataset(root).geometry.num_slots))[VALID].sum()),
         "unsolved": outcomes.count("unsolved"),
         "failed": outcomes.count("failed"),
@@ -108,7 +107,7 @@ def test_card_names_the_fingerprint_config_and_timings(dataset, card):
     assert config["split.expert_budget"] == ["256"] and config["filter.noop_steps"] == ["1"]
     assert config["scale"] == ["null"]
 
-    seconds = [record["provenance"]["seconds"] for record in iter_records(dataset)]
+    seconds = [record.provenance["seconds"] for record in iter_records(dataset)]
     total = sum(s["total"] for s in seconds)
     timings = _table(text, "Time")
     assert _number(timings["total"][0]) == pytest.approx(total, abs=0.05)
@@ -122,12 +121,12 @@ def test_shard_table_counts_and_times_each_shard_from_its_records(dataset, card)
         rows = {int(row["shard"]): row for row in csv.DictReader(file)}
     assert sorted(rows) == [0, 1]
     for shard, row in rows.items():
-        records = [record for record in iter_records(dataset) if record["shard"] == shard]
-        levels = [level for record in records for level in record["levels"] if level["outcome"] != "padding"]
+        records = [record for record in iter_records(dataset) if record.shard == shard]
+        levels = [level for record in records for level in record.levels if level.outcome != "padding"]
         assert int(row["batches"]) == len(records) and int(row["sampled"]) == len(levels)
-        assert int(row["kept"]) == sum(level["outcome"] == "kept" for level in levels)
-        assert int(row["trained"]) == sum(not level["outcome"].startswith("filtered:") for level in levels)
-        seconds = sum(record["provenance"]["seconds"]["train"] for record in records)
+        assert int(row["kept"]) == sum(level.outcome == "kept" for level in levels)
+        assert int(row["trained"]) == sum(not level.outcome.startswith("filtered:") for level in levels)
+        seconds = sum(record.provenance["seconds"]["train"] for record in records)
         assert float(row["seconds/train"]) == pytest.approx(seconds, abs=1e-3)
     assert sum(int(row["sampled"]) for row in rows.values()) == expected_counts(dataset)["sampled"]
 
@@ -154,7 +153,7 @@ def test_records_without_timings_or_curves_still_give_a_card(dataset, tmp_path):
         for level in record["levels"]:
             level.pop("learning_curve")
         path.write_text(json.dumps(record))
-    text = (write_card(collect_stats(copy, show_progress=False), tmp_path / "out")).read_text()
+    text = Path(write_card(collect_stats(copy, show_progress=False), tmp_path / "out")).read_text()
     assert "No level batch records wall times" in text
     rows = _table(text, "Levels")
     assert {label: int(_number(cells[0])) for label, cells in rows.items()} == expected_counts(dataset)

@@ -5,17 +5,20 @@ from __future__ import annotations
 
 import dataclasses
 import json
+from pathlib import Path
 
 import jax
 import numpy as np
 import pytest
-from pipeline_test_helpers import ACTION_TYPE, GEOMETRY, PARAMS, STATIC, batch_result, dataset_spec
+from pipeline_test_helpers import ACTION_TYPE, GEOMETRY, PARAMS, STATIC, batch_file, batch_result, dataset_spec
 
 from env import step
 from pipeline.storage.layout import DatasetError, flatten_state, unflatten_state
-from pipeline.storage.manifest import committed_batches, read_record, record_path
+from pipeline.storage.lease import Lease, LeaseLost
+from pipeline.storage.manifest import committed_batches, read_record, record_key
 from pipeline.storage.shard_store import create_dataset, open_dataset
-from pipeline.storage.writer import KEPT, LOCK_SUFFIX, clean_uncommitted, stored_arrays, write_level_batch
+from pipeline.storage.store import LOCAL_PARTIAL_SUFFIX
+from pipeline.storage.writer import KEPT, clean_uncommitted, stored_arrays, write_level_batch
 
 SHARD, BATCH = 1, 0
 SLOTS = GEOMETRY.slots(SHARD, BATCH)  # slots 6, 7, 8: levels 0 and 1 kept, level 2 empty
@@ -115,41 +118,57 @@ def test_a_batch_with_nothing_kept_writes_no_data_files_but_commits(tmp_path, ro
     record = write_level_batch(dataset, 0, 1, result)
     assert record["num_kept"] == 0 and committed_batches(dataset.root, 0) == [1]
     assert all(entry["file"] is None for entry in record["arrays"].values())
-    assert not any(p.is_file() for p in (dataset.root / "data").rglob("c/*"))
+    assert not any(p.is_file() for p in (Path(dataset.root) / "data").rglob("c/*"))
 
 
 def test_crash_before_the_commit_is_uncommitted_and_cleaned(written, rolled_out):
     dataset, _ = written
+    root = Path(dataset.root)
     # shard 1 batch 1 (global batch 3): data written, then the process died before the manifest record
     arrays = stored_arrays(dataset.layout, GEOMETRY.levels_per_batch, batch_result(rolled_out))
     dataset.write_batch(GEOMETRY.global_batch(SHARD, 1), arrays)
-    position = dataset.batch_file("env_state/sim/bodies/position", 3)
-    lock = position.with_name(position.name + LOCK_SUFFIX)
+    position = batch_file(dataset, "env_state/sim/bodies/position", 3)
+    lock = position.with_name(position.name + LOCAL_PARTIAL_SUFFIX)
     lock.write_bytes(b"partial")
-    temp = record_path(dataset.root, SHARD, 1).with_name("batch-001.json.tmp-abc")
+    temp = (root / record_key(SHARD, 1)).with_name("batch-001.json.tmp-abc")
     temp.write_text("{")
     assert committed_batches(dataset.root, SHARD) == [BATCH]
-    stray = {p for p in (dataset.root / "data").rglob("*") if p.is_file() and "/c/3" in p.as_posix()}
+    stray = {p for p in (root / "data").rglob("*") if p.is_file() and "/c/3" in p.as_posix()}
     assert position in stray and len(stray) > 40  # one shard file per array (all-fill arrays write none)
 
-    removed = clean_uncommitted(dataset.root, SHARD)
-    assert set(removed) == stray | {temp}
-    assert not any(p.exists() for p in removed)
-    # the committed batch is untouched
-    assert dataset.batch_file("env_state/sim/bodies/position", 2).exists()
-    assert committed_batches(dataset.root, SHARD) == [BATCH]
-    assert clean_uncommitted(dataset.root, SHARD) == []
+    with Lease.acquire(dataset.root) as lease:
+        removed = clean_uncommitted(dataset.root, SHARD, lease.holder.job_id)
+        assert {root / key for key in removed} == stray | {temp}
+        assert not any((root / key).exists() for key in removed)
+        # the committed batch is untouched
+        assert batch_file(dataset, "env_state/sim/bodies/position", 2).exists()
+        assert committed_batches(dataset.root, SHARD) == [BATCH]
+        assert clean_uncommitted(dataset.root, SHARD, lease.holder.job_id) == []
+
+
+def test_cleanup_refuses_to_run_without_the_jobs_lease(written, rolled_out):
+    dataset, _ = written
+    arrays = stored_arrays(dataset.layout, GEOMETRY.levels_per_batch, batch_result(rolled_out))
+    dataset.write_batch(GEOMETRY.global_batch(SHARD, 1), arrays)
+    position = batch_file(dataset, "env_state/sim/bodies/position", 3)
+    with pytest.raises(LeaseLost, match="job other does not hold the lease .no job does"):
+        clean_uncommitted(dataset.root, SHARD, "other")
+    with Lease.acquire(dataset.root, job_id="first"):
+        with pytest.raises(LeaseLost, match=r"job other does not hold the lease \(job first \(host"):
+            clean_uncommitted(dataset.root, SHARD, "other")
+    assert position.exists()
 
 
 def test_a_retry_overwrites_the_same_files_without_duplicates(written, rolled_out):
     dataset, record = written
-    files_before = sorted(p for p in (dataset.root / "data").rglob("*") if p.is_file())
+    root = Path(dataset.root)
+    files_before = sorted(p for p in (root / "data").rglob("*") if p.is_file())
     again = write_level_batch(dataset, SHARD, BATCH, batch_result(rolled_out))
-    files_after = sorted(p for p in (dataset.root / "data").rglob("*") if p.is_file())
+    files_after = sorted(p for p in (root / "data").rglob("*") if p.is_file())
     assert files_after == files_before
-    assert again == read_record(dataset.root, SHARD, BATCH)
+    assert read_record(dataset.root, SHARD, BATCH).to_json() | {"record_version": 1} == again
     assert {k: v["sha256"] for k, v in again["arrays"].items()} == {k: v["sha256"] for k, v in record["arrays"].items()}
-    assert len(list(record_path(dataset.root, SHARD, BATCH).parent.iterdir())) == 1
+    assert len(list((root / record_key(SHARD, BATCH)).parent.iterdir())) == 1
 
 
 def test_a_kept_trajectory_must_end_its_episodes_in_success(tmp_path, rolled_out):
@@ -202,5 +221,5 @@ def test_opening_a_bad_or_mismatching_dataset_names_the_problem(tmp_path):
         open_dataset(root)
     meta["attributes"]["kforge_dataset"]["format_version"] = 99
     meta_path.write_text(json.dumps(meta))
-    with pytest.raises(DatasetError, match="format version 99"):
+    with pytest.raises(DatasetError, match=r"ds: dataset format version 99; this code reads version 2$"):
         open_dataset(root)

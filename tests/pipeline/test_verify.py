@@ -7,9 +7,10 @@ import shutil
 
 import numpy as np
 import pytest
-from pipeline_test_helpers import GEOMETRY, batch_result
+from pipeline_test_helpers import GEOMETRY, batch_file, batch_result
 
 from pipeline.cli.verify import main
+from pipeline.storage import Lease
 from pipeline.storage.repair import damaged_commits
 from pipeline.storage.shard_store import open_dataset
 from pipeline.storage.verify import verify_dataset
@@ -34,7 +35,7 @@ def test_a_clean_dataset_passes(dataset_dir, capsys):
 
 def test_a_flipped_byte_in_a_chunk_fails_its_shard(copy, capsys):
     dataset = open_dataset(copy)
-    path = dataset.batch_file("env_state/sim/bodies/position", GEOMETRY.global_batch(1, 1))
+    path = batch_file(dataset, "env_state/sim/bodies/position", GEOMETRY.global_batch(1, 1))
     data = bytearray(path.read_bytes())
     data[100] ^= 0xFF
     path.write_bytes(bytes(data))
@@ -54,7 +55,7 @@ def test_a_flipped_byte_in_a_chunk_fails_its_shard(copy, capsys):
 
 def test_a_missing_file_fails_its_shard(copy):
     dataset = open_dataset(copy)
-    dataset.batch_file("done", GEOMETRY.global_batch(0, 1)).unlink()
+    batch_file(dataset, "done", GEOMETRY.global_batch(0, 1)).unlink()
     reports = verify_dataset(copy)
     assert [r.ok for r in reports] == [False, True]
     assert "batch 1: done: file data/done/c/1/0 missing" in reports[0].problems
@@ -82,7 +83,7 @@ def test_repair_withdraws_the_bad_batch_and_rewriting_it_gives_back_the_untouche
 ):
     dataset = open_dataset(copy)
     g = GEOMETRY.global_batch(1, 1)
-    path = dataset.batch_file("env_state/sim/bodies/position", g)
+    path = batch_file(dataset, "env_state/sim/bodies/position", g)
     data = bytearray(path.read_bytes())
     data[100] ^= 0xFF
     path.write_bytes(bytes(data))
@@ -95,7 +96,8 @@ def test_repair_withdraws_the_bad_batch_and_rewriting_it_gives_back_the_untouche
     assert "repaired: 1 level batches to regenerate" in out
     assert [r.committed for r in verify_dataset(copy, allow_incomplete=True)] == [[0, 1], [0]]
     # The next run regenerates exactly that batch (here: the same writer call that made it).
-    clean_uncommitted(copy, 1)
+    with Lease.acquire(copy) as lease:
+        clean_uncommitted(copy, 1, lease.holder.job_id)
     write_level_batch(open_dataset(copy), 1, 1, batch_result(rolled_out, (10 * g, 10 * g + 1, 10 * g + 2)))
     for name in ("env_state/sim/bodies/position", "action", "done"):
         np.testing.assert_array_equal(
@@ -121,8 +123,8 @@ def test_an_unfinished_dataset_points_at_allow_incomplete_and_the_command_that_f
 def test_the_check_a_resumed_run_makes_finds_missing_and_damaged_files(dataset_dir, copy):
     assert damaged_commits(dataset_dir) == []
     dataset = open_dataset(copy)
-    dataset.batch_file("done", GEOMETRY.global_batch(0, 1)).unlink()
-    flipped = dataset.batch_file("action", GEOMETRY.global_batch(1, 0))
+    batch_file(dataset, "done", GEOMETRY.global_batch(0, 1)).unlink()
+    flipped = batch_file(dataset, "action", GEOMETRY.global_batch(1, 0))
     data = bytearray(flipped.read_bytes())
     data[50] ^= 0x01
     flipped.write_bytes(bytes(data))

@@ -1,0 +1,180 @@
+"""One job per dataset: the lease object `lease.json` at a dataset's root.
+
+A running job (`kforge run`) creates the lease atomically (`Store.create_exclusive`), renews its heartbeat from a
+background thread, and deletes it when it ends. A second job on the same dataset is refused while the heartbeat is
+fresh and takes the lease over (with a message) once it is older than the stale limit, so a crashed job's dataset
+resumes without a manual step. Renewal and take-over are conditional on the generation last seen, so of two jobs that
+race for a stale lease one wins and the other is refused. Readers take no lease.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import socket
+import threading
+import time
+import uuid
+from collections.abc import Callable
+
+from pipeline.storage.layout import DatasetError
+from pipeline.storage.store import Store, StoreError, open_store
+
+LEASE_KEY = "lease.json"
+DEFAULT_STALE_AFTER_S = 300.0
+"""[s] A lease whose heartbeat is older than this is taken over (the holder is presumed dead)."""
+DEFAULT_HEARTBEAT_S = 30.0
+"""[s] Interval between heartbeats of a held lease."""
+
+
+class LeaseHeld(DatasetError):
+    """Another job holds the dataset's lease (its heartbeat is fresh)."""
+
+
+class LeaseLost(DatasetError):
+    """This job's lease was taken over or removed by someone else; it must stop writing."""
+
+
+@dataclasses.dataclass(frozen=True)
+class LeaseHolder:
+    """Who holds a dataset: host, process, job id, start and last heartbeat (unix seconds)."""
+
+    host: str
+    pid: int
+    job_id: str
+    started: float
+    heartbeat: float
+
+    def to_bytes(self) -> bytes:
+        return json.dumps(dataclasses.asdict(self), sort_keys=True).encode()
+
+    @classmethod
+    def from_bytes(cls, data: bytes, where: str) -> LeaseHolder:
+        try:
+            value = json.loads(data)
+            return cls(
+                str(value["host"]),
+                int(value["pid"]),
+                str(value["job_id"]),
+                float(value["started"]),
+                float(value["heartbeat"]),
+            )
+        except (ValueError, KeyError, TypeError) as error:
+            raise DatasetError(f"{where}: unreadable lease ({error!r}); remove it if no job runs") from error
+
+    def describe(self, now: float) -> str:
+        return f"job {self.job_id} (host {self.host}, pid {self.pid}), last heartbeat {now - self.heartbeat:.0f} s ago"
+
+
+def read_holder(root: str | os.PathLike | Store) -> LeaseHolder | None:
+    """The dataset's lease holder, or None if no job holds it."""
+    store = open_store(root)
+    data = store.read(LEASE_KEY)
+    return None if data is None else LeaseHolder.from_bytes(data, store.url(LEASE_KEY))
+
+
+def require_lease(root: str | os.PathLike | Store, job_id: str) -> None:
+    """Raise `LeaseLost` unless job `job_id` holds the dataset's lease (writers that delete data check this)."""
+    holder = read_holder(root)
+    if holder is None or holder.job_id != job_id:
+        who = "no job" if holder is None else holder.describe(time.time())
+        raise LeaseLost(f"{open_store(root).url(LEASE_KEY)}: job {job_id} does not hold the lease ({who} does)")
+
+
+class Lease:
+    """A held lease: `acquire` it, `release` it in a `finally` (or use it as a context manager)."""
+
+    def __init__(self, store: Store, holder: LeaseHolder, generation: bytes, heartbeat_s: float):
+        self.store, self.holder = store, holder
+        self._generation = generation
+        self._heartbeat_s = heartbeat_s
+        self._lock = threading.Lock()
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self.lost: str | None = None
+        """Why the lease was lost (taken over or removed), or None while it is held."""
+
+    @classmethod
+    def acquire(
+        cls,
+        root: str | os.PathLike | Store,
+        stale_after_s: float = DEFAULT_STALE_AFTER_S,
+        heartbeat_s: float = DEFAULT_HEARTBEAT_S,
+        job_id: str | None = None,
+        log: Callable[[str], None] = print,
+    ) -> Lease:
+        """Take the dataset's lease and start heartbeats; `LeaseHeld` naming the holder if another job's is fresh."""
+        store = open_store(root)
+        now = time.time()
+        holder = LeaseHolder(socket.gethostname(), os.getpid(), job_id or uuid.uuid4().hex[:12], now, now)
+        generation = store.create_exclusive(LEASE_KEY, holder.to_bytes())
+        if generation is None:
+            data, seen = store.read_versioned(LEASE_KEY)
+            if data is None:  # released between our create and read: try once more
+                generation = store.create_exclusive(LEASE_KEY, holder.to_bytes())
+            else:
+                other = LeaseHolder.from_bytes(data, store.url(LEASE_KEY))
+                age = now - other.heartbeat
+                if age <= stale_after_s:
+                    raise LeaseHeld(
+                        f"{store.location}: the dataset is in use by {other.describe(now)}; wait for it to end, "
+                        f"or for its heartbeat to be older than {stale_after_s:.0f} s to take it over"
+                    )
+                generation = store.replace(LEASE_KEY, holder.to_bytes(), seen)
+                if generation is not None:
+                    log(f"{store.location}: taking over the stale lease of {other.describe(now)}")
+        if generation is None:
+            raise LeaseHeld(f"{store.location}: another job took the dataset's lease at the same moment")
+        lease = cls(store, holder, generation, heartbeat_s)
+        lease._confirm()
+        lease._thread = threading.Thread(target=lease._beat, name="lease-heartbeat", daemon=True)
+        lease._thread.start()
+        return lease
+
+    def _confirm(self) -> None:
+        """Read the lease back: on a store that ignores conditional writes, a racing job's write shows here."""
+        holder = read_holder(self.store)
+        if holder != self.holder:
+            raise LeaseHeld(f"{self.store.location}: another job took the dataset's lease at the same moment")
+
+    def _beat(self) -> None:
+        while not self._stop.wait(self._heartbeat_s):
+            try:
+                self.renew()
+            except (DatasetError, StoreError) as error:  # a failed heartbeat is retried; the stale limit bounds the gap
+                print(f"warning: {self.store.url(LEASE_KEY)}: heartbeat failed ({error})")
+
+    def renew(self) -> None:
+        """Write a fresh heartbeat (conditional on our last one); marks the lease lost if someone else wrote it."""
+        with self._lock:
+            if self.lost is not None or self._stop.is_set():
+                return
+            holder = dataclasses.replace(self.holder, heartbeat=time.time())
+            generation = self.store.replace(LEASE_KEY, holder.to_bytes(), self._generation)
+            if generation is None:
+                current = read_holder(self.store)
+                taker = "removed" if current is None else f"taken over by {current.describe(time.time())}"
+                self.lost = f"{self.store.location}: this job's lease was {taker}"
+                return
+            self.holder, self._generation = holder, generation
+
+    def check(self) -> None:
+        """Raise `LeaseLost` if the lease was taken over or removed."""
+        if self.lost is not None:
+            raise LeaseLost(self.lost)
+
+    def release(self) -> None:
+        """Stop heartbeats and delete the lease if it is still ours."""
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join()
+        with self._lock:
+            if self.lost is None:
+                self.store.replace(LEASE_KEY, None, self._generation)
+
+    def __enter__(self) -> Lease:
+        return self
+
+    def __exit__(self, *exc_info) -> None:
+        self.release()

@@ -1,0 +1,225 @@
+"""Datasets on object storage, against a real S3 API server (moto's standalone server on 127.0.0.1): a tiny job
+writes to `s3://`, verify passes and names a flipped byte, the loader and the Kinetix export read the same data as
+from a local copy, the lease works there too; slow: the whole job killed mid-run and resumed equals an uninterrupted
+run."""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from pipeline_test_helpers import run_in_process, run_job_process, tiny_job, write_all
+
+from pipeline.cli.verify import main as verify_main
+from pipeline.generation import to_yaml
+from pipeline.kinetix import export_kinetix
+from pipeline.reading import TrajectoryDatasetManager
+from pipeline.storage import LEASE_KEY, Lease, LeaseHeld, LeaseHolder, iter_records, open_dataset, read_holder
+from pipeline.storage.verify import verify_dataset
+
+BUCKET = "kforge-test"
+S3_ENV = {
+    "AWS_ACCESS_KEY_ID": "testing",
+    "AWS_SECRET_ACCESS_KEY": "not-a-real-secret",
+    "AWS_REGION": "us-east-1",
+    "AWS_EC2_METADATA_DISABLED": "true",
+}
+
+
+@pytest.fixture(scope="session")
+def s3():
+    """A moto S3 server on 127.0.0.1 (a free port) with one bucket; the AWS_* environment points at it."""
+    from moto.server import ThreadedMotoServer
+
+    server = ThreadedMotoServer(ip_address="127.0.0.1", port=0, verbose=False)
+    server.start()
+    host, port = server.get_host_and_port()
+    endpoint = f"http://{host}:{port}"
+    saved = {name: os.environ.get(name) for name in [*S3_ENV, "AWS_ENDPOINT_URL"]}
+    os.environ.update(S3_ENV, AWS_ENDPOINT_URL=endpoint)
+    import boto3
+
+    client = boto3.client("s3", endpoint_url=endpoint, region_name=S3_ENV["AWS_REGION"])
+    client.create_bucket(Bucket=BUCKET)
+    yield client
+    for name, value in saved.items():
+        if value is None:
+            os.environ.pop(name, None)
+        else:
+            os.environ[name] = value
+    server.stop()
+
+
+def keys(client, prefix: str) -> list[str]:
+    pages = client.get_paginator("list_objects_v2").paginate(Bucket=BUCKET, Prefix=prefix)
+    return sorted(item["Key"] for page in pages for item in page.get("Contents", ()))
+
+
+def download(client, prefix: str, target: Path) -> Path:
+    """A local copy of everything below `s3://BUCKET/prefix/`."""
+    for key in keys(client, f"{prefix}/"):
+        path = target / key.removeprefix(f"{prefix}/")
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_bytes(client.get_object(Bucket=BUCKET, Key=key)["Body"].read())
+    return target
+
+
+def copy_prefix(client, source: str, target: str) -> None:
+    for key in keys(client, f"{source}/"):
+        client.copy_object(
+            Bucket=BUCKET, Key=target + key.removeprefix(source), CopySource={"Bucket": BUCKET, "Key": key}
+        )
+
+
+@pytest.fixture(scope="session")
+def s3_dataset(s3, tmp_path_factory):
+    """(URL, local copy) of a tiny job's dataset generated straight to S3."""
+    url = f"s3://{BUCKET}/tiny"
+    run_in_process(tiny_job(url))
+    return url, download(s3, "tiny", tmp_path_factory.mktemp("s3-copy"))
+
+
+@pytest.fixture(scope="session")
+def s3_trajectories(s3, rolled_out, tmp_path_factory):
+    """(URL, local copy) of the hand-built dataset with kept trajectories (`write_all`), written straight to S3 (the
+    tiny job's experts are too briefly trained to keep any)."""
+    url = f"s3://{BUCKET}/handbuilt"
+    write_all(url, rolled_out)
+    return url, download(s3, "handbuilt", tmp_path_factory.mktemp("s3-handbuilt"))
+
+
+def test_a_tiny_job_on_s3_commits_everything_verifies_and_leaves_no_lease(s3, s3_dataset, capsys):
+    url, _ = s3_dataset
+    stored = keys(s3, "tiny/")
+    assert "tiny/data/zarr.json" in stored and "tiny/config.yaml" in stored and f"tiny/{LEASE_KEY}" not in stored
+    assert len([key for key in stored if key.startswith("tiny/manifest/")]) == 4
+    assert all(report.ok for report in verify_dataset(url))
+    verify_main([url], prog="kforge verify")
+    assert "bad shards: none" in capsys.readouterr().out
+    endpoint = os.environ["AWS_ENDPOINT_URL"]
+    for key in stored:
+        if key.endswith((".json", ".yaml")):
+            text = s3.get_object(Bucket=BUCKET, Key=key)["Body"].read().decode()
+            assert endpoint.split("//")[1] not in text and S3_ENV["AWS_SECRET_ACCESS_KEY"] not in text, key
+
+
+def test_a_location_with_an_unknown_scheme_or_no_bucket_is_named():
+    from pipeline.storage import StoreError, open_store
+
+    with pytest.raises(StoreError, match="ftp://host/x: unsupported URL scheme"):
+        open_store("ftp://host/x")
+    with pytest.raises(StoreError, match="s3:///x: no bucket in the URL"):
+        open_store("s3:///x")
+
+
+def test_the_loader_reads_the_same_batches_from_s3_as_from_a_local_copy(s3_trajectories):
+    url, local = s3_trajectories
+    for prefetch in (0, 2):
+        with (
+            TrajectoryDatasetManager(url, batch_size=2, seed=3, prefetch=prefetch) as remote,
+            TrajectoryDatasetManager(local, batch_size=2, seed=3) as here,
+        ):
+            assert remote.length == here.length > 0
+            for _ in range(remote.batches_per_epoch + 1):
+                a, b = remote.load_next_batch(), here.load_next_batch()
+                np.testing.assert_array_equal(a.trajectory_index, b.trajectory_index)
+                for x, y in zip(
+                    [a.action, a.done, a.action_mask, *jax_leaves(a.env_state)],
+                    [b.action, b.done, b.action_mask, *jax_leaves(b.env_state)],
+                    strict=True,
+                ):
+                    np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+
+
+def jax_leaves(tree):
+    import jax
+
+    return jax.tree.leaves(tree)
+
+
+def test_kinetix_export_reads_from_s3(s3_trajectories, tmp_path):
+    url, local = s3_trajectories
+    remote = export_kinetix(url, tmp_path / "from-s3", show_progress=False)
+    here = export_kinetix(local, tmp_path / "from-local", show_progress=False)
+    kept = sum(len(record.kept_slots) for record in iter_records(url))
+    assert remote.num_trajectories == here.num_trajectories == kept > 0
+    files = sorted(p.relative_to(remote.group) for p in remote.group.rglob("*") if p.is_file())
+    assert files == sorted(p.relative_to(here.group) for p in here.group.rglob("*") if p.is_file())
+    chunks = [f for f in files if not f.name.startswith(".z")]  # attributes name the source; chunks must match
+    assert chunks and all((remote.group / f).read_bytes() == (here.group / f).read_bytes() for f in chunks)
+
+
+def test_a_flipped_byte_in_one_object_is_found_by_verify_and_named(s3, s3_trajectories, capsys):
+    copy_prefix(s3, "handbuilt", "flipped")
+    url = f"s3://{BUCKET}/flipped"
+    key = next(k for k in keys(s3, "flipped/data/action/c/") if k.count("/") > 3)
+    data = bytearray(s3.get_object(Bucket=BUCKET, Key=key)["Body"].read())
+    data[len(data) // 2] ^= 0xFF
+    s3.put_object(Bucket=BUCKET, Key=key, Body=bytes(data))
+    with pytest.raises(SystemExit) as exit_info:
+        verify_main([url], prog="kforge verify")
+    assert exit_info.value.code == 1
+    out = capsys.readouterr().out
+    relative = key.removeprefix("flipped/")
+    assert f"action: file {relative} sha256 mismatch" in out
+    global_batch = int(relative.split("/")[3])
+    assert f"shard-{global_batch // 2:06d}: BAD" in out
+
+
+def test_the_lease_on_s3_refuses_a_second_job_and_is_taken_over_when_stale(s3):
+    url = f"s3://{BUCKET}/leased"
+    with Lease.acquire(url, job_id="first", heartbeat_s=60) as lease:
+        assert read_holder(url) == lease.holder
+        with pytest.raises(LeaseHeld, match=r"in use by job first \(host .*, pid \d+\), last heartbeat \d+ s ago"):
+            Lease.acquire(url, job_id="second")
+    assert read_holder(url) is None
+    an_hour_ago = time.time() - 3600
+    crashed = LeaseHolder("elsewhere", 1, "crashed", an_hour_ago, an_hour_ago)
+    s3.put_object(Bucket=BUCKET, Key=f"leased/{LEASE_KEY}", Body=crashed.to_bytes())
+    messages = []
+    with Lease.acquire(url, job_id="third", log=messages.append) as lease:
+        assert read_holder(url).job_id == "third"
+    assert len(messages) == 1
+    assert messages[0].startswith(f"{url}: taking over the stale lease of job crashed (host elsewhere, pid 1)")
+    assert read_holder(url) is None
+
+
+def test_s3_honours_the_conditional_create(s3):
+    """moto answers `If-None-Match: *` on an existing key with 412, so the lease's create is atomic there."""
+    from pipeline.storage import open_store
+
+    store = open_store(f"s3://{BUCKET}/conditional")
+    assert store.create_exclusive("object", b"first") is not None
+    assert store.create_exclusive("object", b"second") is None
+    assert store.read("object") == b"first"
+
+
+@pytest.mark.slow
+def test_a_job_killed_mid_run_on_s3_and_resumed_equals_an_uninterrupted_run(s3, s3_dataset, tmp_path):
+    url = f"s3://{BUCKET}/killed"
+    config_file = tmp_path / "job.yaml"
+    # The killed job leaves its lease behind: the resumed run takes it over once its heartbeat is a second old.
+    config_file.write_text(to_yaml(tiny_job(url, "lease.stale_after_s=1", "lease.heartbeat_s=0.25")))
+    run_job_process(config_file, until=lambda: len(keys(s3, "killed/manifest/")) >= 1)
+    assert 1 <= len(keys(s3, "killed/manifest/")) < 4
+    assert f"killed/{LEASE_KEY}" in keys(s3, "killed/")
+    output = run_job_process(config_file)
+    assert "taking over the stale lease" in output
+    assert f"killed/{LEASE_KEY}" not in keys(s3, "killed/")
+    assert all(report.ok for report in verify_dataset(url))
+    assert_same_contents(url, s3_dataset[0])
+
+
+def assert_same_contents(first: str, second: str) -> None:
+    """Every array and every commit record (without provenance) of two datasets are equal."""
+    a, b = open_dataset(first), open_dataset(second)
+    assert a.spec.to_json() == b.spec.to_json()
+    slots = range(a.geometry.num_slots)
+    for spec in a.layout.fields:
+        np.testing.assert_array_equal(a.read([spec.name], slots)[spec.name], b.read([spec.name], slots)[spec.name])
+    records = [[dataclasses.replace(r, provenance=None) for r in iter_records(root)] for root in (first, second)]
+    assert records[0] == records[1]
