@@ -46,12 +46,19 @@ _requested = {"mode": "auto", "chunk_limit": BATCH_CHUNK}
 
 
 def set_batching(mode: str = "auto", chunk_limit: int = BATCH_CHUNK) -> None:
-    """Choose how steps traced from now on batch (see `BATCHING_MODES`); already compiled programs keep theirs."""
+    """Choose how vmapped steps batch (see `BATCHING_MODES`).
+
+    A change clears JAX's trace and compilation caches, so that programs traced before (an env step, a training
+    loop) are traced again with the new batching on their next call.
+    """
     if mode not in BATCHING_MODES:
         raise ValueError(f"batching mode {mode!r} is not one of {BATCHING_MODES}")
     if int(chunk_limit) < 1:
         raise ValueError(f"batching chunk_limit must be a positive number of scenes, got {chunk_limit}")
+    before = current_batching()
     _requested.update(mode=mode, chunk_limit=int(chunk_limit))
+    if current_batching() != before:
+        jax.clear_caches()
 
 
 def current_batching() -> Batching:

@@ -328,6 +328,21 @@ def test_chunked_and_whole_batching_give_the_same_states(batch):
         )
 
 
+def test_set_batching_retraces_programs_traced_before(batch):
+    """A jitted program that calls `engine.step` (as the env does) follows a later `set_batching`."""
+    zeros_m, zeros_t = jnp.zeros(SIZE_M.num_joints), jnp.zeros(SIZE_M.num_thrusters)
+    wrapper = jax.jit(lambda s: engine.step(s, PARAMS, zeros_m, zeros_t, static=SIZE_M)[0])
+    states = stack_states(batch["states"][:2])
+    jaxprs = {}
+    try:
+        for mode in ("chunked", "whole"):
+            engine.set_batching(mode)
+            jaxprs[mode] = str(jax.make_jaxpr(jax.vmap(wrapper))(states))
+    finally:
+        engine.set_batching()
+    assert jaxprs["chunked"] != jaxprs["whole"]
+
+
 def test_auto_batching_chunks_on_cpu_only():
     assert jax.default_backend() == "cpu"
     assert engine.current_batching() == engine.Batching("chunked", BATCH_CHUNK)
