@@ -6,8 +6,16 @@ the speed-up; the two engines' timed calls then alternate, so both see the same 
 one JSON document instead. On a GPU it also measures large batches and prints Jax2D's published peak throughputs
 next to ours.
 
+`--kernels` instead counts the kernels that one physics step and one env step run in sequence, for ours (under
+the current batching, and as one whole vmap as on a GPU) and for Jax2D's physics step, at each batch, with the
+ratio ours / Jax2D. On a GPU each kernel launch costs microseconds whatever the batch, so this count bounds the
+step rate at large batch. Method (`benchmarks.kernels`): compile the vmapped step with `jax.jit(...).lower(...)
+.compile()` and count, in the optimized HLO, the instructions that do work (fusions, custom calls, unfused
+operations) in the entry computation, with `while` bodies multiplied by XLA's `known_trip_count`.
+
     python benchmarks/engine.py --vs jax2d
     python benchmarks/engine.py --sizes s --batches 256 --json
+    python benchmarks/engine.py --kernels --batches 1 256
 """
 
 from __future__ import annotations
@@ -23,10 +31,11 @@ import jax.numpy as jnp
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
+from benchmarks.kernels import count_kernels  # noqa: E402
 from benchmarks.machine import describe_machine  # noqa: E402
 from benchmarks.scenes import build_scene  # noqa: E402
 from benchmarks.timing import best_time, best_times_interleaved  # noqa: E402
-from engine import SimParams, step  # noqa: E402
+from engine import SimParams, current_batching, set_batching, step  # noqa: E402
 
 DISTINCT_SCENES = 16
 """Scenes with different jitter seeds, tiled to fill a batch (building thousands on the host is slow)."""
@@ -69,7 +78,9 @@ def compile_ours(size: str) -> float:
     state, static = build_scene(size, 0)
     params = SimParams()
     start = time.perf_counter()
-    step.lower(state, params, jnp.ones(static.num_joints), jnp.ones(static.num_thrusters), static=static).compile()
+    jax.jit(step, static_argnames="static").lower(
+        state, params, jnp.ones(static.num_joints), jnp.ones(static.num_thrusters), static=static
+    ).compile()
     return time.perf_counter() - start
 
 
@@ -129,6 +140,74 @@ def run(sizes, batches, n_steps: int, repeats: int, versus_jax2d: bool, log=prin
     return report
 
 
+def physics_step_kernels(size: str, batch: int) -> int:
+    """Kernels one vmapped physics step of ours runs at `batch` scenes, under the current batching."""
+    static = build_scene(size, 0)[1]
+    params = SimParams()
+    motors, thrusters = jnp.ones(static.num_joints), jnp.ones(static.num_thrusters)
+    one_step = jax.vmap(lambda s: step(s, params, motors, thrusters, static=static)[0])
+    return _known(count_kernels(one_step, _batched_states(size, batch)))
+
+
+def env_step_kernels(size: str, batch: int) -> int:
+    """Kernels one vmapped env step of ours (step, auto-reset and observation) runs at `batch` levels."""
+    from benchmarks.env import _env_step
+    from env import EnvParams, StaticEnvParams, reset
+    from env.actions import MULTI_DISCRETE_SIZES
+    from env.sampler import sample_levels
+
+    static = StaticEnvParams.for_size(size)
+    levels = jax.jit(lambda keys: sample_levels(keys, static))(jax.random.split(jax.random.key(1), batch))
+    actions = jnp.zeros((batch, len(MULTI_DISCRETE_SIZES)), jnp.int32)
+    return _known(count_kernels(jax.vmap(_env_step(static, EnvParams())), jax.vmap(reset)(levels), actions, levels))
+
+
+def jax2d_physics_step_kernels(size: str, batch: int) -> int:
+    """Kernels one vmapped Jax2D physics step runs at `batch` scenes."""
+    from jax2d.engine import PhysicsEngine
+    from jax2d.sim_state import SimParams as Jax2dParams
+
+    from benchmarks import jax2d_baseline
+
+    states, static = jax2d_baseline.build_batch(size, batch)
+    actions = jnp.ones(static.num_joints + static.num_thrusters)
+    physics = PhysicsEngine(static)  # builds its pair tables on the host: outside the trace
+    one_step = jax.vmap(lambda s: physics.step(s, Jax2dParams(), actions)[0])
+    return _known(count_kernels(one_step, states))
+
+
+def _known(count) -> int:
+    if count.unknown_trip_loops:
+        raise RuntimeError(f"{count.unknown_trip_loops} loops without a known trip count: the kernel count is wrong")
+    return count.kernels
+
+
+def count_all_kernels(sizes, batches, log=print) -> dict:
+    """Kernel counts per size and batch: ours (current batching and whole), our env step, Jax2D, and ratios."""
+    batching = current_batching()
+    report = {"machine": describe_machine(), "batching": batching.mode, "chunk_limit": batching.chunk_limit}
+    for size in sizes:
+        for batch in batches:
+            row = {"physics_step": physics_step_kernels(size, batch), "env_step": env_step_kernels(size, batch)}
+            set_batching("whole")
+            try:
+                row["physics_step_whole"] = physics_step_kernels(size, batch)
+                row["env_step_whole"] = env_step_kernels(size, batch)
+            finally:
+                set_batching(batching.mode, batching.chunk_limit)
+            row["jax2d_physics_step"] = jax2d_physics_step_kernels(size, batch)
+            row["physics_ratio_vs_jax2d"] = row["physics_step"] / row["jax2d_physics_step"]
+            row["physics_whole_ratio_vs_jax2d"] = row["physics_step_whole"] / row["jax2d_physics_step"]
+            report.setdefault("kernels", {}).setdefault(size, {})[str(batch)] = row
+            log(
+                f"size={size} batch={batch:>6} kernels: physics step ours {row['physics_step']} "
+                f"(whole vmap {row['physics_step_whole']}), jax2d {row['jax2d_physics_step']}, "
+                f"ratio {row['physics_ratio_vs_jax2d']:.2f} (whole {row['physics_whole_ratio_vs_jax2d']:.2f}); "
+                f"env step ours {row['env_step']} (whole vmap {row['env_step_whole']})"
+            )
+    return report
+
+
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--sizes", nargs="+", default=["s", "m", "l"], choices=["s", "m", "l"])
@@ -137,10 +216,16 @@ def main(argv=None) -> None:
     parser.add_argument("--repeats", type=int, default=3, help="timed calls (per engine); the fastest is kept")
     parser.add_argument("--vs", choices=["jax2d"], help="also measure the reference engine in the same run")
     parser.add_argument("--json", action="store_true", help="print one JSON document with every figure")
+    parser.add_argument("--kernels", action="store_true", help="count kernels per step instead of timing steps")
     args = parser.parse_args(argv)
     log = (
         (lambda line: print(line, file=sys.stderr, flush=True)) if args.json else (lambda line: print(line, flush=True))
     )
+    if args.kernels:
+        report = count_all_kernels(args.sizes, args.batches, log)
+        if args.json:
+            print(json.dumps(report, indent=2))
+        return
     report = run(args.sizes, args.batches, args.steps, args.repeats, args.vs == "jax2d", log)
     if args.json:
         print(json.dumps(report, indent=2))

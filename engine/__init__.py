@@ -1,8 +1,10 @@
 """Rigid-body 2D physics in JAX: fixed-shape scenes of convex polygons and circles, joints and thrusters.
 
-Public surface: state and parameter types, the scene builder, and `step`.
+Public surface: state and parameter types, the scene builder, `step`, and how batched steps run per backend
+(`set_batching`).
 """
 
+from engine.batch_last import BATCHING_MODES, Batching, current_batching, set_batching
 from engine.collision import manifolds, world_geometry
 from engine.collision_filter import joint_collision_matrix, modes_collide
 from engine.geometry import (
@@ -23,6 +25,8 @@ from engine.state import NO_FEATURE, Bodies, ContactCache, Joints, SimState, Thr
 
 __all__ = [
     "ARENA_SIZE",
+    "BATCHING_MODES",
+    "Batching",
     "CONVEXITY_TOLERANCE",
     "FLOOR_TOP",
     "KINETIX_SIZES",
@@ -42,6 +46,7 @@ __all__ = [
     "Thrusters",
     "circle_mass_properties",
     "cross2",
+    "current_batching",
     "empty_state",
     "joint_collision_matrix",
     "manifolds",
@@ -50,6 +55,7 @@ __all__ = [
     "polygon_mass_properties",
     "rotate",
     "rotate_host",
+    "set_batching",
     "step",
     "world_geometry",
     "write_gif",

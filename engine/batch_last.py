@@ -6,15 +6,67 @@ by moving the vmapped axis to the end than by JAX's default (batch axis first).
 
 `vmap_in_chunks` makes a function run large batches in chunks, one after another, so that a chunk's working
 set stays in cache.
+
+Both pay only on CPU. On a GPU or TPU one vmapped program over the whole batch is faster: a chunk loop runs the
+step's kernels once per chunk in sequence, and the batch-first layout is the one those backends tile well.
+`set_batching` chooses per process; the default "auto" picks by `jax.default_backend()` when a step is traced.
 """
 
 from __future__ import annotations
+
+import dataclasses
 
 import jax
 import jax.numpy as jnp
 
 BATCH_CHUNK = 256
 """Most scenes per call under `vmap_in_chunks`: larger batches are split into equal chunks of at most this many."""
+
+BATCHING_MODES = ("auto", "chunked", "whole")
+"""auto: chunked on CPU, whole elsewhere; chunked: batch-last layout and chunks of at most `chunk_limit` scenes;
+whole: one ordinary `jax.vmap` over the whole batch."""
+
+CHUNKED_BACKENDS = ("cpu",)
+"""Backends on which "auto" chunks (where chunking and the batch-last layout were measured to pay)."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Batching:
+    """How a vmapped step batches: a resolved mode ("chunked" or "whole") and the chunk limit in scenes."""
+
+    mode: str
+    chunk_limit: int = BATCH_CHUNK
+
+    @property
+    def chunked(self) -> bool:
+        return self.mode == "chunked"
+
+
+_requested = {"mode": "auto", "chunk_limit": BATCH_CHUNK}
+
+
+def set_batching(mode: str = "auto", chunk_limit: int = BATCH_CHUNK) -> None:
+    """Choose how vmapped steps batch (see `BATCHING_MODES`).
+
+    A change clears JAX's trace and compilation caches, so that programs traced before (an env step, a training
+    loop) are traced again with the new batching on their next call.
+    """
+    if mode not in BATCHING_MODES:
+        raise ValueError(f"batching mode {mode!r} is not one of {BATCHING_MODES}")
+    if int(chunk_limit) < 1:
+        raise ValueError(f"batching chunk_limit must be a positive number of scenes, got {chunk_limit}")
+    before = current_batching()
+    _requested.update(mode=mode, chunk_limit=int(chunk_limit))
+    if current_batching() != before:
+        jax.clear_caches()
+
+
+def current_batching() -> Batching:
+    """The batching set by `set_batching`, with "auto" resolved for the default backend."""
+    mode = _requested["mode"]
+    if mode == "auto":
+        mode = "chunked" if jax.default_backend() in CHUNKED_BACKENDS else "whole"
+    return Batching(mode, _requested["chunk_limit"])
 
 
 def vmap_batch_last(function):

@@ -9,7 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from engine.batch_last import vmap_batch_last, vmap_in_chunks
+from engine.batch_last import Batching, current_batching, vmap_batch_last, vmap_in_chunks
 from engine.collision import manifolds, world_geometry
 from engine.collision_filter import modes_collide
 from engine.contact_solver import (
@@ -120,8 +120,8 @@ class Prepared:
 
 
 @functools.cache
-def substep_solver(static: StaticSimParams):
-    """The substep loop and restitution for `static`: `SolverInput -> SolverOutput`, batch-last under vmap.
+def substep_solver(static: StaticSimParams, batch_last: bool = True):
+    """The substep loop and restitution for `static`: `SolverInput -> SolverOutput`, batch-last under vmap if asked.
 
     Loops are `lax.scan`s (substeps, the biased and relaxing pass of a substep, joints, colours), so the compiled
     size does not grow with the number of substeps, joints or colours.
@@ -185,7 +185,7 @@ def substep_solver(static: StaticSimParams):
         )
         return SolverOutput(jnp.stack(velocity, 1), jnp.stack(pose, 1), contact_impulses, joint_impulses)
 
-    return vmap_batch_last(solve)
+    return vmap_batch_last(solve) if batch_last else solve
 
 
 def _external_acceleration(state: SimState, params: SimParams, thruster_actions, movable, response_scale):
@@ -342,18 +342,22 @@ def finish_step(
 
 
 @functools.cache
-def _chunked_step(static: StaticSimParams):
-    """The step of `static`, vmapped in chunks (`engine.batch_last.vmap_in_chunks`)."""
+def _batched_step(static: StaticSimParams, batching: Batching):
+    """The step of `static` with the vmap rule of `batching` (`engine.batch_last`)."""
 
     def one_step(state, params, motor_actions, thruster_actions):
         prepared = prepare_step(state, params, motor_actions, thruster_actions, static)
-        solved = substep_solver(static)(prepared.solver_input)
+        solved = substep_solver(static, batching.chunked)(prepared.solver_input)
         return finish_step(state, params, prepared, solved, static), prepared.info
 
-    return vmap_in_chunks(one_step)
+    return vmap_in_chunks(one_step, batching.chunk_limit) if batching.chunked else one_step
 
 
-@functools.partial(jax.jit, static_argnames="static")
+@functools.partial(jax.jit, static_argnames=("static", "batching"))
+def _step(state, params, motor_actions, thruster_actions, static: StaticSimParams, batching: Batching):
+    return _batched_step(static, batching)(state, params, motor_actions, thruster_actions)
+
+
 def step(
     state: SimState,
     params: SimParams,
@@ -364,7 +368,7 @@ def step(
     """Advance `state` by `params.dt`.
 
     `motor_actions` (J,) in [-1, 1] scale each joint motor's target speed; `thruster_actions` (T,) in [0, 1]
-    scale each thruster's force. Returns the new state and per-pair contact information. Under `vmap`, batches
-    larger than `engine.batch_last.BATCH_CHUNK` scenes are stepped in chunks.
+    scale each thruster's force. Returns the new state and per-pair contact information. Under `vmap`, how the
+    batch is run (in chunks with batch-last layout, or as one vmap) follows `engine.set_batching` when traced.
     """
-    return _chunked_step(static)(state, params, motor_actions, thruster_actions)
+    return _step(state, params, motor_actions, thruster_actions, static=static, batching=current_batching())

@@ -2,12 +2,15 @@
 
 A level's identity is its index in the split; every random choice about it derives from (split seed, index,
 purpose), so its result does not depend on which worker ran it, when, or how often the job was resumed. The batch
-shape is fixed by the config (XLA may round differently for another shape), and no computation mixes levels.
+shape is fixed by the config (XLA may round differently for another shape), and no computation mixes levels. A
+worker with several local devices (GPUs, or `XLA_FLAGS=--xla_force_host_platform_device_count`) trains and rolls out
+the batch spread over them when their count divides it (`pipeline.generation.devices`).
 """
 
 from __future__ import annotations
 
 import enum
+import functools
 import time
 
 import jax
@@ -17,6 +20,7 @@ import numpy as np
 from agents import ProgressListener, collect_windows, train_levels, training_progress
 from env import FilterReason, Level, filter_levels, sample_levels
 from pipeline.generation.config import JobConfig, environment, ppo_config
+from pipeline.generation.devices import over_local_devices
 from pipeline.storage import BatchTrajectories, Outcome, learning_curves
 
 
@@ -79,19 +83,12 @@ def run_level_batch(
     train_keys = level_keys(job.split.seed, indices, KeyPurpose.TRAIN)
     listener = on_progress or _ignore_progress  # one compiled program, whether or not anyone listens
     with training_progress(listener) as token:
-        trained = jax.block_until_ready(train_levels(levels, train_keys, config, params, static, progress=token))
+        train = _train_program(config, static, len(indices))
+        trained = jax.block_until_ready(train(levels, train_keys, params, token))
     listener(config.num_updates, config.num_updates)
     clock.lap("train")
-    window = collect_windows(
-        trained.params,
-        levels,
-        level_keys(job.split.seed, indices, KeyPurpose.COLLECT),
-        config,
-        params,
-        static,
-        num_steps=job.collect.window_steps,
-        greedy=job.collect.greedy,
-    )
+    collect = _collect_program(config, static, len(indices), job.collect.window_steps, job.collect.greedy)
+    window = collect(trained.params, levels, level_keys(job.split.seed, indices, KeyPurpose.COLLECT), params)
     window, metrics, selection = jax.device_get((window, trained.metrics, trained.selection))
     clock.lap("collect")
     finite = _finite_per_level(trained.params) & _finite_per_level(window)
@@ -116,6 +113,26 @@ def run_level_batch(
         ),
         seconds=clock.seconds,
     )
+
+
+@functools.cache
+def _train_program(config, static, num_levels: int):
+    """(levels, keys, env params, progress token) -> `train_levels`, spread over the local devices."""
+
+    def train(levels, keys, env_params, progress):
+        return train_levels(levels, keys, config, env_params, static, progress=progress)
+
+    return over_local_devices(train, num_levels, level_args=2, shared_args=2)
+
+
+@functools.cache
+def _collect_program(config, static, num_levels: int, num_steps: int, greedy: bool):
+    """(expert params, levels, keys, env params) -> `collect_windows`, spread over the local devices."""
+
+    def collect(params, levels, keys, env_params):
+        return collect_windows(params, levels, keys, config, env_params, static, num_steps=num_steps, greedy=greedy)
+
+    return over_local_devices(collect, num_levels, level_args=3, shared_args=1)
 
 
 def _ignore_progress(updates_done: int, num_updates: int) -> None:

@@ -270,10 +270,7 @@ def test_no_retrace_for_new_scenes_of_the_same_size(batch):
     """Different scenes, step outputs fed back, and new parameter values all reuse the compiled step."""
     zeros_m, zeros_t = jnp.zeros(SIZE_M.num_joints), jnp.zeros(SIZE_M.num_thrusters)
     states = batch["states"]
-    if hasattr(engine.step, "_cache_size"):
-        call, count = engine.step, engine.step._cache_size
-    else:  # pragma: no cover - fallback when JAX removes the private counter
-        call, count = _counted_step, lambda: len(_traces)
+    call, count = _counted_step, lambda: len(_traces)  # engine.step is a plain function over a jitted step
     first, _ = call(states[0], PARAMS, zeros_m, zeros_t, static=SIZE_M)
     before = count()
     after_step, _ = call(first, PARAMS, zeros_m, zeros_t, static=SIZE_M)
@@ -292,3 +289,63 @@ def test_no_retrace_for_new_scenes_of_the_same_size(batch):
         static=SIZE_M,
     )
     assert count() == before, f"step was retraced: cache size {before} -> {count()}"
+
+
+TEST_CHUNK_LIMIT = 4
+"""A chunk limit small enough that the test batch (9 scenes) runs as three chunks, the last one padded."""
+MODE_STEPS = 3
+
+
+def _step_batch_in_mode(mode: str, states, motors, thrusters):
+    """`MODE_STEPS` vmapped steps traced under `engine.set_batching(mode)`, and the compiled program's text."""
+    engine.set_batching(mode, chunk_limit=TEST_CHUNK_LIMIT)
+    try:
+        stepped = jax.jit(jax.vmap(lambda s, m, t: engine.step(s, PARAMS, m, t, static=SIZE_M)[0]))
+        compiled = stepped.lower(states, motors[:, 0], thrusters[:, 0]).compile()
+        for k in range(MODE_STEPS):
+            states = compiled(states, motors[:, k], thrusters[:, k])
+    finally:
+        engine.set_batching()
+    return states, compiled.as_text()
+
+
+def test_chunked_and_whole_batching_give_the_same_states(batch):
+    """Chunked with batch-last layout and one whole vmap step a batch larger than a chunk alike (on CPU "auto" is
+    "chunked": test_auto_batching_chunks_on_cpu_only)."""
+    picks = [k % len(batch["states"]) for k in range(2 * TEST_CHUNK_LIMIT + 1)]
+    states = stack_states([batch["states"][k] for k in picks])
+    motors, thrusters = batch["motors"][picks], batch["thrusters"][picks]
+    chunked, chunked_program = _step_batch_in_mode("chunked", states, motors, thrusters)
+    whole, whole_program = _step_batch_in_mode("whole", states, motors, thrusters)
+    assert chunked_program != whole_program, "set_batching did not change the compiled program"
+    for field, expected in _dynamic_fields(chunked.bodies).items():
+        np.testing.assert_allclose(
+            np.asarray(getattr(whole.bodies, field)),
+            expected,
+            atol=VMAP_ATOL * MODE_STEPS,
+            rtol=VMAP_RTOL * MODE_STEPS,
+            err_msg=f"whole vs chunked: {field}",
+        )
+
+
+def test_set_batching_retraces_programs_traced_before(batch):
+    """A jitted program that calls `engine.step` (as the env does) follows a later `set_batching`."""
+    zeros_m, zeros_t = jnp.zeros(SIZE_M.num_joints), jnp.zeros(SIZE_M.num_thrusters)
+    wrapper = jax.jit(lambda s: engine.step(s, PARAMS, zeros_m, zeros_t, static=SIZE_M)[0])
+    states = stack_states(batch["states"][:2])
+    jaxprs = {}
+    try:
+        for mode in ("chunked", "whole"):
+            engine.set_batching(mode)
+            jaxprs[mode] = str(jax.make_jaxpr(jax.vmap(wrapper))(states))
+    finally:
+        engine.set_batching()
+    assert jaxprs["chunked"] != jaxprs["whole"]
+
+
+def test_auto_batching_chunks_on_cpu_only():
+    assert jax.default_backend() == "cpu"
+    assert engine.current_batching() == engine.Batching("chunked", BATCH_CHUNK)
+    with pytest.raises(ValueError, match="batching mode 'gpu'"):
+        engine.set_batching("gpu")
+    assert engine.current_batching().mode == "chunked"

@@ -26,7 +26,7 @@ RELEASE = {
 """Split -> (env size, expert budget [env steps per level], unique levels in the release); docs/kinetix.md,
 released splits (level counts as published, rounded)."""
 
-SCALES = ("tiny", "local", "full")
+SCALES = ("tiny", "local", "local-gpu", "full")
 
 TINY_LEVELS = 8
 TINY_BUDGET = 65_536  # [env steps per level]
@@ -55,7 +55,10 @@ def test_split_at_a_scale_has_the_release_settings(split, scale):
     unscaled = load_config(split_file(split))
     assert (job.split.name, job.split.size, job.split.seed) == (split, size, unscaled.split.seed)
     assert job.split.expert_budget == (TINY_BUDGET if scale == "tiny" else budget)
-    assert job.split.num_levels == {"tiny": TINY_LEVELS, "local": LOCAL_LEVELS, "full": release_levels}[scale]
+    assert (
+        job.split.num_levels
+        == {"tiny": TINY_LEVELS, "local": LOCAL_LEVELS, "local-gpu": LOCAL_LEVELS, "full": release_levels}[scale]
+    )
     assert job.scale == scale
     assert job.output_dir == f"outputs/{split.replace('/', '-')}-{scale}"
     for section in DATA_SETTINGS:
@@ -66,6 +69,13 @@ def test_split_at_a_scale_has_the_release_settings(split, scale):
     assert ppo == expected
 
 
+def test_gpu_scale_runs_one_worker_per_gpu_on_the_local_levels():
+    local, gpu = (load_config(split_file("1M/s"), scale=scale) for scale in ("local", "local-gpu"))
+    assert (gpu.ray.gpus_per_worker, local.ray.gpus_per_worker) == (1.0, 0.0)
+    assert gpu.work.levels_per_batch > local.work.levels_per_batch
+    assert gpu.work.levels_per_shard % gpu.work.levels_per_batch == 0
+
+
 def test_splits_have_distinct_seeds():
     seeds = [load_config(split_file(split)).split.seed for split in RELEASE]
     assert len(set(seeds)) == len(seeds)
@@ -73,7 +83,7 @@ def test_splits_have_distinct_seeds():
 
 def test_scale_presets_other_than_tiny_set_no_training_keys():
     scales_dir = SPLITS_DIR.parent / "scales"
-    for scale in ("local", "full"):
+    for scale in ("local", "local-gpu", "full"):
         preset = OmegaConf.to_container(OmegaConf.load(scales_dir / f"{scale}.yaml"))
         assert not {"ppo", "filter", "env", "collect"} & set(preset), scale
         assert "expert_budget" not in preset.get("split", {}), scale
@@ -111,7 +121,7 @@ def test_a_bad_value_in_a_file_names_the_file_key_and_type(tmp_path):
 
 
 def test_an_unknown_scale_lists_the_presets():
-    with pytest.raises(ConfigError, match=r"scale 'huge': expected one of full, local, tiny or a path"):
+    with pytest.raises(ConfigError, match=r"scale 'huge': expected one of full, local, local-gpu, tiny or a path"):
         load_config(split_file("1M/s"), scale="huge")
 
 

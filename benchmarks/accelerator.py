@@ -1,0 +1,307 @@
+"""One unattended accelerator report: engine, env, PPO training and a tiny pipeline run on whatever JAX sees.
+
+Measures, on the default JAX backend (a GPU or TPU when one is installed, else the CPU), in this order and within
+`--budget` seconds (a measurement that would start after its section's share of the budget is listed as skipped):
+
+- engine: physics steps/s of ours and, where the `bench` extra is installed, of Jax2D in the same run (timed calls
+  alternate), at batches 4,096-65,536 for sizes s, m and l, with Jax2D's published peaks beside them;
+- env: env steps/s of our env (step, auto-reset, symbolic observation) at large batches;
+- PPO: training env steps/s of `agents.train_levels` at pipeline-sized level batches (configs/ppo_specialist.yaml,
+  a few updates), and Kinetix's own PPO in the same run when `--kinetix-venv` holds kinetix-env (see
+  benchmarks/env.py; it is not built here, so that the run stays unattended and offline);
+- pipeline: a tiny `kforge run` end to end (Ray, one worker with the accelerator, zarr output), its wall time and
+  level outcomes.
+
+It prints one JSON document with every figure and, under "targets", each target of the accelerator issue checked
+(null where a figure is missing): engine >= 2x Jax2D in the same run and >= Jax2D's published peaks, PPO >= 5x
+Kinetix's PPO. `--quick` runs every section at toy sizes (a CPU check that the script works end to end);
+`--dry-run` prints the plan without measuring.
+
+    python benchmarks/accelerator.py > accelerator.json
+    python benchmarks/accelerator.py --quick
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import dataclasses
+import functools
+import json
+import os
+import sys
+import tempfile
+import time
+import traceback
+from pathlib import Path
+
+import jax
+
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+
+from benchmarks.engine import JAX2D_PUBLISHED_PEAK_STEPS_PER_SECOND  # noqa: E402
+from benchmarks.machine import describe_machine  # noqa: E402
+
+ENGINE_SPEEDUP_TARGET = 2.0
+"""Engine steps/s at least this many times Jax2D's, measured in the same run."""
+PPO_SPEEDUP_TARGET = 5.0
+"""PPO training env steps/s at least this many times Kinetix's PPO, measured in the same run."""
+SECTION_SHARES = {"engine": 0.45, "env": 0.15, "ppo": 0.25, "pipeline": 0.15}
+"""Share of the time budget by which each section's measurements must have started (cumulative, in this order)."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Plan:
+    sizes: tuple[str, ...]
+    engine_batches: tuple[int, ...]
+    engine_steps: int  # physics steps per timed call
+    env_batches: tuple[int, ...]
+    env_steps: int  # env steps per timed call
+    ppo_levels: tuple[int, ...]  # levels trained together
+    ppo_updates: int  # PPO updates per level per timed call
+    ppo_overrides: tuple[str, ...]  # PPOConfig key=value overrides of configs/ppo_specialist.yaml
+    pipeline_overrides: tuple[str, ...]  # job config overrides of the tiny pipeline run
+    repeats: int
+
+
+FULL = Plan(
+    sizes=("s", "m", "l"),
+    engine_batches=(4096, 16384, 65536),
+    engine_steps=20,
+    env_batches=(4096, 16384),
+    env_steps=32,
+    ppo_levels=(64, 256),
+    ppo_updates=2,
+    ppo_overrides=(),
+    pipeline_overrides=(
+        "split.num_levels=16",
+        "split.expert_budget=65536",
+        "work.levels_per_shard=16",
+        "work.levels_per_batch=16",
+    ),
+    repeats=2,
+)
+QUICK = Plan(
+    sizes=("s",),
+    engine_batches=(8,),
+    engine_steps=2,
+    env_batches=(8,),
+    env_steps=2,
+    ppo_levels=(2,),
+    ppo_updates=1,
+    ppo_overrides=("num_envs=4", "num_steps=8", "num_minibatches=2", "update_epochs=1", "select_episodes=1"),
+    pipeline_overrides=(
+        "split.num_levels=2",
+        "split.expert_budget=64",
+        "work.levels_per_shard=2",
+        "work.levels_per_batch=2",
+        "ppo.num_envs=4",
+        "ppo.num_steps=8",
+        "ppo.num_minibatches=2",
+        "ppo.update_epochs=1",
+        "ppo.select_episodes=1",
+        "collect.window_steps=8",
+    ),
+    repeats=1,
+)
+
+
+class Budget:
+    """Section deadlines from a total number of seconds and `SECTION_SHARES`."""
+
+    def __init__(self, seconds: float):
+        self._start = time.monotonic()
+        self._deadlines, elapsed_share = {}, 0.0
+        for section, share in SECTION_SHARES.items():
+            elapsed_share += share
+            self._deadlines[section] = seconds * elapsed_share
+
+    def allows(self, section: str) -> bool:
+        return time.monotonic() - self._start < self._deadlines[section]
+
+
+def _attempt(report: dict, section: str, key: str, budget: Budget, measure, log):
+    """Run `measure()` into report[section][key] unless the section's time is up; errors are recorded, not raised."""
+    entries = report.setdefault(section, {})
+    if not budget.allows(section):
+        entries[key] = {"skipped": "time budget"}
+        log(f"{section} {key}: skipped (time budget)")
+        return None
+    try:
+        entries[key] = measure()
+    except Exception as error:  # one failed figure must not lose the rest of an unattended report
+        entries[key] = {"error": f"{type(error).__name__}: {error}", "traceback": traceback.format_exc(limit=3)}
+        log(f"{section} {key}: failed: {type(error).__name__}: {error}")
+        return None
+    log(f"{section} {key}: {json.dumps(entries[key])}")
+    return entries[key]
+
+
+def _jax2d_available() -> bool:
+    try:
+        import jax2d  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+def measure_engine(size: str, batch: int, plan: Plan, with_jax2d: bool) -> dict:
+    from benchmarks import jax2d_baseline
+    from benchmarks.engine import compile_rollout_ours
+    from benchmarks.timing import best_time, best_times_interleaved
+
+    calls = [compile_rollout_ours(size, batch, plan.engine_steps)]
+    if with_jax2d:
+        calls.append(jax2d_baseline.compile_rollout(size, batch, plan.engine_steps)[0])
+        seconds = best_times_interleaved(calls, plan.repeats)
+    else:
+        seconds = [best_time(calls[0], plan.repeats)[0]]
+    rates = [batch * plan.engine_steps / s for s in seconds]
+    result = {"ours_steps_per_second": rates[0]}
+    if with_jax2d:
+        result |= {"jax2d_steps_per_second": rates[1], "speedup_vs_jax2d": rates[0] / rates[1]}
+    return result
+
+
+def measure_env(size: str, batch: int, plan: Plan) -> dict:
+    from benchmarks.env import measure_steps
+
+    return measure_steps(size, batch, plan.env_steps, plan.repeats)
+
+
+def _ppo_config(plan: Plan):
+    from benchmarks.ppo import DEFAULT_CONFIG, load_ppo_config
+
+    return load_ppo_config(DEFAULT_CONFIG, list(plan.ppo_overrides), plan.ppo_updates)
+
+
+def measure_ppo(size: str, levels: int, plan: Plan) -> dict:
+    from benchmarks.ppo import measure_ours
+
+    return measure_ours(size, levels, _ppo_config(plan), plan.repeats)
+
+
+def measure_kinetix_ppo(python: Path, size: str, plan: Plan) -> dict:
+    from benchmarks.ppo import measure_kinetix
+
+    options = argparse.Namespace(updates=plan.ppo_updates, repeats=plan.repeats, kinetix_network="ours")
+    return measure_kinetix(python, size, _ppo_config(plan), options)
+
+
+def measure_pipeline(size: str, plan: Plan, scratch: Path) -> dict:
+    """A tiny job end to end through Ray: one worker, on the accelerator when there is one."""
+    from pipeline.generation import load_config, run_job
+
+    gpus = 1.0 if jax.default_backend() == "gpu" else 0.0
+    overrides = [
+        f"output_dir={scratch / f'pipeline-{size}'}",
+        f"split.name=accelerator/{size}",
+        f"split.size={size}",
+        "ray.num_workers=1",
+        f"ray.gpus_per_worker={gpus}",
+        "tracking.wandb=disabled",
+        *plan.pipeline_overrides,
+    ]
+    summary = run_job(load_config(None, overrides), show_progress=False)
+    return {"wall_seconds": summary["seconds"], "levels": summary["levels"], "outcomes": summary["outcomes"]}
+
+
+def check_targets(report: dict) -> dict:
+    """Each target of the accelerator issue: true, false, or null where a figure is missing."""
+    targets = {"engine_vs_jax2d": {}, "engine_vs_published_peak": {}, "ppo_vs_kinetix": {}}
+    for key, figures in report.get("engine", {}).items():
+        size = key.split("/")[0]
+        speedup = figures.get("speedup_vs_jax2d")
+        targets["engine_vs_jax2d"][key] = None if speedup is None else speedup >= ENGINE_SPEEDUP_TARGET
+        rate = figures.get("ours_steps_per_second")
+        peak = JAX2D_PUBLISHED_PEAK_STEPS_PER_SECOND[size]
+        targets["engine_vs_published_peak"][key] = None if rate is None else rate >= peak
+    for size, figures in report.get("kinetix_ppo", {}).items():
+        theirs = figures.get("steps_per_second")
+        ours = [f.get("steps_per_second") for k, f in report.get("ppo", {}).items() if k.startswith(f"{size}/")]
+        ours = [rate for rate in ours if rate is not None]
+        targets["ppo_vs_kinetix"][size] = (
+            None if theirs is None or not ours else max(ours) >= PPO_SPEEDUP_TARGET * theirs
+        )
+    return targets
+
+
+def run(plan: Plan, budget_seconds: float, kinetix_venv: Path | None, log) -> dict:
+    budget = Budget(budget_seconds)
+    with_jax2d = _jax2d_available()
+    report = {
+        "machine": describe_machine(),
+        "backend": jax.default_backend(),
+        "devices": [str(device) for device in jax.devices()],
+        "plan": dataclasses.asdict(plan),
+        "jax2d_in_run": with_jax2d,
+        "jax2d_published_peak_steps_per_second": JAX2D_PUBLISHED_PEAK_STEPS_PER_SECOND,
+    }
+    for size in plan.sizes:
+        for batch in plan.engine_batches:
+            _attempt(
+                report,
+                "engine",
+                f"{size}/{batch}",
+                budget,
+                functools.partial(measure_engine, size, batch, plan, with_jax2d),
+                log,
+            )
+    for size in plan.sizes:
+        for batch in plan.env_batches:
+            _attempt(report, "env", f"{size}/{batch}", budget, functools.partial(measure_env, size, batch, plan), log)
+    kinetix_python = kinetix_venv / "bin" / "python" if kinetix_venv else None
+    for size in plan.sizes:
+        for levels in plan.ppo_levels:
+            _attempt(report, "ppo", f"{size}/{levels}", budget, functools.partial(measure_ppo, size, levels, plan), log)
+        if kinetix_python is not None and kinetix_python.exists():
+            _attempt(
+                report,
+                "kinetix_ppo",
+                size,
+                budget,
+                functools.partial(measure_kinetix_ppo, kinetix_python, size, plan),
+                log,
+            )
+    with tempfile.TemporaryDirectory(prefix="kforge-accelerator-") as scratch:
+        _attempt(
+            report,
+            "pipeline",
+            plan.sizes[0],
+            budget,
+            functools.partial(measure_pipeline, plan.sizes[0], plan, Path(scratch)),
+            log,
+        )
+    report["targets"] = check_targets(report)
+    return report
+
+
+def _log(line: str) -> None:
+    print(line, file=sys.stderr, flush=True)
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="toy sizes: check that every section runs")
+    parser.add_argument("--dry-run", action="store_true", help="print the plan and the backend, measure nothing")
+    parser.add_argument("--budget", type=float, default=540.0, help="seconds for all measurements (default 540)")
+    parser.add_argument("--sizes", nargs="+", choices=["s", "m", "l"], help="override the plan's sizes")
+    parser.add_argument("--kinetix-venv", type=Path, help="virtualenv holding kinetix-env, for Kinetix's PPO")
+    args = parser.parse_args(argv)
+    plan = QUICK if args.quick else FULL
+    if args.sizes:
+        plan = dataclasses.replace(plan, sizes=tuple(args.sizes))
+    if args.dry_run:
+        print(
+            json.dumps(
+                {"backend": jax.default_backend(), "budget_seconds": args.budget, "plan": dataclasses.asdict(plan)}
+            )
+        )
+        return
+    with contextlib.redirect_stdout(sys.stderr):  # Ray and the measurements may print; stdout holds only the JSON
+        report = run(plan, args.budget, args.kinetix_venv, _log)
+    print(json.dumps(report, indent=2))
+
+
+if __name__ == "__main__":
+    main()

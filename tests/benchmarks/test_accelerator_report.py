@@ -1,0 +1,57 @@
+"""The accelerator report: its plan, its target checks, and (slow) one toy run end to end on the CPU."""
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from benchmarks.accelerator import FULL, check_targets
+
+REPO_ROOT = Path(__file__).resolve().parents[2]
+SCRIPT = REPO_ROOT / "benchmarks" / "accelerator.py"
+
+
+def test_dry_run_prints_the_full_plan_without_measuring():
+    output = subprocess.run([sys.executable, str(SCRIPT), "--dry-run"], capture_output=True, text=True, check=True)
+    plan = json.loads(output.stdout)
+    assert plan["backend"] == "cpu"
+    assert plan["plan"]["sizes"] == ["s", "m", "l"]
+    assert plan["plan"]["engine_batches"] == [4096, 16384, 65536]
+    assert plan["budget_seconds"] <= 600
+    assert FULL.ppo_levels == (64, 256)
+
+
+def test_targets_compare_with_jax2d_its_published_peaks_and_kinetix():
+    report = {
+        "engine": {
+            "s/4096": {"ours_steps_per_second": 3e7, "jax2d_steps_per_second": 1e7, "speedup_vs_jax2d": 3.0},
+            "l/4096": {"ours_steps_per_second": 1e6, "jax2d_steps_per_second": 8e5, "speedup_vs_jax2d": 1.25},
+            "m/4096": {"skipped": "time budget"},
+        },
+        "ppo": {"s/64": {"steps_per_second": 4e5}, "s/256": {"steps_per_second": 6e5}, "m/64": {"error": "x"}},
+        "kinetix_ppo": {"s": {"steps_per_second": 1e5}, "m": {"steps_per_second": 1e5}},
+    }
+    targets = check_targets(report)
+    assert targets["engine_vs_jax2d"] == {"s/4096": True, "l/4096": False, "m/4096": None}
+    assert targets["engine_vs_published_peak"] == {"s/4096": True, "l/4096": False, "m/4096": None}
+    assert targets["ppo_vs_kinetix"] == {"s": True, "m": None}
+
+
+@pytest.mark.slow
+def test_quick_report_runs_every_section_on_the_cpu():
+    output = subprocess.run(
+        [sys.executable, str(SCRIPT), "--quick", "--budget", "3000"], capture_output=True, text=True, check=True
+    )
+    report = json.loads(output.stdout)
+    assert report["backend"] == "cpu"
+    for section in ("engine", "env", "ppo", "pipeline"):
+        for key, figures in report[section].items():
+            assert "error" not in figures and "skipped" not in figures, (section, key, figures)
+    assert report["engine"]["s/8"]["ours_steps_per_second"] > 0
+    assert report["engine"]["s/8"]["jax2d_steps_per_second"] > 0
+    assert report["env"]["s/8"]["steps_per_second"] > 0
+    assert report["ppo"]["s/2"]["steps_per_second"] > 0
+    assert report["pipeline"]["s"]["levels"] == 2
+    assert set(report["targets"]["engine_vs_jax2d"]) == {"s/8"}
