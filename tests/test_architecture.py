@@ -9,6 +9,8 @@ from pathlib import Path
 
 import pytest
 
+pytestmark = pytest.mark.smoke
+
 REPO = Path(__file__).resolve().parents[1]
 
 ALLOWED = {

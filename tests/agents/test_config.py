@@ -8,6 +8,8 @@ import yaml
 from agents import PPOConfig
 from env.observations import ObservationType
 
+pytestmark = pytest.mark.smoke
+
 YAML_PATH = Path(__file__).resolve().parents[2] / "configs" / "ppo_specialist.yaml"
 
 

@@ -11,6 +11,8 @@ from agents import policy
 from agents.config import PPOConfig
 from agents.ppo import Batch, gae, ppo_loss
 
+pytestmark = pytest.mark.smoke
+
 THRUSTER_ONLY = jnp.asarray([False, False, False, False, True, False])
 """Action mask of a level whose only actuator is a thruster bound to slot 4."""
 

@@ -2,7 +2,11 @@
 
 from __future__ import annotations
 
+import pytest
+
 from benchmarks import timing
+
+pytestmark = pytest.mark.smoke
 
 
 class FakeClock:

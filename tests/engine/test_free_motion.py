@@ -14,6 +14,8 @@ from engine_test_helpers import PARAMS, SIZE_M, cross, rotate, run_batch
 import engine
 from engine import SceneBuilder
 
+pytestmark = pytest.mark.smoke
+
 RTOL = 1e-5
 CHECK_STEPS = 30
 H = PARAMS.dt / SIZE_M.num_substeps

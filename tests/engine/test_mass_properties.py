@@ -8,6 +8,8 @@ import pytest
 from engine import SceneBuilder, StaticSimParams
 from engine.geometry import circle_mass_properties, polygon_mass_properties
 
+pytestmark = pytest.mark.smoke
+
 RTOL = 1e-5
 STATIC = StaticSimParams(num_polygons=8, num_circles=3, num_joints=1, num_thrusters=1)
 

@@ -7,6 +7,8 @@ import pytest
 
 from engine import SceneBuilder, StaticSimParams
 
+pytestmark = pytest.mark.smoke
+
 STATIC = StaticSimParams(num_polygons=6, num_circles=2, num_joints=2, num_thrusters=1)
 N = STATIC.num_bodies
 SQUARE = np.array([[-0.1, -0.1], [0.1, -0.1], [0.1, 0.1], [-0.1, 0.1]])

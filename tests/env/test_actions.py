@@ -21,6 +21,8 @@ from env import (
 from env.actions import unified_action
 from env.level_builder import build_level
 
+pytestmark = pytest.mark.smoke
+
 M_STATIC = StaticEnvParams.for_size("m")
 
 

@@ -10,6 +10,8 @@ import pytest
 from env import LevelFileError
 from pipeline.cli import EXIT_DATA, EXIT_USAGE, main
 
+pytestmark = pytest.mark.smoke
+
 PIPELINE_SUBCOMMANDS = (["run"], ["verify"], ["stats"], ["export"], ["levels", "sample"], ["levels", "export"])
 
 

@@ -14,6 +14,8 @@ from agents import PPOConfig
 from pipeline.cli.run import main as run_main
 from pipeline.generation.config import ConfigError, JobConfig, PPOSection, load_config, ppo_config, to_yaml
 
+pytestmark = pytest.mark.smoke
+
 SPLITS_DIR = Path(__file__).resolve().parents[2] / "configs" / "splits"
 
 RELEASE = {

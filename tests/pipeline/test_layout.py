@@ -7,6 +7,8 @@ import pytest
 from env import ActionType, StaticEnvParams
 from pipeline.storage.layout import DYNAMIC_STATE_FIELDS, DatasetError, FieldSpec, Layout, check_layout, make_layout
 
+pytestmark = pytest.mark.smoke
+
 SIZE_S = StaticEnvParams.for_size("s")  # 5 polygons + 2 circles = 7 bodies, 1 joint, 1 thruster
 
 

@@ -14,6 +14,8 @@ from pipeline.reading.loader import TrajectoryDatasetManager
 from pipeline.storage.layout import DatasetError
 from pipeline.storage.shard_store import open_dataset
 
+pytestmark = pytest.mark.smoke
+
 NUM_TRAJECTORIES = 8  # four batches of two kept trajectories
 KEPT_SLOTS = [0, 1, 3, 4, 6, 7, 9, 10]  # slots 3g and 3g + 1 of each level batch g
 

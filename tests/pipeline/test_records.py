@@ -11,6 +11,8 @@ from env import FilterReason
 from pipeline.storage import DatasetError, Outcome, read_record, write_record
 from pipeline.storage.records import BatchRecord
 
+pytestmark = pytest.mark.smoke
+
 RECORD = {
     "shard": 0,
     "batch": 1,

@@ -14,6 +14,8 @@ from env import ActionType, StaticEnvParams
 from pipeline.storage.layout import DONE, VALID, FieldSpec, make_layout
 from pipeline.storage.state_codec import decode, decode_arrays, encode, encode_arrays, is_coded, stored_dtype
 
+pytestmark = pytest.mark.smoke
+
 FLOAT_FIELD = FieldSpec("env_state/sim/bodies/position", (3, 2), "float32", True)
 INT_FIELD = FieldSpec("env_state/sim/contacts/feature", (2,), "int32", True)
 NUM_STEPS = 32

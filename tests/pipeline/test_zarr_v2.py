@@ -12,6 +12,8 @@ import pytest
 from pipeline.kinetix.zarr_v2 import RecordArray, array_names, create_group
 from pipeline.storage.layout import DatasetError
 
+pytestmark = pytest.mark.smoke
+
 DTYPE = np.dtype([("a", "<i4", (6,)), ("b", "?"), ("c", "<f4", (2, 2))])
 ITEMSIZE = 6 * 4 + 1 + 4 * 4  # 41 bytes, packed
 
