@@ -13,7 +13,7 @@ import jax.numpy as jnp
 import pytest
 
 from agents import PPOConfig, train_levels
-from engine import SceneBuilder
+from engine import SceneBuilder, SimParams
 from env import EnvParams, Role, StaticEnvParams
 from env.level_builder import build_level
 
@@ -23,7 +23,9 @@ sys.modules["agents_test_helpers"] = sys.modules[__name__]
 STATIC = StaticEnvParams.for_size("s", max_timesteps=34)
 """Size s with 34-step episodes: the thruster level is solvable only by firing most of the time."""
 
-ENV_PARAMS = EnvParams()
+ENV_PARAMS = EnvParams(sim=SimParams(base_friction=0.0))
+"""Frictionless contacts: Kinetix's pair friction 0.4 x sqrt(f_a^2 + f_b^2) is never zero against the floor (of
+friction 1), so the thruster level's disc slides freely only without base friction."""
 FLOOR_TOP = 0.4  # [m]
 RADIUS = 0.2  # [m] green and blue discs
 THRUSTER_POWER = 0.1  # [-] 1 N of thrust at base_thruster_power 10 N
