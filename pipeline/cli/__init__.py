@@ -31,6 +31,7 @@ EXIT_CODES_HELP = (
 """The epilog of every subcommand's --help."""
 
 DEBUG_OPTION = "--debug"
+HELP_OPTIONS = {"-h", "--help"}
 VERBOSE_OPTION = "--verbose"
 
 COMMANDS: dict[str, tuple[str, str]] = {
@@ -99,7 +100,11 @@ def main(argv: Sequence[str] | None = None) -> None:
         rest = [arg for arg in rest if arg not in (DEBUG_OPTION, VERBOSE_OPTION)]
     try:
         importlib.import_module(module).main(rest, prog=f"{parser.prog} {args.command}")
-    except (SystemExit, GeneratorExit):
+    except SystemExit as stop:
+        if stop.code in (0, None) and not module.startswith(OWN_PARSERS) and HELP_OPTIONS & set(rest):
+            print(f"\n{EXIT_CODES_HELP}")  # the same epilog as the subcommands with parsers of their own
+        raise
+    except GeneratorExit:
         raise
     except BaseException as error:
         if debug:

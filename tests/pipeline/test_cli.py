@@ -12,7 +12,16 @@ from pipeline.cli import EXIT_DATA, EXIT_USAGE, main
 
 pytestmark = pytest.mark.smoke
 
-PIPELINE_SUBCOMMANDS = (["run"], ["verify"], ["stats"], ["export"], ["levels", "sample"], ["levels", "export"])
+PIPELINE_SUBCOMMANDS = (
+    ["run"],
+    ["verify"],
+    ["stats"],
+    ["export"],
+    ["levels", "sample"],
+    ["levels", "export"],
+    ["render"],
+    ["demo"],
+)
 
 
 @pytest.mark.parametrize("subcommand", PIPELINE_SUBCOMMANDS, ids=" ".join)
