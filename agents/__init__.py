@@ -1,12 +1,15 @@
 """RL agents that train on env tasks: PPO specialists, one parameter set per level, many levels per program.
 
 Public surface: the config, training of a level batch, evaluation, expert windows for the dataset, and the pieces
-they are made of (GAE, loss, policy), and progress reports from a training program while it runs.
+they are made of (GAE, loss, policy), and progress reports from a training program while it runs; for behaviour
+cloning, its policy networks and objective, and episodes of any policy given as an actor function.
 """
 
+from agents.bc_networks import Architecture, EntityTransformerPolicy, MLPPolicy, NetworkConfig, make_bc_network
 from agents.collect import WINDOW_STEPS, Window, collect_windows
 from agents.config import PPOConfig
-from agents.evaluate import Episode, EvalOutput, evaluate, level_episodes
+from agents.evaluate import Actor, Episode, EvalOutput, evaluate, level_episodes, network_actor, run_episode
+from agents.imitation import ImitationTerms, imitation_terms
 from agents.networks import ActorCritic, make_network
 from agents.ppo import (
     Batch,
@@ -25,11 +28,17 @@ from agents.progress import ProgressListener, training_progress
 
 __all__ = [
     "WINDOW_STEPS",
+    "Actor",
     "ActorCritic",
+    "Architecture",
     "Batch",
+    "EntityTransformerPolicy",
     "Episode",
     "EvalOutput",
+    "ImitationTerms",
     "LossTerms",
+    "MLPPolicy",
+    "NetworkConfig",
     "PPOConfig",
     "ProgressListener",
     "Selection",
@@ -39,10 +48,14 @@ __all__ = [
     "collect_windows",
     "evaluate",
     "gae",
+    "imitation_terms",
     "initial_params",
     "level_episodes",
+    "make_bc_network",
     "make_network",
+    "network_actor",
     "ppo_loss",
+    "run_episode",
     "train_from",
     "train_level",
     "train_levels",

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import functools
+from collections.abc import Callable
 from typing import NamedTuple
 
 import jax
@@ -27,30 +28,32 @@ class EvalOutput(NamedTuple):
 
 
 class Episode(NamedTuple):
-    """How an episode ended (state, success, return and length once finished)."""
+    """How an episode ended (state, success, failure, return and length once finished)."""
 
     state: EnvState
     finished: jnp.ndarray  # () bool
-    success: jnp.ndarray  # () bool
+    success: jnp.ndarray  # () bool: green touched blue
+    failure: jnp.ndarray  # () bool: green touched red
     episode_return: jnp.ndarray  # () f32
     length: jnp.ndarray  # () i32
 
 
-def _run_episode(
-    params, start: EnvState, mask: jnp.ndarray, key: jax.Array, config: PPOConfig, env_params, static, greedy: bool
-) -> Episode:
-    """One episode from `start` until it ends (at most `static.max_timesteps` steps); no reset."""
-    network = make_network(config)
+Actor = Callable[[EnvState, jnp.ndarray, jax.Array], jnp.ndarray]
+"""A policy as a function (state, action mask (6,), PRNG key) -> multi-discrete action (6,) i32."""
+
+
+def run_episode(act: Actor, start: EnvState, mask: jnp.ndarray, key: jax.Array, env_params, static) -> Episode:
+    """One episode of `act` from `start` until it ends (at most `static.max_timesteps` steps); no reset."""
 
     def step(episode: Episode, step_key):
-        logits, _ = network.apply(params, observe(episode.state, static, config.observation_type))
-        action = policy.mode(logits, mask) if greedy else policy.sample(step_key, logits, mask)
+        action = act(episode.state, mask, step_key)
         reached, result = advance(episode.state, action, env_params, static, ACTION_TYPE)
         running = ~episode.finished
         following = Episode(
             state=reached,
             finished=result.done,
             success=result.success,
+            failure=result.failure,
             episode_return=episode.episode_return + result.reward,
             length=episode.length + 1,
         )
@@ -60,11 +63,31 @@ def _run_episode(
         state=start,
         finished=jnp.zeros((), bool),
         success=jnp.zeros((), bool),
+        failure=jnp.zeros((), bool),
         episode_return=jnp.zeros((), jnp.float32),
         length=jnp.zeros((), jnp.int32),
     )
     episode, _ = jax.lax.scan(step, first, jax.random.split(key, static.max_timesteps))
     return episode
+
+
+def network_actor(network, params, observation_type, static: StaticEnvParams, greedy: bool) -> Actor:
+    """The actor of a logits network (`network.apply(params, obs)` returns logits first, or only logits)."""
+
+    def act(state: EnvState, mask: jnp.ndarray, key: jax.Array) -> jnp.ndarray:
+        out = network.apply(params, observe(state, static, observation_type))
+        logits = out[0] if isinstance(out, tuple) else out
+        return policy.mode(logits, mask) if greedy else policy.sample(key, logits, mask)
+
+    return act
+
+
+def _run_episode(
+    params, start: EnvState, mask: jnp.ndarray, key: jax.Array, config: PPOConfig, env_params, static, greedy: bool
+) -> Episode:
+    """One episode of the PPO policy with `params` from `start`."""
+    act = network_actor(make_network(config), params, config.observation_type, static, greedy)
+    return run_episode(act, start, mask, key, env_params, static)
 
 
 def evaluate(

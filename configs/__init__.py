@@ -1,5 +1,6 @@
 """The YAML configs that ship with kforge: release splits (`splits/<budget>/<size>.yaml`, named like "1M/s"),
-scale presets (`scales/<name>.yaml`) and the specialists' PPO settings (`ppo_specialist.yaml`).
+scale presets (`scales/<name>.yaml`), the specialists' PPO settings (`ppo_specialist.yaml`) and the behaviour-cloning
+defaults (`bc.yaml`).
 
 Standard library only, so that the command line can list them without importing JAX.
 """
@@ -19,6 +20,9 @@ SCALES_DIR = CONFIGS_DIR / "scales"
 
 PPO_SPECIALIST = CONFIGS_DIR / "ppo_specialist.yaml"
 """The specialists' PPO settings, equal to `agents.PPOConfig`'s defaults."""
+
+BC = CONFIGS_DIR / "bc.yaml"
+"""Defaults of `kforge bc train`, equal to `pipeline.learning.BCConfig`'s schema defaults."""
 
 YAML_SUFFIXES = (".yaml", ".yml")
 

@@ -13,6 +13,8 @@ pytestmark = pytest.mark.smoke
 
 REPO = Path(__file__).resolve().parents[1]
 
+_LEARNING = {"configs", "engine", "env", "agents", "pipeline.storage", "pipeline.reading", "pipeline.generation"}
+
 ALLOWED = {
     "engine": set(),
     "env": {"engine"},
@@ -21,16 +23,8 @@ ALLOWED = {
     "pipeline.reading": {"engine", "env", "pipeline.storage"},
     "pipeline.generation": {"configs", "engine", "env", "agents", "pipeline.storage"},
     "pipeline.kinetix": {"engine", "env", "pipeline.storage", "pipeline.reading"},
-    "pipeline.cli": {
-        "configs",
-        "engine",
-        "env",
-        "agents",
-        "pipeline.storage",
-        "pipeline.reading",
-        "pipeline.generation",
-        "pipeline.kinetix",
-    },
+    "pipeline.learning": _LEARNING,
+    "pipeline.cli": _LEARNING | {"pipeline.kinetix", "pipeline.learning"},
     "jobs": {"configs", "pipeline.generation"},
     "configs": set(),
     "pipeline": {"pipeline.cli"},

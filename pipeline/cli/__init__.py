@@ -40,6 +40,11 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "stats": ("write a dataset card: counts, bytes, timings, config and plots", "pipeline.cli.stats"),
     "export": ("write a dataset as Kinetix-Offline zarr v2 shards (--format kinetix)", "pipeline.cli.export"),
     "levels": ("list, sample, preview, import and export Kinetix level files", "pipeline.cli.levels"),
+    "bc": ("train a behaviour-cloning policy on a dataset (train), resumable", "pipeline.cli.bc"),
+    "evaluate": (
+        "success rates of a BC policy beside no-op and random on seen, unseen and hand levels",
+        "pipeline.cli.evaluate",
+    ),
     "render": ("play a Kinetix level with a simple policy and write a GIF", "env.play"),
     "demo": ("simulate a small engine scene and write it as a GIF", "engine.demo"),
 }

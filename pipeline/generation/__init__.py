@@ -14,7 +14,11 @@ from pipeline.generation.config import (
     data_fingerprint,
     environment,
     load_config,
+    load_yaml,
+    merge_layers,
+    parse_overrides,
     ppo_config,
+    to_schema_object,
     to_yaml,
 )
 from pipeline.generation.console import closing_summary
@@ -54,6 +58,9 @@ __all__ = [
     "level_key",
     "level_keys",
     "load_config",
+    "load_yaml",
+    "merge_layers",
+    "parse_overrides",
     "num_shards",
     "ppo_config",
     "prepare_output",
@@ -62,5 +69,6 @@ __all__ = [
     "sample_batch",
     "start_tracking",
     "summarize",
+    "to_schema_object",
     "to_yaml",
 ]

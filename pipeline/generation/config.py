@@ -170,29 +170,47 @@ def load_config(path: str | Path | None = None, overrides: list[str] = (), scale
     layers = []
     if path is not None:
         path = config_path(path)
-        layers.append((str(path), _load_yaml(path)))
+        layers.append((str(path), load_yaml(path)))
     if scale is not None:
-        layers.append((str(scale_path(scale)), _load_yaml(scale_path(scale))))
-    layers.append((OVERRIDES, _parse_overrides(overrides)))
-    config = OmegaConf.structured(JobConfig)
+        layers.append((str(scale_path(scale)), load_yaml(scale_path(scale))))
+    layers.append((OVERRIDES, parse_overrides(overrides)))
     for index, (where, layer) in enumerate(layers):
         if "scale" in layer and not (index == 0 and path is not None):
             raise ConfigError(f"{where}: scale: a scale preset is applied with --scale NAME, not set as a key")
-        _check_sections(OmegaConf.to_container(layer), JobConfig, where)
-        try:
-            config = OmegaConf.merge(config, layer)
-        except OmegaConfBaseException as error:
-            raise _config_error(error, where) from error
+    config = merge_layers(JobConfig, layers)
     try:
         if scale is not None:
             config.scale = scale
         if OmegaConf.is_missing(config, "output_dir") and not OmegaConf.is_missing(config.split, "name"):
             config.output_dir = default_output_dir(config.split.name, config.scale)
-        job: JobConfig = OmegaConf.to_object(config)
     except OmegaConfBaseException as error:
-        raise _config_error(error, "config") from error
+        raise _config_error(error, "config", JobConfig) from error
+    job: JobConfig = to_schema_object(config, JobConfig)
     check_config(job)
     return job
+
+
+def merge_layers(schema: type, layers: list[tuple[str, DictConfig]]) -> DictConfig:
+    """The structured config of dataclass `schema`: its defaults, then each (where, layer) in order, later winning.
+
+    Raises `ConfigError` naming the layer (`where`) and the key.
+    """
+    config = OmegaConf.structured(schema)
+    for where, layer in layers:
+        _check_sections(OmegaConf.to_container(layer), schema, where)
+        try:
+            config = OmegaConf.merge(config, layer)
+        except OmegaConfBaseException as error:
+            raise _config_error(error, where, schema) from error
+    return config
+
+
+def to_schema_object(config: DictConfig, schema: type):
+    """The `schema` dataclass instance of a merged config; `ConfigError` names a missing or mistyped key."""
+    try:
+        return OmegaConf.to_object(config)
+    except OmegaConfBaseException as error:
+        raise _config_error(error, "config", schema) from error
 
 
 def scale_path(scale: str) -> Path:
@@ -224,7 +242,7 @@ def default_output_dir(split_name: str, scale: str | None) -> str:
     return f"{DEFAULT_OUTPUT_ROOT}/{name}"
 
 
-def _load_yaml(path: str | Path) -> DictConfig:
+def load_yaml(path: str | Path) -> DictConfig:
     try:
         layer = OmegaConf.load(path)
     except FileNotFoundError as error:
@@ -236,7 +254,7 @@ def _load_yaml(path: str | Path) -> DictConfig:
     return layer
 
 
-def _parse_overrides(overrides: list[str]) -> DictConfig:
+def parse_overrides(overrides: list[str]) -> DictConfig:
     for override in overrides:
         if "=" not in override:
             raise ConfigError(f"{OVERRIDES}: {override!r} is not of the form key=value")
@@ -246,9 +264,9 @@ def _parse_overrides(overrides: list[str]) -> DictConfig:
         raise ConfigError(f"{OVERRIDES}: a value is not valid YAML ({str(error).splitlines()[0]})") from error
 
 
-def _schema_type(key: str):
-    """The annotated type of a dotted key in `JobConfig` (`JobConfig` itself for ""); None if there is no such key."""
-    hint = JobConfig
+def _schema_type(key: str, schema: type = JobConfig):
+    """The annotated type of a dotted key in `schema` (`schema` itself for ""); None if there is no such key."""
+    hint = schema
     for part in key.split(".") if key else ():
         if not dataclasses.is_dataclass(hint):
             return None
@@ -279,13 +297,13 @@ def _check_sections(values: dict, schema: type, where: str, prefix: str = "") ->
         _check_sections(value, hint, where, f"{prefix}{key}.")
 
 
-def _config_error(error: OmegaConfBaseException, where: str) -> ConfigError:
+def _config_error(error: OmegaConfBaseException, where: str, schema: type) -> ConfigError:
     key = getattr(error, "full_key", None) or ""
     if isinstance(error, ConfigKeyError) and key:
-        return ConfigError(f"{where}: {_unknown_key_message(key)}")
+        return ConfigError(f"{where}: {_unknown_key_message(key, schema)}")
     if isinstance(error, MissingMandatoryValue) and key:
         return ConfigError(f"{key}: missing; set it in the config file or as an override {key}=...")
-    hint = _schema_type(key) if key else None
+    hint = _schema_type(key, schema) if key else None
     if isinstance(error, ValidationError) and hint is not None:
         value = getattr(error, "value", None)
         return ConfigError(f"{where}: {key}: expected {type_name(hint)}, got {value!r} ({type(value).__name__})")
@@ -293,9 +311,9 @@ def _config_error(error: OmegaConfBaseException, where: str) -> ConfigError:
     return ConfigError(f"{where}: {key}: {first_line}" if key else f"{where}: {first_line}")
 
 
-def _unknown_key_message(key: str) -> str:
+def _unknown_key_message(key: str, root: type) -> str:
     parent, _, name = key.rpartition(".")
-    schema = _schema_type(parent)
+    schema = _schema_type(parent, root)
     if not dataclasses.is_dataclass(schema):
         return f"unknown key {key}"
     names = [field.name for field in dataclasses.fields(schema)]

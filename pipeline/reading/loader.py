@@ -11,7 +11,7 @@ from __future__ import annotations
 import collections
 import itertools
 import os
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Collection, Iterator
 from concurrent.futures import Future, ThreadPoolExecutor
 from typing import Any, NamedTuple
 
@@ -40,7 +40,9 @@ class TrajectoryDatasetManager:
 
     `render_fn(env_state) -> observation` of one state (e.g. `lambda s: env.observe(s, static, type)`) is applied
     to every step of a batch, compiled once. With `prefetch=k`, a background thread reads and decodes the next k
-    batches while the caller works on the current one (same batches, same order).
+    batches while the caller works on the current one (same batches, same order). `level_ids` restricts the reader
+    to the trajectories of those levels (e.g. a training set without its validation levels); `start_batch=n`
+    starts at this reader's n-th batch, as if n batches had been loaded (a resumed learner continues its sequence).
     """
 
     def __init__(
@@ -53,11 +55,15 @@ class TrajectoryDatasetManager:
         render_fn: Callable[[EnvState], Any] | None = None,
         static_env_params: StaticEnvParams | None = None,
         prefetch: int = 0,
+        level_ids: Collection[int] | None = None,
+        start_batch: int = 0,
     ):
         if batch_size < 1:
             raise ValueError(f"batch_size must be >= 1, got {batch_size}")
         if prefetch < 0:
             raise ValueError(f"prefetch must be >= 0, got {prefetch}")
+        if start_batch < 0:
+            raise ValueError(f"start_batch must be >= 0, got {start_batch}")
         if not 0 <= shard_index < total_shard_count:
             raise ValueError(f"shard_index {shard_index} out of range [0, {total_shard_count})")
         self.dataset = open_dataset(dataset_dir)
@@ -67,22 +73,29 @@ class TrajectoryDatasetManager:
             )
         self.batch_size, self.seed = batch_size, seed
         self.shard_index, self.total_shard_count = shard_index, total_shard_count
+        wanted = None if level_ids is None else {int(level) for level in level_ids}
         self.slots = np.array(
-            sorted(slot for record in iter_records(self.dataset.store) for slot in record.kept_slots),
+            sorted(
+                level.slot
+                for record in iter_records(self.dataset.store)
+                for level in record.levels
+                if level.kept and (wanted is None or level.level_id in wanted)
+            ),
             np.int64,
         )
         self.length = len(self.slots) // total_shard_count
         """Trajectories this reader sees per epoch."""
         if self.length < batch_size:
             raise DatasetError(
-                f"{dataset_dir}: {len(self.slots)} committed trajectories give reader {shard_index} of "
+                f"{dataset_dir}: {len(self.slots)} committed trajectories"
+                f"{'' if wanted is None else f' of the {len(wanted)} selected levels'} give reader {shard_index} of "
                 f"{total_shard_count} only {self.length} per epoch, fewer than batch_size {batch_size}"
             )
         self.batches_per_epoch = self.length // batch_size
         self.epoch = 0
         """Epoch of the batch `load_next_batch` returned last."""
         self._render = None if render_fn is None else jax.jit(jax.vmap(jax.vmap(render_fn)))
-        self._upcoming = self._slot_batches()
+        self._upcoming = itertools.islice(self._slot_batches(), start_batch, None)
         self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="loader") if prefetch else None
         self._queue: collections.deque[tuple[int, np.ndarray, Future]] = collections.deque()
         self._prefetch = prefetch

@@ -59,6 +59,25 @@ def test_the_order_depends_only_on_the_seed(dataset_dir):
     assert first == again and first != other
 
 
+def test_a_reader_of_some_levels_sees_only_their_trajectories(dataset_dir):
+    # Level batch g holds levels 10 g, 10 g + 1 (kept, slots 3 g and 3 g + 1) and 10 g + 2 (not kept).
+    manager = TrajectoryDatasetManager(dataset_dir, batch_size=2, seed=0, level_ids=[1, 20, 21, 32, 999])
+    assert manager.length == 3 and manager.batches_per_epoch == 1
+    seen = {slot for _ in range(4) for slot in manager.load_next_batch().trajectory_index.tolist()}
+    assert seen == {1, 6, 7}
+    with pytest.raises(DatasetError, match="1 committed trajectories of the 2 selected levels"):
+        TrajectoryDatasetManager(dataset_dir, batch_size=2, level_ids=[0, 2])
+
+
+def test_starting_at_batch_n_continues_the_sequence_of_a_reader_that_loaded_n(dataset_dir):
+    first = indices(TrajectoryDatasetManager(dataset_dir, batch_size=3, seed=4), 7)
+    for start in (1, 2, 5):
+        later = TrajectoryDatasetManager(dataset_dir, batch_size=3, seed=4, start_batch=start, prefetch=start % 2)
+        assert indices(later, 7 - start) == first[start:]
+    with pytest.raises(ValueError, match="start_batch must be >= 0"):
+        TrajectoryDatasetManager(dataset_dir, batch_size=3, start_batch=-1)
+
+
 def test_prefetching_gives_the_same_batches_and_epochs(dataset_dir):
     """Three epochs of batches of 3 (two per epoch), read ahead by a background thread or not; closing the
     prefetching loader midway continues the same sequence."""

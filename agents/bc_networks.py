@@ -1,0 +1,135 @@
+"""Policies for behaviour cloning: an MLP over symbolic flat observations, and a permutation-invariant transformer over
+symbolic entity observations (Kinetix's offline BC uses entity observations with a small transformer).
+
+Both map an observation with any leading axes to the 16 logits of the multi-discrete action (`agents.policy`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import enum
+
+import flax.linen as nn
+import jax.numpy as jnp
+
+from agents.policy import NUM_LOGITS
+from env import EntityObservation, ObservationType
+
+LOGITS_INIT_SCALE = 0.01
+"""Variance-scaling gain of the logits layer: a near-uniform initial policy."""
+
+
+class Architecture(enum.Enum):
+    """The BC policy's network; each reads one observation type."""
+
+    MLP = "mlp"
+    TRANSFORMER = "transformer"
+
+    @property
+    def observation_type(self) -> ObservationType:
+        if self is Architecture.MLP:
+            return ObservationType.SYMBOLIC_FLAT
+        return ObservationType.SYMBOLIC_ENTITY
+
+
+@dataclasses.dataclass(frozen=True)
+class NetworkConfig:
+    """Sizes of a BC policy network (hashable: a static argument of compiled programs)."""
+
+    architecture: Architecture = Architecture.TRANSFORMER
+    hidden_size: int = 256  # MLP: units per hidden layer; transformer: units of the head after pooling
+    num_hidden_layers: int = 3  # MLP: hidden layers
+    embed_size: int = 128  # transformer: entity embedding width
+    num_heads: int = 4  # transformer: attention heads; divides embed_size
+    num_layers: int = 2  # transformer: attention blocks
+
+    def __post_init__(self):
+        for name in ("hidden_size", "num_hidden_layers", "embed_size", "num_heads", "num_layers"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        if self.embed_size % self.num_heads:
+            raise ValueError(f"num_heads ({self.num_heads}) must divide embed_size ({self.embed_size})")
+
+
+def _logits_layer() -> nn.Dense:
+    return nn.Dense(NUM_LOGITS, kernel_init=nn.initializers.variance_scaling(LOGITS_INIT_SCALE, "fan_in", "normal"))
+
+
+class MLPPolicy(nn.Module):
+    """Symbolic flat observation (..., D) -> logits (..., 16): ReLU MLP."""
+
+    hidden_size: int
+    num_hidden_layers: int
+
+    @nn.compact
+    def __call__(self, obs: jnp.ndarray) -> jnp.ndarray:
+        x = obs
+        for _ in range(self.num_hidden_layers):
+            x = nn.relu(nn.Dense(self.hidden_size)(x))
+        return _logits_layer()(x)
+
+
+def _gather_rows(rows: jnp.ndarray, indexes: jnp.ndarray) -> jnp.ndarray:
+    """rows (..., N, E) at indexes (..., M) -> (..., M, E)."""
+    return jnp.take_along_axis(rows, indexes[..., None], axis=-2)
+
+
+class _Block(nn.Module):
+    """Pre-norm self-attention over the entity tokens, then a per-token MLP, both residual."""
+
+    num_heads: int
+
+    @nn.compact
+    def __call__(self, tokens: jnp.ndarray, mask: jnp.ndarray) -> jnp.ndarray:
+        width = tokens.shape[-1]
+        attend = mask[..., None, None, :]  # every token attends to the active tokens
+        tokens = tokens + nn.MultiHeadDotProductAttention(num_heads=self.num_heads)(nn.LayerNorm()(tokens), mask=attend)
+        hidden = nn.relu(nn.Dense(2 * width)(nn.LayerNorm()(tokens)))
+        return tokens + nn.Dense(width)(hidden)
+
+
+class EntityTransformerPolicy(nn.Module):
+    """Symbolic entity observation (leaves with any leading axes) -> logits (..., 16).
+
+    Shapes, joints and thrusters become tokens through one embedding per kind; a joint's token also carries the
+    embeddings of the two shapes it connects and a thruster's that of its shape. Attention runs over active tokens
+    only, and a masked mean pools them, so the logits do not depend on the order of the entities.
+    """
+
+    embed_size: int
+    num_heads: int
+    num_layers: int
+    hidden_size: int
+
+    @nn.compact
+    def __call__(self, obs: EntityObservation) -> jnp.ndarray:
+        embed = self.embed_size
+        shapes = jnp.concatenate([nn.Dense(embed)(obs.polygons), nn.Dense(embed)(obs.circles)], axis=-2)
+        joints = (
+            nn.Dense(embed)(obs.joints)
+            + nn.Dense(embed, use_bias=False)(_gather_rows(shapes, obs.joint_indexes[..., 0]))
+            + nn.Dense(embed, use_bias=False)(_gather_rows(shapes, obs.joint_indexes[..., 1]))
+        )
+        thrusters = nn.Dense(embed)(obs.thrusters) + nn.Dense(embed, use_bias=False)(
+            _gather_rows(shapes, obs.thruster_indexes)
+        )
+        tokens = jnp.concatenate([shapes, joints, thrusters], axis=-2)
+        mask = jnp.concatenate([obs.polygon_mask, obs.circle_mask, obs.joint_mask, obs.thruster_mask], axis=-1)
+        for _ in range(self.num_layers):
+            tokens = _Block(num_heads=self.num_heads)(tokens, mask)
+        tokens = nn.LayerNorm()(tokens)
+        weight = mask.astype(tokens.dtype)[..., None]
+        pooled = jnp.sum(tokens * weight, axis=-2) / jnp.maximum(jnp.sum(weight, axis=-2), 1.0)
+        return _logits_layer()(nn.relu(nn.Dense(self.hidden_size)(pooled)))
+
+
+def make_bc_network(config: NetworkConfig) -> nn.Module:
+    """The BC policy network that `config` describes."""
+    if config.architecture is Architecture.MLP:
+        return MLPPolicy(hidden_size=config.hidden_size, num_hidden_layers=config.num_hidden_layers)
+    return EntityTransformerPolicy(
+        embed_size=config.embed_size,
+        num_heads=config.num_heads,
+        num_layers=config.num_layers,
+        hidden_size=config.hidden_size,
+    )

@@ -1,0 +1,74 @@
+"""`kforge evaluate POLICY [--on SETS] [--episodes K] [--greedy]`: success rates of a trained BC policy beside the
+no-op and random policies (and the experts' recorded success) on the dataset's, unseen and hand-designed levels."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+
+from pipeline.cli import add_common_options, fail
+
+DEFAULT_SETS = "train,unseen,hand"
+REPORT_FILE = "evaluation.json"
+"""Default report file, in the policy's run directory."""
+
+
+def main(argv: Sequence[str] | None = None, prog: str | None = None) -> None:
+    """Evaluate a BC policy (a `kforge bc train` run directory) on the dataset's training levels (first episodes from
+    each level's start and from stored mid-trajectory states), on unseen levels of the dataset's split, and on
+    Kinetix's hand-designed levels of its size, beside the no-op and uniform random policies; prints a table and
+    writes the JSON report."""
+    parser = argparse.ArgumentParser(prog=prog, description=main.__doc__)
+    parser.add_argument("policy", help="a BC run directory (kforge bc train's output_dir)")
+    parser.add_argument(
+        "--on",
+        default=DEFAULT_SETS,
+        help=f"comma-separated level sets among train, validation, unseen, hand (default {DEFAULT_SETS})",
+    )
+    parser.add_argument("--episodes", type=int, default=16, help="episodes per start state (default 16)")
+    parser.add_argument("--greedy", action="store_true", help="act with the most probable choice per action slot")
+    parser.add_argument("--unseen-levels", type=int, default=256, help="unseen levels to play (default 256)")
+    parser.add_argument("--max-levels", type=int, help="play at most this many levels of each set")
+    parser.add_argument("--step", type=int, help="the checkpoint to evaluate (default the latest)")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the episodes and of the stored starts drawn")
+    parser.add_argument("--out", help=f"JSON report file (default POLICY/{REPORT_FILE})")
+    parser.add_argument("--json", action="store_true", help="print the report as JSON instead of the table")
+    args = add_common_options(parser).parse_args(argv)
+    sets = tuple(name.strip() for name in args.on.split(",") if name.strip())
+    for name, value in (("--episodes", args.episodes), ("--unseen-levels", args.unseen_levels)):
+        if value < 1:
+            parser.error(f"{name} must be >= 1, got {value}")
+    if args.max_levels is not None and args.max_levels < 1:
+        parser.error(f"--max-levels must be >= 1, got {args.max_levels}")
+
+    from pipeline.learning import LEVEL_SETS, evaluate_policy, load_policy, report_table
+    from pipeline.storage import DatasetError
+
+    unknown = [name for name in sets if name not in LEVEL_SETS]
+    if unknown or not sets:
+        parser.error(
+            f"--on: unknown level set {unknown[0] if unknown else args.on!r}; choose among {', '.join(LEVEL_SETS)}"
+        )
+    try:
+        policy = load_policy(args.policy, args.step)
+        result = evaluate_policy(
+            policy,
+            sets,
+            episodes=args.episodes,
+            unseen_levels=args.unseen_levels,
+            greedy=args.greedy,
+            seed=args.seed,
+            max_levels=args.max_levels,
+            report=lambda line: print(line, file=sys.stderr),
+        )
+    except (DatasetError, FileNotFoundError, ValueError) as error:
+        if args.debug:
+            raise
+        raise fail(error) from error
+    out = Path(args.out) if args.out else Path(args.policy) / REPORT_FILE
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(result, indent=1))
+    print(json.dumps(result, indent=1) if args.json else f"{report_table(result)}\nreport: {out}")

@@ -1,0 +1,188 @@
+"""Behaviour-cloning run configuration: an OmegaConf structured schema (configs/bc.yaml holds its defaults), loaded
+with `key=value` overrides and written into the run directory with every key's type and meaning.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+from omegaconf import MISSING, OmegaConf
+
+import configs
+from agents import Architecture, NetworkConfig
+from pipeline.generation import (
+    TRACKING_MODES,
+    ConfigError,
+    load_yaml,
+    merge_layers,
+    parse_overrides,
+    to_schema_object,
+)
+
+RUN_CONFIG_FILE = "config.yaml"
+"""The resolved config in the run directory."""
+
+DEFAULT_RUN_ROOT = "outputs/bc"
+"""Folder of the default run directory, `outputs/bc/<dataset folder name>-<architecture>`."""
+
+
+@dataclasses.dataclass
+class ModelSection:
+    """The policy network (agents.bc_networks)."""
+
+    architecture: str = "transformer"  # mlp (symbolic flat observations) or transformer (symbolic entity observations)
+    hidden_size: int = 256  # mlp: units per hidden layer; transformer: units of the head after pooling
+    num_hidden_layers: int = 3  # mlp: hidden ReLU layers
+    embed_size: int = 128  # transformer: entity embedding width
+    num_heads: int = 4  # transformer: attention heads; divides embed_size
+    num_layers: int = 2  # transformer: attention blocks (Kinetix's BC: 2)
+
+
+@dataclasses.dataclass
+class TrainSection:
+    """Optimisation; all of it defines the run's parameters except the step count, which may be raised to continue."""
+
+    num_steps: int = 2000  # gradient steps in all (raise it and re-run to train on)
+    batch_size: int = 16  # trajectories (256-step windows) per gradient step; a multiple of the local device count
+    learning_rate: float = 3.0e-4  # AdamW step size (Kinetix's offline BC: 3e-4)
+    anneal: bool = True  # decay the step size linearly to 0 at num_steps
+    weight_decay: float = 1.0e-4  # AdamW decoupled weight decay
+    max_grad_norm: float = 0.5  # global-norm gradient clipping (Kinetix: 0.5)
+    seed: int = 0  # parameter initialisation, validation levels and batch order
+    prefetch: int = 2  # batches the loader reads ahead in a background thread
+
+
+@dataclasses.dataclass
+class ValidationSection:
+    """Held-out levels of the dataset: never trained on, scored every `every_steps` steps."""
+
+    fraction: float = 0.1  # share of the dataset's levels held out (at least one level when the dataset has two)
+    every_steps: int = 100  # steps between two validations (and after the last step)
+    batch_size: int = 16  # trajectories per validation batch
+
+
+@dataclasses.dataclass
+class CheckpointSection:
+    """Checkpoints in <run>/checkpoints; a re-run resumes from the latest."""
+
+    every_steps: int = 200  # steps between two checkpoints (and after the last step, and on Ctrl-C)
+    keep: int = 2  # most recent checkpoints kept
+
+
+@dataclasses.dataclass
+class BCTrackingSection:
+    """Experiment tracking; none of these change the run's parameters."""
+
+    wandb: str = "offline"  # offline: local run files (`wandb sync` uploads them); online: needs a login; disabled
+    project: str = "kforge"  # wandb project
+    name: str | None = None  # wandb run name; None: wandb picks one
+
+
+@dataclasses.dataclass
+class BCConfig:
+    """A behaviour-cloning run: which dataset, which network, how it is trained, validated and checkpointed."""
+
+    dataset: str = MISSING  # the dataset to learn from: a local path, s3://... or gs://...
+    output_dir: str = (
+        MISSING  # run directory (created; re-running resumes); unset: outputs/bc/<dataset name>-<architecture>
+    )
+    model: ModelSection = dataclasses.field(default_factory=ModelSection)
+    train: TrainSection = dataclasses.field(default_factory=TrainSection)
+    validation: ValidationSection = dataclasses.field(default_factory=ValidationSection)
+    checkpoint: CheckpointSection = dataclasses.field(default_factory=CheckpointSection)
+    tracking: BCTrackingSection = dataclasses.field(default_factory=BCTrackingSection)
+
+
+RESUMABLE_CHANGES = {("train", "num_steps"), ("train", "prefetch"), ("output_dir",)} | {
+    ("tracking", field.name) for field in dataclasses.fields(BCTrackingSection)
+}
+"""Keys a resumed run may change; any other difference from the run directory's config is refused."""
+
+
+def load_bc_config(dataset: str | None, overrides: list[str] = (), path: str | Path | None = None) -> BCConfig:
+    """The BC config: schema defaults, configs/bc.yaml (or `path`), then `dataset`, then `key=value` overrides.
+
+    Raises `ConfigError` naming the layer and the key.
+    """
+    path = configs.BC if path is None else Path(path)
+    layers = [(str(path), load_yaml(path))]
+    if dataset is not None:
+        layers.append(("DATASET", OmegaConf.create({"dataset": str(dataset)})))
+    layers.append(("overrides", parse_overrides(list(overrides))))
+    config = merge_layers(BCConfig, layers)
+    if OmegaConf.is_missing(config, "output_dir") and not OmegaConf.is_missing(config, "dataset"):
+        name = str(config.dataset).rstrip("/").rsplit("/", 1)[-1] or "dataset"
+        config.output_dir = f"{DEFAULT_RUN_ROOT}/{name}-{config.model.architecture}"
+    bc: BCConfig = to_schema_object(config, BCConfig)
+    check_bc_config(bc)
+    return bc
+
+
+def network_config(config: BCConfig) -> NetworkConfig:
+    """The network of the `model` section."""
+    model = config.model
+    try:
+        architecture = Architecture(model.architecture)
+    except ValueError:
+        names = ", ".join(a.value for a in Architecture)
+        raise ConfigError(f"model.architecture must be one of {names}, got {model.architecture!r}") from None
+    try:
+        return NetworkConfig(
+            architecture=architecture,
+            hidden_size=model.hidden_size,
+            num_hidden_layers=model.num_hidden_layers,
+            embed_size=model.embed_size,
+            num_heads=model.num_heads,
+            num_layers=model.num_layers,
+        )
+    except ValueError as error:
+        raise ConfigError(f"model: {error}") from error
+
+
+def check_bc_config(config: BCConfig) -> None:
+    """Errors naming the key for values the schema's types cannot rule out."""
+    network_config(config)
+    positive = (
+        "train.num_steps",
+        "train.batch_size",
+        "validation.every_steps",
+        "validation.batch_size",
+        "checkpoint.every_steps",
+        "checkpoint.keep",
+    )
+    for key in positive:
+        section, name = key.split(".")
+        if getattr(getattr(config, section), name) < 1:
+            raise ConfigError(f"{key} must be >= 1, got {getattr(getattr(config, section), name)}")
+    for key in ("train.learning_rate", "train.max_grad_norm"):
+        section, name = key.split(".")
+        if not getattr(getattr(config, section), name) > 0:
+            raise ConfigError(f"{key} must be > 0, got {getattr(getattr(config, section), name)}")
+    if config.train.weight_decay < 0:
+        raise ConfigError(f"train.weight_decay must be >= 0, got {config.train.weight_decay}")
+    if config.train.prefetch < 0:
+        raise ConfigError(f"train.prefetch must be >= 0, got {config.train.prefetch}")
+    if not 0 <= config.validation.fraction < 1:
+        raise ConfigError(f"validation.fraction must be in [0, 1), got {config.validation.fraction}")
+    if config.tracking.wandb not in TRACKING_MODES:
+        raise ConfigError(f"tracking.wandb must be one of {', '.join(TRACKING_MODES)}, got {config.tracking.wandb!r}")
+
+
+def changed_keys(stored: BCConfig, requested: BCConfig) -> list[str]:
+    """Dotted keys whose values differ between two configs, except those a resumed run may change."""
+    first, second = (
+        OmegaConf.to_container(OmegaConf.structured(stored)),
+        OmegaConf.to_container(OmegaConf.structured(requested)),
+    )
+    changed = []
+    for key in sorted(set(first) | set(second)):
+        if isinstance(first.get(key), dict):
+            changed += [
+                f"{key}.{name}"
+                for name in sorted(set(first[key]) | set(second.get(key, {})))
+                if (key, name) not in RESUMABLE_CHANGES and first[key].get(name) != second.get(key, {}).get(name)
+            ]
+        elif (key,) not in RESUMABLE_CHANGES and first.get(key) != second.get(key):
+            changed.append(key)
+    return changed

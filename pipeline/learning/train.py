@@ -1,0 +1,379 @@
+"""Behaviour cloning on a dataset: a policy trained on the stored expert actions, validated on held-out levels,
+checkpointed and resumable, data parallel over the local devices.
+
+Each gradient step reads `train.batch_size` trajectories with the dataset loader (in a background thread with
+`prefetch`), renders their observations from the stored states inside the compiled step, and minimises the masked
+per-slot NLL (`agents.imitation_terms`) with AdamW. The batch is split over all local devices along the trajectory
+axis (a `jax.sharding` mesh), the parameters replicated. A run is a pure function of its config: an interrupted run
+resumes from its latest checkpoint at the same point of the same batch sequence, so it ends with the parameters an
+uninterrupted run ends with.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import time
+from pathlib import Path
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+from flax import struct
+from jax.sharding import Mesh, NamedSharding, PartitionSpec
+from omegaconf import OmegaConf
+from tqdm import tqdm
+
+from agents import ImitationTerms, NetworkConfig, imitation_terms, make_bc_network
+from env import EnvState, StaticEnvParams, observation_shape, observe
+from pipeline.generation import ConfigError, to_schema_object, to_yaml
+from pipeline.learning.checkpoints import checkpoint_steps, restore_checkpoint, save_checkpoint
+from pipeline.learning.config import RUN_CONFIG_FILE, BCConfig, changed_keys, network_config
+from pipeline.learning.data import kept_levels, validation_split
+from pipeline.reading import TrajectoryDatasetManager
+from pipeline.storage import DatasetError, open_dataset
+
+LEVELS_FILE = "levels.json"
+"""The run's training and validation level ids."""
+METRICS_FILE = "metrics.jsonl"
+"""One JSON line of training and validation metrics per validation."""
+SUMMARY_FILE = "summary.json"
+"""The finished run's closing figures."""
+DATA_AXIS = "data"
+"""Mesh axis over which a batch's trajectories are split."""
+WANDB_MODE_ENV = "WANDB_MODE"
+
+
+@struct.dataclass
+class LearnerState:
+    """What a checkpoint holds: the parameters, the optimiser state and the gradient steps taken."""
+
+    params: Any
+    opt_state: Any
+    step: jnp.ndarray  # () i32
+
+
+class Learner:
+    """The compiled programs of a BC run: initialisation, a gradient step and validation scores, sharded over the
+    local devices."""
+
+    def __init__(self, config: BCConfig, static: StaticEnvParams, devices: list | None = None):
+        self.network_config: NetworkConfig = network_config(config)
+        self.network = make_bc_network(self.network_config)
+        self.observation_type = self.network_config.architecture.observation_type
+        self.static = static
+        self.config = config
+        devices = jax.local_devices() if devices is None else devices
+        if config.train.batch_size % len(devices):
+            raise ConfigError(
+                f"train.batch_size ({config.train.batch_size}) must be a multiple of the {len(devices)} local devices"
+            )
+        mesh = Mesh(np.asarray(devices), (DATA_AXIS,))
+        self.data_sharding = NamedSharding(mesh, PartitionSpec(DATA_AXIS))
+        self.replicated = NamedSharding(mesh, PartitionSpec())
+        train = config.train
+        schedule = (
+            optax.linear_schedule(train.learning_rate, 0.0, train.num_steps) if train.anneal else train.learning_rate
+        )
+        self.optimizer = optax.chain(
+            optax.clip_by_global_norm(train.max_grad_norm),
+            optax.adamw(schedule, weight_decay=train.weight_decay),
+        )
+        self._step = jax.jit(
+            self._train_step,
+            in_shardings=(self.replicated, self.data_sharding, self.data_sharding, self.data_sharding),
+            out_shardings=(self.replicated, self.replicated),
+        )
+        self._score = jax.jit(
+            self._terms,
+            in_shardings=(self.replicated,) + (self.data_sharding,) * 4,
+            out_shardings=self.replicated,
+        )
+
+    def init(self, seed: int) -> LearnerState:
+        """Fresh parameters from `seed` and a fresh optimiser."""
+        shapes = observation_shape(self.static, self.observation_type)
+        example = jax.tree.map(lambda leaf: jnp.zeros(leaf.shape, leaf.dtype), shapes)
+        params = self.network.init(jax.random.key(seed), example)
+        state = LearnerState(params=params, opt_state=self.optimizer.init(params), step=jnp.zeros((), jnp.int32))
+        return jax.device_put(state, self.replicated)
+
+    def observations(self, env_state: EnvState):
+        """Observations of a (B, T) batch of states."""
+        return jax.vmap(jax.vmap(lambda state: observe(state, self.static, self.observation_type)))(env_state)
+
+    def _terms(self, params, env_state, action, action_mask, weight=None) -> ImitationTerms:
+        logits = self.network.apply(params, self.observations(env_state))
+        return imitation_terms(logits, action, action_mask, weight)
+
+    def _train_step(self, state: LearnerState, env_state, action, action_mask):
+        def loss(params):
+            terms = self._terms(params, env_state, action, action_mask)
+            return terms.loss, terms
+
+        (_, terms), grads = jax.value_and_grad(loss, has_aux=True)(state.params)
+        updates, opt_state = self.optimizer.update(grads, state.opt_state, state.params)
+        following = LearnerState(optax.apply_updates(state.params, updates), opt_state, state.step + 1)
+        return following, (terms, optax.global_norm(grads))
+
+    def step(self, state: LearnerState, batch) -> tuple[LearnerState, dict]:
+        """One gradient step on a loader batch; metrics stay on the device until read."""
+        following, (terms, grad_norm) = self._step(state, batch.env_state, batch.action, batch.action_mask)
+        return following, {"loss": terms.loss, "accuracy": terms.accuracy, "grad_norm": grad_norm}
+
+    def score(self, params, batch, weight) -> ImitationTerms:
+        """BC terms of a batch, each trajectory weighted (0 leaves a padding trajectory out)."""
+        steps = batch.action.shape[1]
+        weights = jnp.repeat(jnp.asarray(weight, jnp.float32)[:, None], steps, axis=1)
+        return self._score(params, batch.env_state, batch.action, batch.action_mask, weights)
+
+
+class TrainingInterrupted(Exception):
+    """A BC run stopped by SIGINT or SIGTERM after checkpointing its last completed step; re-running resumes."""
+
+    def __init__(self, run_dir: str, step: int, num_steps: int):
+        super().__init__(f"{run_dir}: interrupted at step {step} of {num_steps}, checkpointed")
+        self.step = step
+
+
+@dataclasses.dataclass
+class TrainSummary:
+    """A finished run's closing figures (also <run>/summary.json)."""
+
+    run_dir: str
+    steps: int
+    resumed_from: int  # [steps] 0 for a fresh run
+    train_levels: int
+    validation_levels: int
+    train_loss: float  # [nats] mean over the steps since the last validation
+    train_accuracy: float  # [-] valid-slot accuracy, mean over the same steps
+    validation_loss: float | None  # [nats] None without validation levels
+    validation_accuracy: float | None
+    validation_slot_accuracy: list[float | None] | None  # per action slot; None where no level uses the slot
+    seconds: float  # [s] wall time of this invocation's steps
+    loader_wait_seconds: float  # [s] of which waiting for the loader's next batch
+    loader_wait_share: float  # [-] loader_wait_seconds / seconds
+    transitions_per_s: float  # trained transitions per second of wall time
+
+
+def _tracking_mode(config: BCConfig) -> str:
+    mode = os.environ.get(WANDB_MODE_ENV) or config.tracking.wandb
+    if mode not in ("offline", "online", "disabled"):
+        raise ConfigError(f"environment variable {WANDB_MODE_ENV}={mode!r} must be offline, online or disabled")
+    return mode
+
+
+def _start_wandb(config: BCConfig, run_dir: Path):
+    """A wandb run of the BC run (None when disabled); its files under <run>/logs."""
+    mode = _tracking_mode(config)
+    if mode == "disabled":
+        return None
+    import wandb
+
+    logs = run_dir / "logs"
+    logs.mkdir(parents=True, exist_ok=True)
+    os.environ.setdefault("WANDB_DISABLE_WEAVE", "true")
+    return wandb.init(
+        mode=mode,
+        project=config.tracking.project,
+        name=config.tracking.name,
+        dir=str(logs),
+        job_type="bc",
+        config=dataclasses.asdict(config),
+        settings=wandb.Settings(console="off", save_code=False, disable_git=True),
+    )
+
+
+def _prepare_run_dir(config: BCConfig) -> Path:
+    """The run directory with the config written; a re-run must agree with the stored config (`changed_keys`)."""
+    run_dir = Path(config.output_dir)
+    stored_file = run_dir / RUN_CONFIG_FILE
+    if stored_file.exists():
+        stored = to_schema_object(
+            OmegaConf.merge(OmegaConf.structured(BCConfig), OmegaConf.load(stored_file)), BCConfig
+        )
+        changed = changed_keys(stored, config)
+        if changed:
+            raise ConfigError(
+                f"{run_dir}: this run directory was trained with other {', '.join(changed)}; resume with the same "
+                f"values or choose another output_dir"
+            )
+    run_dir.mkdir(parents=True, exist_ok=True)
+    partial = stored_file.with_suffix(".partial")
+    partial.write_text(to_yaml(config))
+    os.replace(partial, stored_file)
+    return run_dir
+
+
+def _validation_batches(loader: TrajectoryDatasetManager, slots: list[int], batch_size: int):
+    """(batch, weight) pairs covering `slots`; the last batch is padded with its first slot at weight 0."""
+    for start in range(0, len(slots), batch_size):
+        chunk = slots[start : start + batch_size]
+        padded = chunk + [chunk[0]] * (batch_size - len(chunk))
+        weight = np.array([1.0] * len(chunk) + [0.0] * (batch_size - len(chunk)), np.float32)
+        yield loader.load_slots(np.asarray(padded)), weight
+
+
+def _combine(scores: list[ImitationTerms]) -> dict:
+    """Validation figures of several batches' terms, each weighted by what it counted."""
+    scores = jax.device_get(scores)
+    transitions = sum(float(s.transition_count) for s in scores)
+    slot_count = np.sum([s.slot_count for s in scores], axis=0)
+    slot_correct = np.sum([s.slot_accuracy * s.slot_count for s in scores], axis=0)
+    return {
+        "loss": sum(float(s.loss) * float(s.transition_count) for s in scores) / max(transitions, 1.0),
+        "accuracy": float(slot_correct.sum() / max(slot_count.sum(), 1.0)),
+        "slot_accuracy": [float(c / n) if n else None for c, n in zip(slot_correct, slot_count, strict=True)],
+    }
+
+
+def _mean_metrics(pending: list[dict]) -> dict:
+    values = jax.device_get(pending)
+    return {key: float(np.mean([v[key] for v in values])) for key in values[0]}
+
+
+def _truncate_metrics(run_dir: Path, step: int) -> None:
+    """Drop metric lines written after `step` (by a run interrupted after its last checkpoint)."""
+    path = run_dir / METRICS_FILE
+    if path.exists():
+        lines = [line for line in path.read_text().splitlines() if line and json.loads(line)["step"] <= step]
+        path.write_text("".join(line + "\n" for line in lines))
+
+
+def train_bc(
+    config: BCConfig,
+    show_progress: bool = True,
+    report=print,
+    stop_after_steps: int | None = None,
+) -> TrainSummary:
+    """Train (or resume) the BC run of `config`; returns its summary. `stop_after_steps` ends this invocation after
+    that many steps, checkpointed, as an interruption would (tests and time-boxed jobs)."""
+    run_dir = _prepare_run_dir(config)
+    levels = kept_levels(config.dataset)
+    if not levels:
+        raise DatasetError(f"{config.dataset}: no committed, kept trajectories to learn from")
+    train_ids, validation_ids = validation_split(list(levels), config.validation.fraction, config.train.seed)
+    (run_dir / LEVELS_FILE).write_text(json.dumps({"train": train_ids, "validation": validation_ids}))
+    static = open_dataset(config.dataset).layout.static
+    learner = Learner(config, static)
+    state = learner.init(config.train.seed)
+    steps = checkpoint_steps(run_dir)
+    if steps:
+        state = jax.device_put(restore_checkpoint(run_dir, steps[-1], state), learner.replicated)
+    start = int(state.step)
+    _truncate_metrics(run_dir, start)
+    if start:
+        report(f"resuming {run_dir} from its checkpoint at step {start} of {config.train.num_steps}")
+    train = config.train
+    validation_slots = sorted(slot for level in validation_ids for slot in levels[level])
+    loader = TrajectoryDatasetManager(
+        config.dataset,
+        batch_size=train.batch_size,
+        seed=train.seed,
+        prefetch=train.prefetch,
+        level_ids=train_ids,
+        start_batch=start,
+    )
+    tracking = _start_wandb(config, run_dir)
+    end = train.num_steps if stop_after_steps is None else min(train.num_steps, start + stop_after_steps)
+    bar = tqdm(total=train.num_steps, initial=start, disable=not show_progress, unit="step", dynamic_ncols=True)
+    wait = 0.0
+    began = time.perf_counter()
+    pending: list[dict] = []
+    latest = {"train": None, "validation": None}
+    step = start
+    saved = start
+    try:
+        with loader:
+            while step < end:
+                asked = time.perf_counter()
+                batch = loader.load_next_batch()
+                wait += time.perf_counter() - asked
+                state, metrics = learner.step(state, batch)
+                pending.append(metrics)
+                step += 1
+                bar.update(1)
+                if step % config.validation.every_steps == 0 or step == train.num_steps:
+                    latest["train"] = _mean_metrics(pending)
+                    pending = []
+                    if validation_slots:
+                        scores = [
+                            learner.score(state.params, batch, weight)
+                            for batch, weight in _validation_batches(
+                                loader, validation_slots, config.validation.batch_size
+                            )
+                        ]
+                        latest["validation"] = _combine(scores)
+                    line = {"step": step, "train": latest["train"], "validation": latest["validation"]}
+                    with open(run_dir / METRICS_FILE, "a") as metrics_file:
+                        metrics_file.write(json.dumps(line) + "\n")
+                    if tracking is not None:
+                        tracking.log(_flat_metrics(line), step=step)
+                    bar.set_postfix_str(_postfix(latest))
+                if step % config.checkpoint.every_steps == 0 or step == end:
+                    save_checkpoint(run_dir, step, jax.device_get(state), config.checkpoint.keep)
+                    saved = step
+    except KeyboardInterrupt:
+        if saved != step:
+            save_checkpoint(run_dir, step, jax.device_get(state), config.checkpoint.keep)
+        bar.close()
+        if tracking is not None:
+            tracking.finish(exit_code=1)
+        raise TrainingInterrupted(str(run_dir), step, train.num_steps) from None
+    finally:
+        bar.close()
+    seconds = time.perf_counter() - began
+    if pending:
+        latest["train"] = _mean_metrics(pending)
+    summary = _summary(config, run_dir, start, step, train_ids, validation_ids, latest, seconds, wait, static)
+    (run_dir / SUMMARY_FILE).write_text(json.dumps(dataclasses.asdict(summary), indent=1))
+    if tracking is not None:
+        tracking.summary.update({"loader_wait_share": summary.loader_wait_share})
+        tracking.finish()
+    return summary
+
+
+def _flat_metrics(line: dict) -> dict:
+    flat = {f"train/{key}": value for key, value in (line["train"] or {}).items()}
+    validation = line["validation"] or {}
+    flat |= {f"validation/{key}": value for key, value in validation.items() if key != "slot_accuracy"}
+    flat |= {
+        f"validation/slot_accuracy_{slot}": value
+        for slot, value in enumerate(validation.get("slot_accuracy") or [])
+        if value is not None
+    }
+    return flat
+
+
+def _postfix(latest: dict) -> str:
+    parts = []
+    if latest["train"]:
+        parts.append(f"loss {latest['train']['loss']:.3f} acc {latest['train']['accuracy']:.2f}")
+    if latest["validation"]:
+        parts.append(f"val loss {latest['validation']['loss']:.3f} acc {latest['validation']['accuracy']:.2f}")
+    return ", ".join(parts)
+
+
+def _summary(config, run_dir, start, step, train_ids, validation_ids, latest, seconds, wait, static) -> TrainSummary:
+    validation = latest["validation"]
+    train = latest["train"] or {"loss": float("nan"), "accuracy": float("nan")}
+    transitions = (step - start) * config.train.batch_size * static.max_timesteps
+    return TrainSummary(
+        run_dir=str(run_dir),
+        steps=step,
+        resumed_from=start,
+        train_levels=len(train_ids),
+        validation_levels=len(validation_ids),
+        train_loss=train["loss"],
+        train_accuracy=train["accuracy"],
+        validation_loss=None if validation is None else validation["loss"],
+        validation_accuracy=None if validation is None else validation["accuracy"],
+        validation_slot_accuracy=None if validation is None else validation["slot_accuracy"],
+        seconds=seconds,
+        loader_wait_seconds=wait,
+        loader_wait_share=wait / seconds if seconds > 0 else 0.0,
+        transitions_per_s=transitions / seconds if seconds > 0 else 0.0,
+    )

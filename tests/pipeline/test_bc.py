@@ -1,0 +1,180 @@
+"""Behaviour cloning on a dataset and the evaluation of its policy: config, resume to the same parameters, the
+command line end to end, known outcomes in evaluation, data parallelism over two devices and a real interruption."""
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from pipeline_test_helpers import PARAMS, STATIC
+
+import configs
+from env import action_mask, reset
+from pipeline.cli import main
+from pipeline.generation import ConfigError
+from pipeline.learning import (
+    Baseline,
+    BCConfig,
+    StartSet,
+    load_bc_config,
+    load_policy,
+    play,
+    train_bc,
+)
+from pipeline.learning.checkpoints import checkpoint_steps
+
+SMALL = [
+    "train.batch_size=2",
+    "model.architecture=mlp",
+    "model.hidden_size=32",
+    "model.num_hidden_layers=1",
+    "validation.every_steps=2",
+    "checkpoint.every_steps=2",
+    "tracking.wandb=disabled",
+]
+"""A model and schedule small enough for tests; every test uses these shapes, so programs compile once."""
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+def small_config(dataset, output_dir, *extra) -> BCConfig:
+    return load_bc_config(str(dataset), [f"output_dir={output_dir}", *SMALL, *extra])
+
+
+def test_bc_yaml_holds_the_schema_defaults():
+    from omegaconf import OmegaConf
+
+    stored = OmegaConf.to_container(OmegaConf.load(configs.BC))
+    defaults = OmegaConf.to_container(OmegaConf.structured(BCConfig))
+    assert stored == {key: value for key, value in defaults.items() if key not in ("dataset", "output_dir")}
+
+
+def test_config_errors_name_the_key(dataset_dir):
+    with pytest.raises(ConfigError, match=r"unknown key train\.num_step \(did you mean train\.num_steps\?\)"):
+        load_bc_config(str(dataset_dir), ["train.num_step=3"])
+    with pytest.raises(ConfigError, match="model.architecture must be one of mlp, transformer"):
+        load_bc_config(str(dataset_dir), ["model.architecture=cnn"])
+    with pytest.raises(ConfigError, match=r"validation.fraction must be in \[0, 1\)"):
+        load_bc_config(str(dataset_dir), ["validation.fraction=1.5"])
+    with pytest.raises(ConfigError, match="num_heads"):
+        load_bc_config(str(dataset_dir), ["model.embed_size=30", "model.num_heads=4"])
+    assert load_bc_config(str(dataset_dir)).output_dir == f"outputs/bc/{Path(dataset_dir).name}-transformer"
+
+
+def _final_params(run_dir):
+    return jax.tree.leaves(load_policy(run_dir).params)
+
+
+def test_an_interrupted_run_resumes_to_the_parameters_of_an_uninterrupted_one(dataset_dir, tmp_path):
+    whole = train_bc(small_config(dataset_dir, tmp_path / "whole", "train.num_steps=5"), show_progress=False)
+    assert whole.steps == 5 and whole.resumed_from == 0
+    assert whole.train_levels == 7 and whole.validation_levels == 1  # 8 kept levels, 10 % held out (at least one)
+    parts_dir = tmp_path / "parts"
+    first = train_bc(small_config(dataset_dir, parts_dir, "train.num_steps=5"), show_progress=False, stop_after_steps=3)
+    assert first.steps == 3 and checkpoint_steps(parts_dir)[-1] == 3
+    second = train_bc(small_config(dataset_dir, parts_dir, "train.num_steps=5"), show_progress=False)
+    assert second.resumed_from == 3 and second.steps == 5
+    for resumed, uninterrupted in zip(_final_params(parts_dir), _final_params(tmp_path / "whole"), strict=True):
+        np.testing.assert_array_equal(resumed, uninterrupted)
+    lines = [json.loads(line) for line in (parts_dir / "metrics.jsonl").read_text().splitlines()]
+    assert [line["step"] for line in lines] == [2, 4, 5]
+    assert lines[-1]["validation"]["loss"] == pytest.approx(whole.validation_loss, rel=1e-6)
+
+
+def test_a_resumed_run_refuses_a_changed_key(dataset_dir, tmp_path):
+    train_bc(small_config(dataset_dir, tmp_path, "train.num_steps=1"), show_progress=False)
+    with pytest.raises(ConfigError, match="trained with other train.learning_rate"):
+        train_bc(small_config(dataset_dir, tmp_path, "train.num_steps=2", "train.learning_rate=0.1"))
+    raised = train_bc(small_config(dataset_dir, tmp_path, "train.num_steps=2"), show_progress=False)
+    assert raised.resumed_from == 1 and raised.steps == 2  # more steps may be asked for
+
+
+def test_evaluation_counts_the_outcomes_the_levels_force(levels):
+    """Drop levels 0 and 1 end in success and level 2 in failure whatever the actions, within a few steps."""
+    starts = StartSet(
+        jax.vmap(reset)(levels),
+        jax.vmap(action_mask)(levels),
+        jax.tree.map(lambda x: jnp.broadcast_to(jnp.asarray(x), (3,) + jnp.shape(x)), PARAMS),
+        [0, 1, 2],
+    )
+    for baseline in Baseline:
+        success, failure = play(baseline, starts, STATIC, num_episodes=2, seed=0, greedy=False)
+        np.testing.assert_array_equal(success, [[True, True], [True, True], [False, False]])
+        np.testing.assert_array_equal(failure, [[False, False], [False, False], [True, True]])
+
+
+def test_bc_train_and_evaluate_run_end_to_end_on_the_command_line(dataset_dir, tmp_path, capsys):
+    run_dir = tmp_path / "run"
+    main(
+        [
+            "bc",
+            "train",
+            str(dataset_dir),
+            f"output_dir={run_dir}",
+            *SMALL,
+            "train.num_steps=2",
+            "--no-progress",
+            "--json",
+        ]
+    )
+    summary = json.loads(capsys.readouterr().out)
+    assert summary["steps"] == 2 and 0 <= summary["loader_wait_share"] <= 1
+    assert summary["validation_loss"] > 0 and (run_dir / "config.yaml").is_file()
+    main(["evaluate", str(run_dir), "--on", "train", "--episodes", "1", "--max-levels", "2", "--json"])
+    report = json.loads(capsys.readouterr().out)
+    train = report["sets"]["train"]
+    assert train["levels"] == 2 and train["stored_starts"] > 0
+    # Every stored level drops green onto blue: it succeeds whatever any policy does, and so do stored states
+    # taken before the landing (after it the trajectory restarted: timestep 0 states are not drawn).
+    assert train["from_start"]["noop"]["success"] == 1.0 and train["from_start"]["bc"]["success"] == 1.0
+    assert train["from_start"]["expert_recorded"]["success"] == pytest.approx(np.mean([1.0, 0.75]))
+    assert json.loads((run_dir / "evaluation.json").read_text()) == report
+    with pytest.raises(SystemExit) as stopped:
+        main(["evaluate", str(run_dir), "--on", "unseen"])
+    assert stopped.value.code == 1
+    assert "not made by kforge run" in capsys.readouterr().err
+
+
+def _train_command(dataset, run_dir, *extra):
+    return [sys.executable, "-m", "pipeline", "bc", "train", str(dataset), f"output_dir={run_dir}", *SMALL, *extra]
+
+
+@pytest.mark.slow
+def test_two_devices_give_the_loss_of_one_to_rounding(dataset_dir, tmp_path):
+    losses = {}
+    for devices in (1, 2):
+        env = os.environ | {"XLA_FLAGS": f"--xla_force_host_platform_device_count={devices}", "JAX_PLATFORMS": "cpu"}
+        run_dir = tmp_path / f"devices-{devices}"
+        command = _train_command(dataset_dir, run_dir, "train.num_steps=4", "--no-progress", "--json")
+        result = subprocess.run(command, env=env, capture_output=True, text=True, cwd=REPO, check=True)
+        summary = json.loads(result.stdout)
+        losses[devices] = (summary["train_loss"], summary["validation_loss"])
+    np.testing.assert_allclose(losses[2], losses[1], rtol=1e-5)
+
+
+@pytest.mark.slow
+def test_sigint_checkpoints_and_the_resumed_run_ends_as_an_uninterrupted_one(dataset_dir, tmp_path):
+    steps = ["train.num_steps=60", "checkpoint.every_steps=5", "validation.every_steps=1000", "--no-progress"]
+    whole = tmp_path / "whole"
+    subprocess.run(_train_command(dataset_dir, whole, *steps), cwd=REPO, check=True, capture_output=True)
+    parts = tmp_path / "parts"
+    process = subprocess.Popen(_train_command(dataset_dir, parts, *steps), cwd=REPO, stderr=subprocess.PIPE, text=True)
+    while not checkpoint_steps(parts):  # the first checkpoint: training runs
+        assert process.poll() is None, "the run ended before it could be interrupted"
+        time.sleep(0.05)
+    process.send_signal(signal.SIGINT)
+    _, err = process.communicate(timeout=120)
+    assert process.returncode == 130
+    assert "interrupted at step" in err and "resume with: kforge bc train" in err
+    interrupted_at = checkpoint_steps(parts)[-1]
+    assert 5 <= interrupted_at < 60
+    subprocess.run(_train_command(dataset_dir, parts, *steps), cwd=REPO, check=True, capture_output=True)
+    for resumed, uninterrupted in zip(_final_params(parts), _final_params(whole), strict=True):
+        np.testing.assert_array_equal(resumed, uninterrupted)
