@@ -49,6 +49,7 @@ class TrainSection:
     anneal: bool = True  # decay the step size linearly to 0 at num_steps
     weight_decay: float = 1.0e-4  # AdamW decoupled weight decay
     max_grad_norm: float = 0.5  # global-norm gradient clipping (Kinetix: 0.5)
+    levels: int | None = None  # learn from the dataset's first N kept levels by level id (validation included); null: all
     seed: int = 0  # parameter initialisation, validation levels and batch order
     prefetch: int = 2  # batches the loader reads ahead in a background thread
 
@@ -161,6 +162,8 @@ def check_bc_config(config: BCConfig) -> None:
             raise ConfigError(f"{key} must be > 0, got {getattr(getattr(config, section), name)}")
     if config.train.weight_decay < 0:
         raise ConfigError(f"train.weight_decay must be >= 0, got {config.train.weight_decay}")
+    if config.train.levels is not None and config.train.levels < 1:
+        raise ConfigError(f"train.levels must be >= 1 or null, got {config.train.levels}")
     if config.train.prefetch < 0:
         raise ConfigError(f"train.prefetch must be >= 0, got {config.train.prefetch}")
     if not 0 <= config.validation.fraction < 1:

@@ -255,7 +255,12 @@ def train_bc(
     levels = kept_levels(config.dataset)
     if not levels:
         raise DatasetError(f"{config.dataset}: no committed, kept trajectories to learn from")
-    train_ids, validation_ids = validation_split(list(levels), config.validation.fraction, config.train.seed)
+    chosen = sorted(levels)[: config.train.levels]
+    if config.train.levels is not None and len(chosen) < config.train.levels:
+        raise DatasetError(
+            f"{config.dataset}: train.levels={config.train.levels}, but the dataset holds {len(chosen)} kept levels"
+        )
+    train_ids, validation_ids = validation_split(chosen, config.validation.fraction, config.train.seed)
     (run_dir / LEVELS_FILE).write_text(json.dumps({"train": train_ids, "validation": validation_ids}))
     static = open_dataset(config.dataset).layout.static
     learner = Learner(config, static)
