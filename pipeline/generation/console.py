@@ -167,6 +167,7 @@ def closing_summary(summary: dict, output_dir: str | os.PathLike) -> str:
         f"  kforge stats {root}",
         f'  python -c "from pipeline.reading import TrajectoryDatasetManager as M; '
         f"print(M('{root}', batch_size=2, seed=0).load_next_batch().action.shape)\"",
+        f"  kforge bc train {root}    # behaviour cloning on it, then kforge evaluate on the run it prints",
     ]
     return "\n".join(lines)
 
