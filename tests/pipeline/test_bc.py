@@ -178,3 +178,22 @@ def test_sigint_checkpoints_and_the_resumed_run_ends_as_an_uninterrupted_one(dat
     subprocess.run(_train_command(dataset_dir, parts, *steps), cwd=REPO, check=True, capture_output=True)
     for resumed, uninterrupted in zip(_final_params(parts), _final_params(whole), strict=True):
         np.testing.assert_array_equal(resumed, uninterrupted)
+
+
+def test_unseen_levels_are_the_split_levels_past_the_dataset_that_the_filter_keeps(tmp_path):
+    from pipeline_test_helpers import tiny_job
+
+    from env import filter_levels
+    from pipeline.generation import environment, sample_batch
+    from pipeline.learning.evaluation import unseen_starts
+
+    job = tiny_job(tmp_path)
+    starts = unseen_starts(job, count=5)
+    ids = starts.level_ids
+    assert len(ids) == 5 and ids == sorted(ids) and ids[0] >= job.split.num_levels
+    candidates = np.arange(job.split.num_levels, ids[-1] + 1)
+    params, static = environment(job)
+    keep = np.asarray(filter_levels(sample_batch(job, candidates), params, static, job.filter.noop_steps).keep)
+    assert candidates[keep].tolist() == ids  # every kept id in the range, in order, and no filtered one
+    expected = jax.vmap(reset)(sample_batch(job, np.asarray(ids)))
+    np.testing.assert_array_equal(starts.states.sim.bodies.position, expected.sim.bodies.position)
