@@ -49,7 +49,7 @@ class TrainSection:
     anneal: bool = True  # decay the step size linearly to 0 at num_steps
     weight_decay: float = 1.0e-4  # AdamW decoupled weight decay
     max_grad_norm: float = 0.5  # global-norm gradient clipping (Kinetix: 0.5)
-    levels: int | None = None  # learn from the dataset's first N kept levels by level id (validation included); null: all
+    levels: int | None = None  # learn from the first N kept levels by id (validation included); null: all
     seed: int = 0  # parameter initialisation, validation levels and batch order
     prefetch: int = 2  # batches the loader reads ahead in a background thread
 

@@ -96,8 +96,9 @@ def load_policy(run_dir: str | Path, step: int | None = None) -> TrainedPolicy:
         step = steps[-1]
     elif step not in steps:
         raise FileNotFoundError(f"{run_dir}: no checkpoint at step {step} (checkpoints: {steps})")
-    static = open_dataset(config.dataset).layout.static
-    learner = Learner(config, static, devices=jax.local_devices()[:1])
+    layout = open_dataset(config.dataset).layout
+    static = layout.static
+    learner = Learner(config, static, layout.num_steps, devices=jax.local_devices()[:1])
     state = restore_checkpoint(run_dir, step, jax.device_get(learner.init(config.train.seed)))
     return TrainedPolicy(run_dir, config, network_config(config), state.params, step, static)
 

@@ -60,13 +60,16 @@ class Learner:
     """The compiled programs of a BC run: initialisation, a gradient step and validation scores, sharded over the
     local devices."""
 
-    def __init__(self, config: BCConfig, static: StaticEnvParams, devices: list | None = None):
+    def __init__(self, config: BCConfig, static: StaticEnvParams, window_steps: int, devices: list | None = None):
         self.network_config: NetworkConfig = network_config(config)
         self.network = make_bc_network(self.network_config)
         self.observation_type = self.network_config.architecture.observation_type
         self.static = static
         self.config = config
         devices = jax.local_devices() if devices is None else devices
+        self.num_devices = len(devices)
+        self.window_steps = window_steps
+        """Env steps per stored trajectory."""
         if config.train.batch_size % len(devices):
             raise ConfigError(
                 f"train.batch_size ({config.train.batch_size}) must be a multiple of the {len(devices)} local devices"
@@ -146,6 +149,7 @@ class TrainSummary:
     run_dir: str
     steps: int
     resumed_from: int  # [steps] 0 for a fresh run
+    devices: int  # local devices the batches were split over
     train_levels: int
     validation_levels: int
     train_loss: float  # [nats] mean over the steps since the last validation
@@ -262,8 +266,8 @@ def train_bc(
         )
     train_ids, validation_ids = validation_split(chosen, config.validation.fraction, config.train.seed)
     (run_dir / LEVELS_FILE).write_text(json.dumps({"train": train_ids, "validation": validation_ids}))
-    static = open_dataset(config.dataset).layout.static
-    learner = Learner(config, static)
+    layout = open_dataset(config.dataset).layout
+    learner = Learner(config, layout.static, layout.num_steps)
     state = learner.init(config.train.seed)
     steps = checkpoint_steps(run_dir)
     if steps:
@@ -333,7 +337,7 @@ def train_bc(
     seconds = time.perf_counter() - began
     if pending:
         latest["train"] = _mean_metrics(pending)
-    summary = _summary(config, run_dir, start, step, train_ids, validation_ids, latest, seconds, wait, static)
+    summary = _summary(config, run_dir, start, step, train_ids, validation_ids, latest, seconds, wait, learner)
     (run_dir / SUMMARY_FILE).write_text(json.dumps(dataclasses.asdict(summary), indent=1))
     if tracking is not None:
         tracking.summary.update({"loader_wait_share": summary.loader_wait_share})
@@ -362,14 +366,15 @@ def _postfix(latest: dict) -> str:
     return ", ".join(parts)
 
 
-def _summary(config, run_dir, start, step, train_ids, validation_ids, latest, seconds, wait, static) -> TrainSummary:
+def _summary(config, run_dir, start, step, train_ids, validation_ids, latest, seconds, wait, learner) -> TrainSummary:
     validation = latest["validation"]
     train = latest["train"] or {"loss": float("nan"), "accuracy": float("nan")}
-    transitions = (step - start) * config.train.batch_size * static.max_timesteps
+    transitions = (step - start) * config.train.batch_size * learner.window_steps
     return TrainSummary(
         run_dir=str(run_dir),
         steps=step,
         resumed_from=start,
+        devices=learner.num_devices,
         train_levels=len(train_ids),
         validation_levels=len(validation_ids),
         train_loss=train["loss"],

@@ -155,6 +155,7 @@ def test_two_devices_give_the_loss_of_one_to_rounding(dataset_dir, tmp_path):
         command = _train_command(dataset_dir, run_dir, "train.num_steps=4", "--no-progress", "--json")
         result = subprocess.run(command, env=env, capture_output=True, text=True, cwd=REPO, check=True)
         summary = json.loads(result.stdout)
+        assert summary["devices"] == devices
         losses[devices] = (summary["train_loss"], summary["validation_loss"])
     np.testing.assert_allclose(losses[2], losses[1], rtol=1e-5)
 
