@@ -36,6 +36,7 @@ THRUSTER_SLOT = 4
 FIRE_THRUSTER = 1
 
 
+@pytest.mark.smoke
 def test_uniform_logits_cost_the_log_of_each_valid_slots_choice_count():
     logits = jnp.zeros((5, 16))
     action = jnp.zeros((5, 6), jnp.int32)
@@ -46,6 +47,7 @@ def test_uniform_logits_cost_the_log_of_each_valid_slots_choice_count():
     np.testing.assert_array_equal(terms.slot_count, [5, 0, 0, 0, 5, 0])
 
 
+@pytest.mark.smoke
 def test_masked_slots_contribute_nothing_whatever_their_logits():
     key_logits, key_noise, key_action = jax.random.split(jax.random.key(0), 3)
     logits = jax.random.normal(key_logits, (4, 7, 16))
@@ -120,6 +122,7 @@ def _permuted(obs, joint_order, thruster_order):
     )
 
 
+@pytest.mark.smoke
 def test_the_transformer_ignores_the_order_of_entities():
     car = load_level("m/h7_car_flip")  # two motorised joints and two thrusters
     obs = observe(reset(car.level), car.static, ObservationType.SYMBOLIC_ENTITY)

@@ -48,6 +48,7 @@ def small_config(dataset, output_dir, *extra) -> BCConfig:
     return load_bc_config(str(dataset), [f"output_dir={output_dir}", *SMALL, *extra])
 
 
+@pytest.mark.smoke
 def test_bc_yaml_holds_the_schema_defaults():
     from omegaconf import OmegaConf
 
@@ -56,6 +57,7 @@ def test_bc_yaml_holds_the_schema_defaults():
     assert stored == {key: value for key, value in defaults.items() if key not in ("dataset", "output_dir")}
 
 
+@pytest.mark.smoke
 def test_config_errors_name_the_key(dataset_dir):
     with pytest.raises(ConfigError, match=r"unknown key train\.num_step \(did you mean train\.num_steps\?\)"):
         load_bc_config(str(dataset_dir), ["train.num_step=3"])
