@@ -1,11 +1,12 @@
 """Datasets on object storage, against a real S3 API server (moto's standalone server on 127.0.0.1): a tiny job
-writes to `s3://`, verify passes and names a flipped byte, the loader and the Kinetix export read the same data as
-from a local copy, the lease works there too; slow: the whole job killed mid-run and resumed equals an uninterrupted
-run."""
+writes to `s3://`, verify passes and names a flipped byte, the loader, the Kinetix export and import, `kforge levels
+export` and `kforge stats` read the same data as from a local copy, the lease works there too; slow: the whole job
+killed mid-run and resumed equals an uninterrupted run."""
 
 from __future__ import annotations
 
 import dataclasses
+import json
 import os
 import time
 from pathlib import Path
@@ -14,11 +15,23 @@ import numpy as np
 import pytest
 from pipeline_test_helpers import run_in_process, run_job_process, tiny_job, write_all
 
+from pipeline.cli.levels import main as levels_main
 from pipeline.cli.verify import main as verify_main
-from pipeline.generation import to_yaml
-from pipeline.kinetix import export_kinetix
+from pipeline.generation import ConfigError, load_config, to_yaml
+from pipeline.kinetix import export_kinetix, load_kinetix_levels
 from pipeline.reading import TrajectoryDatasetManager
-from pipeline.storage import LEASE_KEY, Lease, LeaseHeld, LeaseHolder, iter_records, open_dataset, read_holder
+from pipeline.reading.stats import collect_stats
+from pipeline.storage import (
+    LEASE_KEY,
+    Lease,
+    LeaseHeld,
+    LeaseHolder,
+    Store,
+    iter_records,
+    open_dataset,
+    read_holder,
+)
+from pipeline.storage.layout import DatasetError
 from pipeline.storage.verify import verify_dataset
 
 BUCKET = "kforge-test"
@@ -66,6 +79,14 @@ def download(client, prefix: str, target: Path) -> Path:
         path.parent.mkdir(parents=True, exist_ok=True)
         path.write_bytes(client.get_object(Bucket=BUCKET, Key=key)["Body"].read())
     return target
+
+
+def upload(client, folder: Path, prefix: str) -> str:
+    """Every file below a local folder put below `s3://BUCKET/prefix/`; the URL."""
+    for path in folder.rglob("*"):
+        if path.is_file():
+            client.put_object(Bucket=BUCKET, Key=f"{prefix}/{path.relative_to(folder).as_posix()}", Body=path.read_bytes())
+    return f"s3://{BUCKET}/{prefix}"
 
 
 def copy_prefix(client, source: str, target: str) -> None:
@@ -151,6 +172,65 @@ def test_kinetix_export_reads_from_s3(s3_trajectories, tmp_path):
     assert files == sorted(p.relative_to(here.group) for p in here.group.rglob("*") if p.is_file())
     chunks = [f for f in files if not f.name.startswith(".z")]  # attributes name the source; chunks must match
     assert chunks and all((remote.group / f).read_bytes() == (here.group / f).read_bytes() for f in chunks)
+
+
+def test_kinetix_import_reads_a_split_and_a_shard_from_s3(s3, s3_trajectories, tmp_path):
+    url, _ = s3_trajectories
+    local = export_kinetix(url, tmp_path, trajectories_per_shard=3, show_progress=False)
+    remote = upload(s3, local.group, "kinetix-split")
+    assert len(local.shard_sizes) > 1
+    for here, there in ((local.group, remote), (local.group / "shard-000001", f"{remote}/shard-000001")):
+        a, b = load_kinetix_levels(here), load_kinetix_levels(there)
+        assert a.static == b.static
+        for x, y in zip(jax_leaves(a), jax_leaves(b), strict=True):
+            np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+    with pytest.raises(DatasetError, match=f"{remote}/nothing: neither a Kinetix-Offline split"):
+        load_kinetix_levels(f"{remote}/nothing")
+
+
+def test_levels_export_and_run_read_a_dataset_config_from_s3(s3_dataset, tmp_path, capsys):
+    url, local = s3_dataset
+    for config in (url, f"{url}/config.yaml"):
+        assert load_config(config) == load_config(local / "config.yaml") == load_config(local)
+    outputs = []
+    for index, config in enumerate((url, str(local / "config.yaml"))):
+        out = tmp_path / str(index)
+        levels_main(["export", config, "1", "4", "--out", str(out), "--no-progress"])
+        outputs.append({path.name: path.read_bytes() for path in sorted(out.iterdir())})
+    assert list(outputs[0]) == ["level-0000001.json", "level-0000004.json"] and outputs[0] == outputs[1]
+    with pytest.raises(ConfigError, match=f"config file not found: {url}-missing/config.yaml"):
+        load_config(f"{url}-missing")
+
+
+def test_stats_on_s3_sizes_objects_from_the_records_and_reads_them_only_for_older_records(
+    s3, s3_trajectories, monkeypatch
+):
+    """Records written now carry each data object's size, so stats reads no data object; records without sizes
+    (written before they were recorded) still give the same bytes, by reading the objects."""
+    url, _ = s3_trajectories
+    listed = {}
+    for page in s3.get_paginator("list_objects_v2").paginate(Bucket=BUCKET, Prefix="handbuilt/"):
+        listed.update({item["Key"].removeprefix("handbuilt/"): item["Size"] for item in page.get("Contents", ())})
+    expected = sum(size for key, size in listed.items() if key.startswith("data/"))
+    sized = []
+    real_size = Store.size
+    monkeypatch.setattr(Store, "size", lambda store, key: sized.append(key) or real_size(store, key))
+    stats = collect_stats(url, show_progress=False)
+    assert stats.data_bytes == expected
+    assert stats.manifest_bytes == sum(size for key, size in listed.items() if key.startswith("manifest/"))
+    data_objects = {file for record in iter_records(url) for file in record.object_sizes}
+    assert data_objects and not data_objects & set(sized)  # only the arrays' zarr.json metadata are read
+
+    copy_prefix(s3, "handbuilt", "unsized")
+    for key in keys(s3, "unsized/manifest/"):
+        record = json.loads(s3.get_object(Bucket=BUCKET, Key=key)["Body"].read())
+        for entry in record["arrays"].values():
+            entry.pop("size", None)
+        s3.put_object(Bucket=BUCKET, Key=key, Body=json.dumps(record, indent=1, sort_keys=True).encode())
+    sized.clear()
+    old = collect_stats(f"s3://{BUCKET}/unsized", show_progress=False)
+    assert old.data_bytes == expected and all(size is None for r in iter_records(old.root) for size in r.object_sizes.values())
+    assert {f"{file}" for file in data_objects} <= set(sized)
 
 
 def test_a_flipped_byte_in_one_object_is_found_by_verify_and_named(s3, s3_trajectories, capsys):
