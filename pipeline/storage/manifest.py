@@ -96,8 +96,8 @@ def _checked_record(root: Location, shard: int, batch: int, data: bytes) -> dict
     try:
         record = json.loads(data)
     except (json.JSONDecodeError, UnicodeDecodeError) as error:
-        where = open_store(root).url(key)
-        raise DatasetError(f"{shard_name(shard)} batch {batch}: unreadable record ({where}: not JSON ({error}))") from error
+        where = f"{open_store(root).url(key)}: not JSON ({error})"
+        raise DatasetError(f"{shard_name(shard)} batch {batch}: unreadable record ({where})") from error
     if not isinstance(record, dict) or record.get("record_version") != RECORD_VERSION:
         raise DatasetError(f"{shard_name(shard)} batch {batch}: record {key} is not of version {RECORD_VERSION}")
     if record.get("shard") != shard or record.get("batch") != batch:
