@@ -232,6 +232,11 @@ def config_path(config: str | Path) -> Path | str:
     )
 
 
+def absolute_output_dir(output_dir: str) -> Path | str:
+    """Where a job writes, as every machine names it: a local path made absolute, an `s3://`, `gs://` URL as given."""
+    return output_dir if is_remote(output_dir) else Path(output_dir).resolve()
+
+
 def default_output_dir(split_name: str, scale: str | None) -> str:
     """`outputs/<split name with '/' as '-'>[-<scale name>]`, e.g. outputs/1M-s-tiny."""
     name = split_name.replace("/", "-") + (f"-{Path(scale).stem}" if scale else "")
