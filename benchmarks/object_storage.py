@@ -10,6 +10,7 @@ sampled levels, written as kept trajectories (real states, so the compression is
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import os
 import socket
 import subprocess
@@ -21,6 +22,7 @@ from pathlib import Path
 
 import jax
 import numpy as np
+import tensorstore as ts
 
 from env import ActionType, EnvParams, StaticEnvParams, random_action, reset, sample_levels, step
 from pipeline.reading import TrajectoryDatasetManager
@@ -30,6 +32,7 @@ from pipeline.storage import (
     LEVEL_ID,
     LEVEL_SEED,
     VALID,
+    ArrayEntry,
     BatchRecord,
     DatasetSpec,
     Geometry,
@@ -44,6 +47,11 @@ from pipeline.storage.layout import flatten_state
 BUCKET = "kforge-bench"
 SERVER_START_TIMEOUT_S = 60.0
 RATES = ("write_transitions_per_second", "read_trajectories_per_second", "read_trajectories_per_second_prefetch")
+PER_TRAJECTORY = "s3 per trajectory"
+"""The S3 store read with `whole_object_bytes=0`: one range request per field and trajectory (the loader before it
+read small shard objects whole), measured in the same run for comparison."""
+S3_READS_METRIC = "/tensorstore/kvstore/s3/read"
+"""tensorstore's count of S3 read requests (its metrics registry)."""
 LOADER_BATCH = 8
 """Trajectories per loader batch."""
 LOADER_BATCHES = 24
@@ -120,8 +128,22 @@ def rollout_arrays(size: str, levels: int, steps: int, seed: int) -> tuple[dict[
     return arrays, layout
 
 
+def array_entries(dataset, global_batch: int, arrays: dict[str, np.ndarray]) -> dict[str, ArrayEntry]:
+    """The commit record's entries of a written level batch: each shard object's key, digests and size (read back,
+    as the job's writer does)."""
+    entries = {}
+    for name, value in arrays.items():
+        key = dataset.batch_key(name, global_batch)
+        data = dataset.store.read(key)
+        content = hashlib.sha256(np.ascontiguousarray(value).tobytes()).hexdigest()
+        digest = None if data is None else hashlib.sha256(data).hexdigest()
+        entries[name] = ArrayEntry(None if data is None else key, digest, content, None if data is None else len(data))
+    return entries
+
+
 def write_dataset(location: str, arrays: dict[str, np.ndarray], layout, batches: int) -> float:
-    """Write `batches` level batches (the same arrays each) and their commit records; returns the seconds taken."""
+    """Write `batches` level batches (the same arrays each) and their commit records (which read each object back to
+    hash and size it, as the job's writer does); returns the seconds taken."""
     levels = len(arrays[VALID])
     geometry = Geometry(num_shards=1, batches_per_shard=batches, levels_per_batch=levels)
     dataset = create_dataset(location, DatasetSpec(layout, geometry, "bench"))
@@ -136,20 +158,40 @@ def write_dataset(location: str, arrays: dict[str, np.ndarray], layout, batches:
             slots=(slots.start, slots.stop),
             num_kept=levels,
             levels=tuple(LevelRecord(slot, Outcome.KEPT, slot, slot, None, ()) for slot in slots),
-            arrays={},
+            arrays=array_entries(dataset, batch, arrays),
         )
         write_record(location, 0, batch, record)
     return time.perf_counter() - started
 
 
-def read_rate(location: str, prefetch: int) -> float:
-    """Trajectories per second the loader delivers (decoded, on the JAX device)."""
-    with TrajectoryDatasetManager(location, batch_size=LOADER_BATCH, seed=0, prefetch=prefetch) as manager:
+def s3_reads() -> int:
+    """Read requests tensorstore's S3 driver has sent in this process so far."""
+    metrics = ts.experimental_collect_matching_metrics(S3_READS_METRIC)
+    return int(sum(value.get("value", 0) for metric in metrics for value in metric.get("values", ())))
+
+
+def read_rate(location: str, prefetch: int, **loader_options) -> tuple[float, float]:
+    """(trajectories per second the loader delivers, decoded and on the JAX device; S3 read requests per batch)."""
+    with TrajectoryDatasetManager(
+        location, batch_size=LOADER_BATCH, seed=0, prefetch=prefetch, **loader_options
+    ) as manager:
         jax.block_until_ready(manager.load_next_batch().action)
+        requests = s3_reads()
         started = time.perf_counter()
         for _ in range(LOADER_BATCHES):
             jax.block_until_ready(manager.load_next_batch().action)
-        return LOADER_BATCHES * LOADER_BATCH / (time.perf_counter() - started)
+        seconds = time.perf_counter() - started
+    return LOADER_BATCHES * LOADER_BATCH / seconds, (s3_reads() - requests) / LOADER_BATCHES
+
+
+def read_rates(location: str, prefetch: int, **loader_options) -> dict:
+    """The loader's rates without and with prefetch, and S3 read requests per batch (0 for a local folder)."""
+    rate, requests = read_rate(location, 0, **loader_options)
+    return {
+        "read_trajectories_per_second": rate,
+        "read_trajectories_per_second_prefetch": read_rate(location, prefetch, **loader_options)[0],
+        "s3_read_requests_per_batch": requests,
+    }
 
 
 def run(size: str, levels_per_batch: int, batches: int, steps: int, prefetch: int) -> dict:
@@ -167,13 +209,14 @@ def run(size: str, levels_per_batch: int, batches: int, steps: int, prefetch: in
     with tempfile.TemporaryDirectory(prefix="kforge-bench-") as scratch, moto_server() as bucket:
         for store, location in (("local", str(Path(scratch) / "dataset")), ("s3", f"{bucket}/dataset")):
             seconds = write_dataset(location, arrays, layout, batches)
-            report["stores"][store] = {
-                "write_transitions_per_second": transitions / seconds,
-                "read_trajectories_per_second": read_rate(location, prefetch=0),
-                "read_trajectories_per_second_prefetch": read_rate(location, prefetch=prefetch),
-            }
+            report["stores"][store] = {"write_transitions_per_second": transitions / seconds}
+            if store == "s3":
+                report["stores"][PER_TRAJECTORY] = read_rates(location, prefetch, whole_object_bytes=0)
+            report["stores"][store].update(read_rates(location, prefetch))
     for key in RATES:
         report[f"s3_over_local/{key}"] = report["stores"]["s3"][key] / report["stores"]["local"][key]
+    for key in RATES[1:]:
+        report[f"s3_over_per_trajectory/{key}"] = report["stores"]["s3"][key] / report["stores"][PER_TRAJECTORY][key]
     return report
 
 
@@ -184,17 +227,27 @@ def lines(report: dict) -> list[str]:
         f"trajectories x {steps} steps; loader batches of {LOADER_BATCH}, prefetch {report['prefetch']}"
     ]
     for store, rates in report["stores"].items():
+        written = rates.get("write_transitions_per_second")
         out.append(
-            f"  {store:5s}: writes {rates['write_transitions_per_second']:10,.0f} transitions/s; the loader reads "
+            f"  {store:17s}: "
+            + ("" if written is None else f"writes {written:10,.0f} transitions/s; ")
+            + "the loader reads "
             f"{rates['read_trajectories_per_second']:7,.1f} trajectories/s "
             f"({rates['read_trajectories_per_second'] * steps:9,.0f} transitions/s), with prefetch "
-            f"{rates['read_trajectories_per_second_prefetch']:7,.1f} trajectories/s"
+            f"{rates['read_trajectories_per_second_prefetch']:7,.1f} trajectories/s; "
+            f"{rates['s3_read_requests_per_batch']:.0f} S3 read requests per batch"
         )
     out.append(
         "  s3 / local: write {:.2f}x, read {:.2f}x, read with prefetch {:.2f}x".format(
             report["s3_over_local/write_transitions_per_second"],
             report["s3_over_local/read_trajectories_per_second"],
             report["s3_over_local/read_trajectories_per_second_prefetch"],
+        )
+    )
+    out.append(
+        "  s3 whole small objects / s3 per trajectory: read {:.2f}x, read with prefetch {:.2f}x".format(
+            report["s3_over_per_trajectory/read_trajectories_per_second"],
+            report["s3_over_per_trajectory/read_trajectories_per_second_prefetch"],
         )
     )
     return out

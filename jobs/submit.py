@@ -24,7 +24,7 @@ import time
 from collections.abc import Sequence
 from pathlib import Path
 
-from pipeline.generation import ConfigError, load_config
+from pipeline.generation import ConfigError, absolute_output_dir, load_config
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 """The checkout this module belongs to: the default working dir of submitted jobs."""
@@ -49,7 +49,7 @@ class Submission:
 
     entrypoint: str  # shell command run in the job's working dir
     runtime_env: dict  # Ray runtime_env: working_dir, excludes, env_vars
-    output_dir: Path  # absolute dataset directory the job writes
+    output_dir: Path | str  # absolute dataset directory the job writes, or an s3:// or gs:// URL as given
 
 
 def build_submission(
@@ -64,7 +64,7 @@ def build_submission(
     unusable or a file it names lies outside `working_dir` (the job sees only what is uploaded from there)."""
     working_dir = Path(working_dir).resolve()
     job = load_config(config, overrides, scale=scale)
-    output_dir = Path(job.output_dir).resolve()
+    output_dir = absolute_output_dir(job.output_dir)
     command = ["python", "-m", "pipeline", "run", "--no-progress", "--json"]
     if scale is not None:
         is_path = scale.endswith((".yaml", ".yml"))  # else a preset name, resolved in the job's configs/scales

@@ -8,7 +8,9 @@
   normalisation changed, and write it in the form this project writes (`env.level_files.save_level`), which loads
   back exactly.
 - `export`: levels of a split config by level id, exactly as a run of that config samples them (same batches);
-  config overrides are positional `key=value` arguments, as for `kforge run`.
+  config overrides are positional `key=value` arguments, as for `kforge run`. The config may be a dataset's (a
+  folder, or an `s3://`, `gs://` URL, read through the dataset store layer); the level files are written to a
+  local folder, where level tools (`preview`, `render`, Kinetix's level loader) open them.
 """
 
 from __future__ import annotations
@@ -357,7 +359,10 @@ def _parser(prog: str | None) -> argparse.ArgumentParser:
     export = commands.add_parser(
         "export", help="write levels of a split config by id", description=export_command.__doc__
     )
-    export.add_argument("config", help="job config, e.g. configs/splits/1M/s.yaml, or a dataset's config.yaml")
+    export.add_argument(
+        "config",
+        help="job config, e.g. configs/splits/1M/s.yaml, or a dataset (folder, s3:// or gs:// URL) or its config.yaml",
+    )
     export.add_argument(
         "items",
         nargs="+",

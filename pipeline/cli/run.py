@@ -18,7 +18,11 @@ def main(argv: Sequence[str] | None = None, prog: str | None = None) -> None:
     output_dir (Ctrl-C or SIGTERM stops it, keeping every committed level batch), and grows it when
     split.num_levels is raised. Ends with a short summary (--json: the machine-readable one)."""
     parser = argparse.ArgumentParser(prog=prog, description=main.__doc__)
-    parser.add_argument("config", help=f"release split ({', '.join(configs.split_names())}) or a job YAML file")
+    parser.add_argument(
+        "config",
+        help=f"release split ({', '.join(configs.split_names())}), a job YAML file, or a dataset to continue "
+        "(a folder, s3:// or gs:// URL holding config.yaml)",
+    )
     parser.add_argument("overrides", nargs="*", help="dotlist overrides, e.g. split.num_levels=32 ray.num_workers=2")
     parser.add_argument(
         "--scale", help=f"scale preset applied over CONFIG: {', '.join(configs.scale_names())}, or a YAML path"

@@ -6,7 +6,6 @@ from __future__ import annotations
 import argparse
 import sys
 from collections.abc import Sequence
-from pathlib import Path
 
 from pipeline.cli import EXIT_DATA, add_common_options, fail
 
@@ -32,14 +31,14 @@ def main(argv: Sequence[str] | None = None, prog: str | None = None) -> None:
         CONFIG_FILE,
         DatasetError,
         format_report,
-        is_remote,
+        join,
         open_dataset,
         shard_name,
         verify_dataset,
         withdraw_bad_batches,
     )
 
-    rerun = "the same kforge run command" if is_remote(args.dir) else f"kforge run {Path(args.dir) / CONFIG_FILE}"
+    rerun = f"kforge run {join(args.dir, CONFIG_FILE)}"
     try:
         reports = verify_dataset(args.dir, allow_incomplete=args.allow_incomplete or args.repair)
         batches_per_shard = open_dataset(args.dir).geometry.batches_per_shard

@@ -28,7 +28,15 @@ import configs
 from agents import PPOConfig
 from engine import KINETIX_SIZES
 from env import EnvParams, StaticEnvParams
-from pipeline.storage import DEFAULT_HEARTBEAT_S, DEFAULT_STALE_AFTER_S
+from pipeline.storage import (
+    CONFIG_FILE,
+    DEFAULT_HEARTBEAT_S,
+    DEFAULT_STALE_AFTER_S,
+    StoreError,
+    is_remote,
+    join,
+    open_store,
+)
 
 
 @dataclasses.dataclass
@@ -223,17 +231,28 @@ def scale_path(scale: str) -> Path:
     return path
 
 
-def config_path(config: str | Path) -> Path:
-    """The job YAML of CONFIG: an existing file, or a release split's name such as "1M/s" (`configs.split_names`)."""
+def config_path(config: str | Path) -> Path | str:
+    """The job YAML of CONFIG: an existing file, a dataset (a folder, or an `s3://`, `gs://` URL, holding the
+    `config.yaml` of its latest run; a URL may also name a YAML object), or a release split's name such as "1M/s"
+    (`configs.split_names`)."""
+    if is_remote(config):
+        return str(config) if str(config).endswith(configs.YAML_SUFFIXES) else join(config, CONFIG_FILE)
     path = Path(config)
     if path.is_file():
         return path
+    if (path / CONFIG_FILE).is_file():
+        return path / CONFIG_FILE
     split = configs.split_path(str(config))
     if split is not None:
         return split
     raise ConfigError(
         f"config {str(config)!r}: no such file, and not a split name (splits: {', '.join(configs.split_names())})"
     )
+
+
+def absolute_output_dir(output_dir: str) -> Path | str:
+    """Where a job writes, as every machine names it: a local path made absolute, an `s3://`, `gs://` URL as given."""
+    return output_dir if is_remote(output_dir) else Path(output_dir).resolve()
 
 
 def default_output_dir(split_name: str, scale: str | None) -> str:
@@ -243,10 +262,20 @@ def default_output_dir(split_name: str, scale: str | None) -> str:
 
 
 def load_yaml(path: str | Path) -> DictConfig:
+    """A YAML file's mapping; `path` is a local file or an object-store URL (read through the store layer)."""
     try:
-        layer = OmegaConf.load(path)
+        if is_remote(path):
+            folder, _, name = str(path).rpartition("/")
+            text = open_store(folder).read(name)
+            if text is None:
+                raise FileNotFoundError(path)
+            layer = OmegaConf.create(text.decode())
+        else:
+            layer = OmegaConf.load(path)
     except FileNotFoundError as error:
         raise ConfigError(f"config file not found: {path}") from error
+    except StoreError as error:
+        raise ConfigError(f"{path}: cannot read ({error})") from error
     except yaml.YAMLError as error:
         raise ConfigError(f"{path}: not valid YAML ({str(error).splitlines()[0]})") from error
     if not isinstance(layer, DictConfig):

@@ -12,7 +12,17 @@ from pathlib import Path
 from tqdm import tqdm
 
 from pipeline.generation.coordinator import COMPILING, STARTING
-from pipeline.storage import CONFIG_FILE, DATA_DIR, FAILED, FILTERED_PREFIX, KEPT, MANIFEST_DIR, UNSOLVED, is_remote
+from pipeline.storage import (
+    CONFIG_FILE,
+    DATA_DIR,
+    FAILED,
+    FILTERED_PREFIX,
+    KEPT,
+    MANIFEST_DIR,
+    UNSOLVED,
+    is_remote,
+    join,
+)
 
 LOG_DIR = "logs"
 """The dataset's folder of run logs (`run-<UTC time>.log`) and, by default, wandb's run folders."""
@@ -157,11 +167,7 @@ def closing_summary(summary: dict, output_dir: str | os.PathLike) -> str:
         lines.append(f"third-party logs: {summary['log_file']}")
     lines.append("next:")
     if remaining:
-        lines.append(
-            "  the same kforge run command again    # continue"
-            if remote
-            else f"  kforge run {root / CONFIG_FILE}    # continue"
-        )
+        lines.append(f"  kforge run {join(root, CONFIG_FILE)}    # continue")
     lines += [
         f"  kforge verify {root}",
         f"  kforge stats {root}",

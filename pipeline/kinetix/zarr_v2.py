@@ -11,7 +11,9 @@ zarr 2.18 writes (its `checksum` member). This module implements the part of the
     <group>/<name>/.zattrs      JSON attributes (optional)
     <group>/<name>/<i>.<j>...   one file per chunk: the whole chunk (edge chunks padded), filters then compressor
 
-Reading accepts any chunk grid, order, separator and numcodecs codec; writing chunks the first axis only.
+Reading accepts any chunk grid, order, separator and numcodecs codec; writing chunks the first axis only. A group
+or array is named by a local path or an `s3://`, `gs://` URL; every file is read and written through the dataset
+store layer (`pipeline.storage.open_store`).
 """
 
 from __future__ import annotations
@@ -23,12 +25,11 @@ import json
 import math
 import os
 from collections.abc import Mapping
-from pathlib import Path
 
 import numcodecs
 import numpy as np
 
-from pipeline.storage import DatasetError
+from pipeline.storage import DatasetError, StoreError, join, open_store
 
 ZARR_FORMAT = 2
 GROUP_FILE = ".zgroup"
@@ -38,44 +39,55 @@ DEFAULT_SEPARATOR = "."
 """Chunk key separator when `.zarray` has no `dimension_separator` (zarr 2 before 2.8)."""
 
 
-def _write_json(path: Path, value: Mapping) -> None:
-    path.write_text(json.dumps(value, indent=1))
+def _write_json(location: str, key: str, value: Mapping) -> None:
+    open_store(location).write(key, json.dumps(value, indent=1).encode())
 
 
-def _read_json(path: Path) -> dict:
+def _read_bytes(location: str, key: str) -> bytes | None:
     try:
-        value = json.loads(path.read_text())
-    except FileNotFoundError as error:
-        raise DatasetError(f"{path.parent}: not a zarr v2 node (no {path.name})") from error
+        return open_store(location).read(key)
+    except StoreError as error:
+        raise DatasetError(str(error)) from error
+
+
+def _read_json(location: str, key: str) -> dict:
+    data = _read_bytes(location, key)
+    if data is None:
+        raise DatasetError(f"{location}: not a zarr v2 node (no {key})")
+    try:
+        value = json.loads(data)
     except (json.JSONDecodeError, UnicodeDecodeError) as error:
-        raise DatasetError(f"{path}: unreadable JSON ({error})") from error
+        raise DatasetError(f"{join(location, key)}: unreadable JSON ({error})") from error
     if not isinstance(value, dict):
-        raise DatasetError(f"{path}: expected a JSON object, got {type(value).__name__}")
+        raise DatasetError(f"{join(location, key)}: expected a JSON object, got {type(value).__name__}")
     return value
 
 
-def create_group(path: str | os.PathLike, attributes: Mapping | None = None) -> None:
-    """Make `path` (created if needed) a zarr v2 group with the given attributes."""
-    path = Path(path)
-    path.mkdir(parents=True, exist_ok=True)
-    _write_json(path / GROUP_FILE, {"zarr_format": ZARR_FORMAT})
+def create_group(location: str | os.PathLike, attributes: Mapping | None = None) -> None:
+    """Make `location` (a folder is created if needed) a zarr v2 group with the given attributes."""
+    location = str(location)
     if attributes is not None:
-        _write_json(path / ATTRIBUTES_FILE, attributes)
+        _write_json(location, ATTRIBUTES_FILE, attributes)
+    _write_json(location, GROUP_FILE, {"zarr_format": ZARR_FORMAT})
 
 
-def read_attributes(path: str | os.PathLike) -> dict:
+def read_attributes(location: str | os.PathLike) -> dict:
     """The attributes of a group or array ({} if it has none)."""
-    path = Path(path) / ATTRIBUTES_FILE
-    return _read_json(path) if path.exists() else {}
+    location = str(location)
+    return _read_json(location, ATTRIBUTES_FILE) if _read_bytes(location, ATTRIBUTES_FILE) is not None else {}
 
 
 def array_names(group: str | os.PathLike) -> list[str]:
     """Sorted names of the arrays directly in a zarr v2 group (zarr's `array_keys()`)."""
-    group = Path(group)
-    meta = _read_json(group / GROUP_FILE)
+    group = str(group)
+    meta = _read_json(group, GROUP_FILE)
     if meta.get("zarr_format") != ZARR_FORMAT:
         raise DatasetError(f"{group}: zarr_format {meta.get('zarr_format')!r}, expected {ZARR_FORMAT}")
-    return sorted(child.name for child in group.iterdir() if (child / ARRAY_FILE).is_file())
+    try:
+        keys = open_store(group).list()
+    except StoreError as error:
+        raise DatasetError(str(error)) from error
+    return sorted(key.split("/")[0] for key in keys if key.count("/") == 1 and key.endswith(f"/{ARRAY_FILE}"))
 
 
 def dtype_to_json(dtype: np.dtype) -> list:
@@ -97,9 +109,10 @@ def dtype_from_json(value, where: str) -> np.dtype:
 
 @dataclasses.dataclass(frozen=True)
 class RecordArray:
-    """A zarr v2 array of structured records on disk (metadata only; chunks are read and written on demand)."""
+    """A zarr v2 array of structured records in a folder or under a URL (metadata only; chunks are read and written
+    on demand)."""
 
-    path: Path
+    location: str  # local path or s3:// or gs:// URL of the array
     shape: tuple[int, ...]
     chunks: tuple[int, ...]
     dtype: np.dtype
@@ -120,12 +133,14 @@ class RecordArray:
         attributes: Mapping | None = None,
     ) -> RecordArray:
         """A new array of zero records, chunked `rows_per_chunk` along the first axis only."""
-        path = Path(path)
-        path.mkdir(parents=True)
+        location = str(path)
         chunks = (rows_per_chunk, *shape[1:])
         zero = np.zeros((), dtype)
+        if attributes is not None:
+            _write_json(location, ATTRIBUTES_FILE, attributes)
         _write_json(
-            path / ARRAY_FILE,
+            location,
+            ARRAY_FILE,
             {
                 "zarr_format": ZARR_FORMAT,
                 "shape": list(shape),
@@ -138,16 +153,14 @@ class RecordArray:
                 "dimension_separator": DEFAULT_SEPARATOR,
             },
         )
-        if attributes is not None:
-            _write_json(path / ATTRIBUTES_FILE, attributes)
-        return cls(path, tuple(shape), chunks, dtype, compressor, (), zero, "C", DEFAULT_SEPARATOR)
+        return cls(location, tuple(shape), chunks, dtype, compressor, (), zero, "C", DEFAULT_SEPARATOR)
 
     @classmethod
     def open(cls, path: str | os.PathLike) -> RecordArray:
         """An existing array; `DatasetError` naming the problem if its metadata is missing or not supported."""
-        path = Path(path)
-        meta = _read_json(path / ARRAY_FILE)
-        where = str(path / ARRAY_FILE)
+        location = str(path)
+        meta = _read_json(location, ARRAY_FILE)
+        where = join(location, ARRAY_FILE)
         if meta.get("zarr_format") != ZARR_FORMAT:
             raise DatasetError(f"{where}: zarr_format {meta.get('zarr_format')!r}, expected {ZARR_FORMAT}")
         try:
@@ -167,30 +180,31 @@ class RecordArray:
                 fill = np.frombuffer(base64.standard_b64decode(fill_value), dtype)[0]
             except (TypeError, ValueError, IndexError) as error:
                 raise DatasetError(f"{where}: fill_value is not a base64 record of {dtype.itemsize} bytes") from error
-        return cls(path, shape, chunks, dtype, compressor, filters, fill, order, separator)
+        return cls(location, shape, chunks, dtype, compressor, filters, fill, order, separator)
 
     @property
     def attributes(self) -> dict:
-        return read_attributes(self.path)
+        return read_attributes(self.location)
 
-    def _chunk_file(self, index: tuple[int, ...]) -> Path:
-        return self.path / self.separator.join(str(i) for i in index)
+    def _chunk_key(self, index: tuple[int, ...]) -> str:
+        return self.separator.join(str(i) for i in index)
 
     def write_chunk(self, chunk: int, records: np.ndarray) -> None:
         """Write rows [chunk * rows_per_chunk, ...) from `records` (shape (rows, *shape[1:]), the array's dtype)."""
         rows = self.chunks[0]
         expected = (min(rows, self.shape[0] - chunk * rows), *self.shape[1:])
         if records.dtype != self.dtype or records.shape != expected:
-            raise ValueError(f"{self.path} chunk {chunk}: got {records.dtype}{records.shape}, expected {expected}")
+            raise ValueError(f"{self.location} chunk {chunk}: got {records.dtype}{records.shape}, expected {expected}")
         full = np.zeros(self.chunks, self.dtype)
         full[: len(records)] = records
-        self._chunk_file((chunk,) + (0,) * (len(self.shape) - 1)).write_bytes(self.compressor.encode(full.tobytes()))
+        key = self._chunk_key((chunk,) + (0,) * (len(self.shape) - 1))
+        open_store(self.location).write(key, self.compressor.encode(full.tobytes()))
 
     def _read_chunk(self, index: tuple[int, ...]) -> np.ndarray:
-        path = self._chunk_file(index)
-        if not path.exists():
+        key = self._chunk_key(index)
+        data = _read_bytes(self.location, key)
+        if data is None:
             return np.full(self.chunks, self.fill, self.dtype)
-        data = path.read_bytes()
         try:
             if self.compressor is not None:
                 data = self.compressor.decode(data)
@@ -198,10 +212,10 @@ class RecordArray:
                 data = codec.decode(data)
             data = memoryview(data).cast("B")
         except (RuntimeError, ValueError, TypeError) as error:
-            raise DatasetError(f"{path}: cannot decode chunk ({error})") from error
+            raise DatasetError(f"{join(self.location, key)}: cannot decode chunk ({error})") from error
         expected = math.prod(self.chunks) * self.dtype.itemsize
         if data.nbytes != expected:
-            raise DatasetError(f"{path}: chunk decodes to {data.nbytes} bytes, expected {expected}")
+            raise DatasetError(f"{join(self.location, key)}: chunk decodes to {data.nbytes} bytes, expected {expected}")
         return np.frombuffer(data, self.dtype).reshape(self.chunks, order=self.order)
 
     def read(self, start: int = 0, stop: int | None = None) -> np.ndarray:

@@ -3,13 +3,14 @@
 Public surface: the loader and the card.
 """
 
-from pipeline.reading.loader import ActionEnvStateMask, TrajectoryDatasetManager
+from pipeline.reading.loader import WHOLE_OBJECT_BYTES, ActionEnvStateMask, TrajectoryDatasetManager
 from pipeline.reading.stats import CARD_FILE, FIGURES_DIR, SHARDS_FILE, DatasetStats, collect_stats, write_card
 
 __all__ = [
     "CARD_FILE",
     "FIGURES_DIR",
     "SHARDS_FILE",
+    "WHOLE_OBJECT_BYTES",
     "ActionEnvStateMask",
     "DatasetStats",
     "TrajectoryDatasetManager",

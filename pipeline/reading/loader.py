@@ -20,7 +20,24 @@ import jax.numpy as jnp
 import numpy as np
 
 from env import EnvState, StaticEnvParams
-from pipeline.storage import ACTION, ACTION_MASK, DONE, VALID, DatasetError, iter_records, open_dataset, unflatten_state
+from pipeline.storage import (
+    ACTION,
+    ACTION_MASK,
+    DONE,
+    VALID,
+    BatchRecord,
+    DatasetError,
+    iter_records,
+    open_dataset,
+    unflatten_state,
+)
+
+WHOLE_OBJECT_BYTES = 1_000_000
+"""[bytes] On an object store, a per-step field's shard object up to this size is read whole and the batch's
+trajectories picked from it, rather than by one range request per trajectory plus one for the object's index. A
+request to S3 or GCS costs a round trip of about 10-30 ms, in which one stream transfers about 1 MB, so reading the
+rest of a small object costs less than the requests it saves. Per-level fields (one chunk per object) take one request
+either way; a local folder is always read trajectory by trajectory (there are no round trips to save)."""
 
 
 class ActionEnvStateMask(NamedTuple):
@@ -43,6 +60,8 @@ class TrajectoryDatasetManager:
     batches while the caller works on the current one (same batches, same order). `level_ids` restricts the reader
     to the trajectories of those levels (e.g. a training set without its validation levels); `start_batch=n`
     starts at this reader's n-th batch, as if n batches had been loaded (a resumed learner continues its sequence).
+    On an object store, shard objects up to `whole_object_bytes` are read whole (`WHOLE_OBJECT_BYTES`; 0: every
+    trajectory by its own range requests); the batches are the same either way.
     """
 
     def __init__(
@@ -57,6 +76,7 @@ class TrajectoryDatasetManager:
         prefetch: int = 0,
         level_ids: Collection[int] | None = None,
         start_batch: int = 0,
+        whole_object_bytes: int = WHOLE_OBJECT_BYTES,
     ):
         if batch_size < 1:
             raise ValueError(f"batch_size must be >= 1, got {batch_size}")
@@ -74,15 +94,17 @@ class TrajectoryDatasetManager:
         self.batch_size, self.seed = batch_size, seed
         self.shard_index, self.total_shard_count = shard_index, total_shard_count
         wanted = None if level_ids is None else {int(level) for level in level_ids}
+        records = list(iter_records(self.dataset.store))
         self.slots = np.array(
             sorted(
                 level.slot
-                for record in iter_records(self.dataset.store)
+                for record in records
                 for level in record.levels
                 if level.kept and (wanted is None or level.level_id in wanted)
             ),
             np.int64,
         )
+        self._whole = self._whole_objects(records, whole_object_bytes)
         self.length = len(self.slots) // total_shard_count
         """Trajectories this reader sees per epoch."""
         if self.length < batch_size:
@@ -99,6 +121,19 @@ class TrajectoryDatasetManager:
         self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="loader") if prefetch else None
         self._queue: collections.deque[tuple[int, np.ndarray, Future]] = collections.deque()
         self._prefetch = prefetch
+
+    def _whole_objects(self, records: list[BatchRecord], max_bytes: int) -> dict[str, np.ndarray]:
+        """Field -> bool per level batch: the per-step shard objects read whole (object stores only; sizes from the
+        commit records, so none for records that do not size their objects)."""
+        if self.dataset.store.is_local or max_bytes <= 0:
+            return {}
+        layout, num_batches = self.dataset.layout, self.dataset.geometry.num_batches
+        whole = {spec.name: np.zeros(num_batches, bool) for spec in layout.fields if spec.per_step}
+        for record in records:
+            for name, entry in record.arrays.items():
+                if name in whole and entry.size is not None and entry.size <= max_bytes:
+                    whole[name][record.global_batch] = True
+        return whole
 
     def _epoch_order(self, epoch: int) -> np.ndarray:
         permutation = np.random.default_rng([self.seed, epoch]).permutation(len(self.slots))
@@ -150,7 +185,7 @@ class TrajectoryDatasetManager:
         slots = np.asarray(slots)
         layout = self.dataset.layout
         names = [ACTION, ACTION_MASK, DONE, VALID] + [spec.name for spec in layout.state_fields]
-        arrays = self.dataset.read(names, slots)
+        arrays = self.dataset.read(names, slots, self._whole)
         empty = slots[~arrays[VALID]]
         if len(empty):
             raise DatasetError(

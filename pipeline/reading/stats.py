@@ -2,9 +2,9 @@
 
 Everything comes from the dataset directory: the commit records (level outcomes, expert success rates, episode
 lengths, learning curves, per-phase wall times), the zarr attributes (data fingerprint), config.yaml (the resolved
-config with its scale) and the sizes of the stored objects. The dataset and the card's folder may be local paths or
-object-store URLs (`s3://`, `gs://`). Only committed level batches count, so a partial dataset
-gets a card of what it holds so far.
+config with its scale) and the sizes of the stored objects (as the commit records give them; objects they do not
+size are read once). The dataset and the card's folder may be local paths or object-store URLs (`s3://`, `gs://`).
+Only committed level batches count, so a partial dataset gets a card of what it holds so far.
 """
 
 from __future__ import annotations
@@ -15,6 +15,7 @@ import dataclasses
 import io
 import os
 import warnings
+from collections.abc import Mapping
 from pathlib import Path
 
 import numpy as np
@@ -35,7 +36,8 @@ from pipeline.storage import (
     all_committed,
     open_dataset,
     open_store,
-    read_record,
+    read_record_sized,
+    record_key,
 )
 
 CARD_FILE = "card.md"
@@ -187,9 +189,10 @@ def _float(value: float | None) -> float:
     return np.nan if value is None else float(value)
 
 
-def stored_bytes(store: Store, prefix: str) -> int:
-    """Total size of the objects below `prefix` (0 if there are none)."""
-    return sum(store.size(key) for key in store.list(prefix))
+def stored_bytes(store: Store, prefix: str, known: Mapping[str, int | None]) -> int:
+    """Total size of the objects below `prefix` (0 if there are none): the size in `known` (recorded in the commit
+    records) of each key it names, the others read (tensorstore lists keys without sizes)."""
+    return sum(size if (size := known.get(key)) is not None else store.size(key) for key in store.list(prefix))
 
 
 def collect_stats(root: str | os.PathLike, show_progress: bool = True) -> DatasetStats:
@@ -209,8 +212,10 @@ def collect_stats(root: str | os.PathLike, show_progress: bool = True) -> Datase
     seconds, timed = collections.Counter(), 0
     shards: dict[int, collections.Counter] = collections.defaultdict(collections.Counter)
     progress = show_progress and len(batches) >= PROGRESS_MIN_RECORDS
+    sizes: dict[str, int | None] = {}
     for shard, batch in tqdm(batches, desc="commit records", unit="record", disable=not progress):
-        record = read_record(store, shard, batch)
+        record, sizes[record_key(shard, batch)] = read_record_sized(store, shard, batch)
+        sizes.update(record.object_sizes)
         shard_counts = shards[shard]
         shard_counts["batches"] += 1
         for level in record.levels:
@@ -258,8 +263,8 @@ def collect_stats(root: str | os.PathLike, show_progress: bool = True) -> Datase
         seconds=dict(seconds),
         timed_batches=timed,
         workers=sorted(workers),
-        data_bytes=stored_bytes(store, f"{DATA_DIR}/"),
-        manifest_bytes=stored_bytes(store, f"{MANIFEST_DIR}/"),
+        data_bytes=stored_bytes(store, f"{DATA_DIR}/", sizes),
+        manifest_bytes=stored_bytes(store, f"{MANIFEST_DIR}/", sizes),
         shards=dict(shards),
     )
 

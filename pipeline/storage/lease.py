@@ -108,22 +108,24 @@ class Lease:
         store = open_store(root)
         now = time.time()
         holder = LeaseHolder(socket.gethostname(), os.getpid(), job_id or uuid.uuid4().hex[:12], now, now)
-        generation = store.create_exclusive(LEASE_KEY, holder.to_bytes())
-        if generation is None:
-            data, seen = store.read_versioned(LEASE_KEY)
-            if data is None:  # released between our create and read: try once more
-                generation = store.create_exclusive(LEASE_KEY, holder.to_bytes())
-            else:
-                other = LeaseHolder.from_bytes(data, store.url(LEASE_KEY))
-                age = now - other.heartbeat
-                if age <= stale_after_s:
-                    raise LeaseHeld(
-                        f"{store.location}: the dataset is in use by {other.describe(now)}; wait for it to end, "
-                        f"or for its heartbeat to be older than {stale_after_s:.0f} s to take it over"
-                    )
-                generation = store.replace(LEASE_KEY, holder.to_bytes(), seen)
-                if generation is not None:
-                    log(f"{store.location}: taking over the stale lease of {other.describe(now)}")
+        # Read before creating: on a store that ignores the create's condition, a create would overwrite a live lease.
+        generation = None
+        data, seen = store.read_versioned(LEASE_KEY)
+        if data is None:
+            generation = store.create_exclusive(LEASE_KEY, holder.to_bytes())
+            if generation is None:  # another job created it since our read
+                data, seen = store.read_versioned(LEASE_KEY)
+        if generation is None and data is not None:
+            other = LeaseHolder.from_bytes(data, store.url(LEASE_KEY))
+            age = now - other.heartbeat
+            if age <= stale_after_s:
+                raise LeaseHeld(
+                    f"{store.location}: the dataset is in use by {other.describe(now)}; wait for it to end, "
+                    f"or for its heartbeat to be older than {stale_after_s:.0f} s to take it over"
+                )
+            generation = store.replace(LEASE_KEY, holder.to_bytes(), seen)
+            if generation is not None:
+                log(f"{store.location}: taking over the stale lease of {other.describe(now)}")
         if generation is None:
             raise LeaseHeld(f"{store.location}: another job took the dataset's lease at the same moment")
         lease = cls(store, holder, generation, heartbeat_s)

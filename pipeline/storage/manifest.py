@@ -64,21 +64,40 @@ def record_exists(root: Location, shard: int, batch: int) -> bool:
 
 def read_record(root: Location, shard: int, batch: int) -> BatchRecord:
     """The commit record of a level batch; `DatasetError` if it is missing or unreadable."""
-    key = record_key(shard, batch)
-    where = f"{shard_name(shard)} batch {batch}: record {key}"
-    return BatchRecord.from_json(read_record_json(root, shard, batch), where)
+    return read_record_sized(root, shard, batch)[0]
+
+
+def read_record_sized(root: Location, shard: int, batch: int) -> tuple[BatchRecord, int]:
+    """(the commit record of a level batch, the bytes of its object), from one read."""
+    data = _record_bytes(root, shard, batch)
+    where = f"{shard_name(shard)} batch {batch}: record {record_key(shard, batch)}"
+    return BatchRecord.from_json(_checked_record(root, shard, batch, data), where), len(data)
 
 
 def read_record_json(root: Location, shard: int, batch: int) -> dict:
     """The commit record of a level batch as stored (JSON), checked only for its version and batch."""
+    return _checked_record(root, shard, batch, _record_bytes(root, shard, batch))
+
+
+def _record_bytes(root: Location, shard: int, batch: int) -> bytes:
     store = open_store(root)
     key = record_key(shard, batch)
     try:
-        record = store.read_json(key)
+        data = store.read(key)
     except StoreError as error:
         raise DatasetError(f"{shard_name(shard)} batch {batch}: unreadable record ({error})") from error
-    if record is None:
+    if data is None:
         raise DatasetError(f"{shard_name(shard)} batch {batch}: not committed (no {store.url(key)})")
+    return data
+
+
+def _checked_record(root: Location, shard: int, batch: int, data: bytes) -> dict:
+    key = record_key(shard, batch)
+    try:
+        record = json.loads(data)
+    except (json.JSONDecodeError, UnicodeDecodeError) as error:
+        where = f"{open_store(root).url(key)}: not JSON ({error})"
+        raise DatasetError(f"{shard_name(shard)} batch {batch}: unreadable record ({where})") from error
     if not isinstance(record, dict) or record.get("record_version") != RECORD_VERSION:
         raise DatasetError(f"{shard_name(shard)} batch {batch}: record {key} is not of version {RECORD_VERSION}")
     if record.get("shard") != shard or record.get("batch") != batch:

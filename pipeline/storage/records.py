@@ -122,14 +122,23 @@ class LevelRecord:
 
 @dataclasses.dataclass(frozen=True)
 class ArrayEntry:
-    """A stored array's shard object of a level batch: its key (None: nothing stored) and digests."""
+    """A stored array's shard object of a level batch: its key (None: nothing stored), digests and size."""
 
     file: str | None
     sha256: str | None  # of the object's bytes (None: no object)
     data_sha256: str  # of the decoded (levels_per_batch, ...) content
+    size: int | None = None  # [bytes] of the object; None: no object, or a record written before sizes were recorded
 
     def to_json(self) -> dict:
-        return {"file": self.file, "sha256": self.sha256, "data_sha256": self.data_sha256}
+        data = {"file": self.file, "sha256": self.sha256, "data_sha256": self.data_sha256}
+        if self.size is not None:
+            data["size"] = self.size
+        return data
+
+    @classmethod
+    def from_json(cls, data: Mapping) -> ArrayEntry:
+        size = data.get("size")
+        return cls(data["file"], data["sha256"], data["data_sha256"], None if size is None else int(size))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -175,10 +184,7 @@ class BatchRecord:
                 levels=tuple(
                     LevelRecord.from_json(level, f"{where} level {i}") for i, level in enumerate(data["levels"])
                 ),
-                arrays={
-                    name: ArrayEntry(entry["file"], entry["sha256"], entry["data_sha256"])
-                    for name, entry in data["arrays"].items()
-                },
+                arrays={name: ArrayEntry.from_json(entry) for name, entry in data["arrays"].items()},
                 curve_env_steps=None if steps is None else tuple(int(step) for step in steps),
                 provenance=data.get(PROVENANCE),
             )
@@ -190,3 +196,8 @@ class BatchRecord:
     @property
     def kept_slots(self) -> list[int]:
         return [level.slot for level in self.levels if level.kept]
+
+    @property
+    def object_sizes(self) -> dict[str, int | None]:
+        """Key -> recorded byte size (None where the record predates sizes) of each data object it commits."""
+        return {entry.file: entry.size for entry in self.arrays.values() if entry.file is not None}

@@ -199,6 +199,16 @@ def open_dataset(root: str | os.PathLike | Store) -> Dataset:
     return Dataset(store, spec)
 
 
+class _Picked:
+    """The rows `offsets` of a pending read of a whole shard object, as a future."""
+
+    def __init__(self, future, offsets: np.ndarray):
+        self._future, self._offsets = future, offsets
+
+    def result(self) -> np.ndarray:
+        return self._future.result()[self._offsets]
+
+
 def object_digest(store: Store, key: str) -> str | None:
     """sha256 hex digest of an object's bytes, or None if it does not exist."""
     data = store.read(key)
@@ -283,21 +293,53 @@ class Dataset:
         for future in futures:
             future.result()
 
-    def read(self, names: Iterable[str], slots: Sequence[int] | range) -> dict[str, np.ndarray]:
-        """Field name -> values of the given slots, in the given order, shape (len(slots), ...)."""
-        if isinstance(slots, range) and slots.step == 1:
-            index = slice(slots.start, slots.stop)
-        else:
-            index = np.asarray(slots, np.int64)
+    def read(
+        self, names: Iterable[str], slots: Sequence[int] | range, whole: Mapping[str, np.ndarray] | None = None
+    ) -> dict[str, np.ndarray]:
+        """Field name -> values of the given slots, in the given order, shape (len(slots), ...).
+
+        `whole[name]`, a bool per level batch, marks the shard objects of field `name` to read whole (one request)
+        and pick the slots from; the others are read slot by slot (one range request per trajectory and object, plus
+        the object's index). Every read of the call is issued before any is waited for.
+        """
         names = list(names)
         coded = any(is_coded(self.layout.field(name)) for name in names)
         fetch = names + [name for name in (DONE, VALID) if coded and name not in names]
-        futures = [self.array(name)[index].read() for name in fetch]
+        if isinstance(slots, range) and slots.step == 1:
+            pending = {name: [(slice(None), self.array(name)[slots.start : slots.stop].read())] for name in fetch}
+        else:
+            index = np.asarray(slots, np.int64)
+            pending = {name: self._read_parts(name, index, (whole or {}).get(name)) for name in fetch}
         arrays = {}
-        for name, future in zip(fetch, futures, strict=True):
+        for name, parts in pending.items():
             try:
-                arrays[name] = future.result()
+                values = [(rows, future.result()) for rows, future in parts]
             except ValueError as error:  # e.g. "Stored and computed checksum do not match" (crc32c)
                 raise DatasetError(f"{self.root}: cannot read {name}: {error}") from error
+            if len(values) == 1 and isinstance(values[0][0], slice):
+                arrays[name] = values[0][1]
+                continue
+            first = values[0][1]
+            arrays[name] = np.empty((len(slots),) + first.shape[1:], first.dtype)
+            for rows, value in values:
+                arrays[name][rows] = value
         decoded = decode_arrays(self.layout, arrays, arrays[DONE], arrays[VALID]) if coded else arrays
         return {name: decoded[name] for name in names}
+
+    def _read_parts(self, name: str, index: np.ndarray, whole: np.ndarray | None) -> list:
+        """(rows of the result, future of their values) covering `index`: slot by slot, except the level batches
+        marked in `whole`, whose shard objects are read whole and the rows picked."""
+        array = self.array(name)
+        per_batch = self.geometry.levels_per_batch
+        batch_of = index // per_batch
+        picked = np.zeros(len(index), bool) if whole is None else whole[batch_of]
+        parts = []
+        if len(index) == 0 or not picked.all():
+            rows = np.flatnonzero(~picked)
+            parts.append((rows if picked.any() else slice(None), array[index[rows]].read()))
+        for batch in np.unique(batch_of[picked]):
+            rows = np.flatnonzero(picked & (batch_of == batch))
+            offsets = index[rows] - batch * per_batch
+            future = array[batch * per_batch : (batch + 1) * per_batch].read()
+            parts.append((rows, _Picked(future, offsets)))
+        return parts

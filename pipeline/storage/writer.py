@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import math
 import os
 from collections.abc import Sequence
@@ -30,7 +31,7 @@ from pipeline.storage.layout import (
 from pipeline.storage.lease import require_lease
 from pipeline.storage.manifest import committed_batches, remove_record, temp_records, write_record
 from pipeline.storage.records import KEPT, ArrayEntry, BatchRecord, LevelRecord, Outcome
-from pipeline.storage.shard_store import Dataset, array_digest, object_digest, open_dataset
+from pipeline.storage.shard_store import Dataset, array_digest, open_dataset
 from pipeline.storage.store import Store
 
 
@@ -207,8 +208,11 @@ def stage_level_batch(dataset: Dataset, shard: int, batch: int, result: BatchTra
     files = {}
     for name, value in arrays.items():
         key = dataset.batch_key(name, global_batch)
-        digest = object_digest(dataset.store, key)
-        files[name] = ArrayEntry(key if digest else None, digest, array_digest(value))
+        data = dataset.store.read(key)
+        if data is None:
+            files[name] = ArrayEntry(None, None, array_digest(value))
+        else:
+            files[name] = ArrayEntry(key, hashlib.sha256(data).hexdigest(), array_digest(value), len(data))
     slots = geometry.slots(shard, batch)
     curves = result.curves
     levels = tuple(

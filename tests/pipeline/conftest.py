@@ -30,7 +30,16 @@ from pipeline.generation.coordinator import Coordinator
 from pipeline.generation.level_batch import batches_per_shard, num_shards
 from pipeline.generation.run import prepare_output
 from pipeline.generation.worker import Worker
-from pipeline.storage import PROVENANCE, Lease, iter_records
+from pipeline.storage import (
+    LEASE_KEY,
+    PROVENANCE,
+    Lease,
+    LeaseHeld,
+    LeaseHolder,
+    iter_records,
+    open_store,
+    read_holder,
+)
 from pipeline.storage.layout import make_layout
 from pipeline.storage.shard_store import DatasetSpec, Geometry, create_dataset
 from pipeline.storage.writer import KEPT, BatchTrajectories, write_level_batch
@@ -266,3 +275,55 @@ def assert_same_dataset(first, second):
     for name in arrays_a:
         np.testing.assert_array_equal(arrays_a[name], arrays_b[name], err_msg=name)
     assert records_a == records_b
+
+
+def jax_leaves(tree) -> list:
+    return jax.tree.leaves(tree)
+
+
+def assert_same_batches(first, second) -> None:
+    """Two loaders give the same batches for one epoch and the first batch of the next."""
+    assert first.length == second.length > 0
+    for _ in range(first.batches_per_epoch + 1):
+        a, b = first.load_next_batch(), second.load_next_batch()
+        np.testing.assert_array_equal(a.trajectory_index, b.trajectory_index)
+        for x, y in zip(
+            [a.action, a.done, a.action_mask, *jax_leaves(a.env_state)],
+            [b.action, b.done, b.action_mask, *jax_leaves(b.env_state)],
+            strict=True,
+        ):
+            np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+
+
+def assert_lease_refuses_and_takes_over(url: str) -> None:
+    """On the dataset `url`: a second job is refused while the first holds the lease, the lease is gone after it,
+    and a crashed job's stale lease is taken over with a message."""
+    with Lease.acquire(url, job_id="first", heartbeat_s=60) as lease:
+        assert read_holder(url) == lease.holder
+        with pytest.raises(LeaseHeld, match=r"in use by job first \(host .*, pid \d+\), last heartbeat \d+ s ago"):
+            Lease.acquire(url, job_id="second")
+        assert read_holder(url) == lease.holder
+    assert read_holder(url) is None
+    an_hour_ago = time.time() - 3600
+    open_store(url).write(LEASE_KEY, LeaseHolder("elsewhere", 1, "crashed", an_hour_ago, an_hour_ago).to_bytes())
+    messages = []
+    with Lease.acquire(url, job_id="third", log=messages.append):
+        assert read_holder(url).job_id == "third"
+    assert len(messages) == 1
+    assert messages[0].startswith(f"{url}: taking over the stale lease of job crashed (host elsewhere, pid 1)")
+    assert read_holder(url) is None
+
+
+@contextlib.contextmanager
+def environment(**values: str):
+    """Set environment variables for the duration, then restore them as they were."""
+    saved = {name: os.environ.get(name) for name in values}
+    os.environ.update(values)
+    try:
+        yield
+    finally:
+        for name, value in saved.items():
+            if value is None:
+                os.environ.pop(name, None)
+            else:
+                os.environ[name] = value

@@ -69,6 +69,13 @@ def test_the_submission_runs_kforge_in_the_uploaded_checkout_against_its_own_clu
     }
 
 
+def test_a_submission_keeps_an_object_store_output_dir_as_given(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    submission = build_submission(REPO_ROOT / SPLIT_CONFIG, [*TINY_JOB, "output_dir=s3://bucket/datasets/tiny"])
+    assert submission.output_dir == "s3://bucket/datasets/tiny"
+    assert submission.entrypoint.split()[-2] == "output_dir=s3://bucket/datasets/tiny"
+
+
 def test_a_submission_that_cannot_work_is_refused_before_anything_is_sent(tmp_path):
     outside = tmp_path / "job.yaml"
     shutil.copy(REPO_ROOT / SPLIT_CONFIG, outside)

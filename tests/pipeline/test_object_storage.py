@@ -1,24 +1,45 @@
 """Datasets on object storage, against a real S3 API server (moto's standalone server on 127.0.0.1): a tiny job
-writes to `s3://`, verify passes and names a flipped byte, the loader and the Kinetix export read the same data as
-from a local copy, the lease works there too; slow: the whole job killed mid-run and resumed equals an uninterrupted
-run."""
+writes to `s3://`, verify passes and names a flipped byte, the loader, the Kinetix export and import, `kforge levels
+export` and `kforge stats` read the same data as from a local copy, the lease works there too; slow: the whole job
+killed mid-run and resumed equals an uninterrupted run."""
 
 from __future__ import annotations
 
 import dataclasses
+import json
 import os
-import time
 from pathlib import Path
 
 import numpy as np
 import pytest
-from pipeline_test_helpers import run_in_process, run_job_process, tiny_job, write_all
+import tensorstore as ts
+from pipeline_test_helpers import (
+    assert_lease_refuses_and_takes_over,
+    assert_same_batches,
+    environment,
+    jax_leaves,
+    run_in_process,
+    run_job_process,
+    tiny_job,
+    write_all,
+)
 
+from pipeline.cli.levels import main as levels_main
 from pipeline.cli.verify import main as verify_main
-from pipeline.generation import to_yaml
-from pipeline.kinetix import export_kinetix
-from pipeline.reading import TrajectoryDatasetManager
-from pipeline.storage import LEASE_KEY, Lease, LeaseHeld, LeaseHolder, iter_records, open_dataset, read_holder
+from pipeline.generation import ConfigError, ResumeRefused, load_config, run_job, to_yaml
+from pipeline.kinetix import export_kinetix, load_kinetix_levels
+from pipeline.reading import WHOLE_OBJECT_BYTES, TrajectoryDatasetManager
+from pipeline.reading.stats import collect_stats
+from pipeline.storage import (
+    LEASE_KEY,
+    Lease,
+    Store,
+    iter_records,
+    open_dataset,
+    read_holder,
+    record_key,
+)
+from pipeline.storage.layout import DatasetError
 from pipeline.storage.verify import verify_dataset
 
 BUCKET = "kforge-test"
@@ -39,18 +60,12 @@ def s3():
     server.start()
     host, port = server.get_host_and_port()
     endpoint = f"http://{host}:{port}"
-    saved = {name: os.environ.get(name) for name in [*S3_ENV, "AWS_ENDPOINT_URL"]}
-    os.environ.update(S3_ENV, AWS_ENDPOINT_URL=endpoint)
     import boto3
 
-    client = boto3.client("s3", endpoint_url=endpoint, region_name=S3_ENV["AWS_REGION"])
-    client.create_bucket(Bucket=BUCKET)
-    yield client
-    for name, value in saved.items():
-        if value is None:
-            os.environ.pop(name, None)
-        else:
-            os.environ[name] = value
+    with environment(**S3_ENV, AWS_ENDPOINT_URL=endpoint):
+        client = boto3.client("s3", endpoint_url=endpoint, region_name=S3_ENV["AWS_REGION"])
+        client.create_bucket(Bucket=BUCKET)
+        yield client
     server.stop()
 
 
@@ -66,6 +81,15 @@ def download(client, prefix: str, target: Path) -> Path:
         path.parent.mkdir(parents=True, exist_ok=True)
         path.write_bytes(client.get_object(Bucket=BUCKET, Key=key)["Body"].read())
     return target
+
+
+def upload(client, folder: Path, prefix: str) -> str:
+    """Every file below a local folder put below `s3://BUCKET/prefix/`; the URL."""
+    for path in folder.rglob("*"):
+        if path.is_file():
+            key = f"{prefix}/{path.relative_to(folder).as_posix()}"
+            client.put_object(Bucket=BUCKET, Key=key, Body=path.read_bytes())
+    return f"s3://{BUCKET}/{prefix}"
 
 
 def copy_prefix(client, source: str, target: str) -> None:
@@ -116,29 +140,28 @@ def test_a_location_with_an_unknown_scheme_or_no_bucket_is_named():
         open_store("s3:///x")
 
 
+def s3_reads() -> int:
+    """Read requests tensorstore's S3 driver has sent from this process (its metrics registry)."""
+    metrics = ts.experimental_collect_matching_metrics("/tensorstore/kvstore/s3/read")
+    return int(sum(value.get("value", 0) for metric in metrics for value in metric.get("values", ())))
+
+
 def test_the_loader_reads_the_same_batches_from_s3_as_from_a_local_copy(s3_trajectories):
+    """Slot by slot (`whole_object_bytes=0`) and reading the small shard objects whole, with and without prefetch;
+    whole objects take fewer requests."""
     url, local = s3_trajectories
-    for prefetch in (0, 2):
+    requests = {}
+    for prefetch, whole_object_bytes in ((0, 0), (0, WHOLE_OBJECT_BYTES), (2, WHOLE_OBJECT_BYTES)):
+        before = s3_reads()
         with (
-            TrajectoryDatasetManager(url, batch_size=2, seed=3, prefetch=prefetch) as remote,
+            TrajectoryDatasetManager(
+                url, batch_size=2, seed=3, prefetch=prefetch, whole_object_bytes=whole_object_bytes
+            ) as remote,
             TrajectoryDatasetManager(local, batch_size=2, seed=3) as here,
         ):
-            assert remote.length == here.length > 0
-            for _ in range(remote.batches_per_epoch + 1):
-                a, b = remote.load_next_batch(), here.load_next_batch()
-                np.testing.assert_array_equal(a.trajectory_index, b.trajectory_index)
-                for x, y in zip(
-                    [a.action, a.done, a.action_mask, *jax_leaves(a.env_state)],
-                    [b.action, b.done, b.action_mask, *jax_leaves(b.env_state)],
-                    strict=True,
-                ):
-                    np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
-
-
-def jax_leaves(tree):
-    import jax
-
-    return jax.tree.leaves(tree)
+            assert_same_batches(remote, here)
+        requests[prefetch, whole_object_bytes] = s3_reads() - before
+    assert requests[0, WHOLE_OBJECT_BYTES] < requests[0, 0]
 
 
 def test_kinetix_export_reads_from_s3(s3_trajectories, tmp_path):
@@ -151,6 +174,65 @@ def test_kinetix_export_reads_from_s3(s3_trajectories, tmp_path):
     assert files == sorted(p.relative_to(here.group) for p in here.group.rglob("*") if p.is_file())
     chunks = [f for f in files if not f.name.startswith(".z")]  # attributes name the source; chunks must match
     assert chunks and all((remote.group / f).read_bytes() == (here.group / f).read_bytes() for f in chunks)
+
+
+def test_kinetix_import_reads_a_split_and_a_shard_from_s3(s3, s3_trajectories, tmp_path):
+    url, _ = s3_trajectories
+    local = export_kinetix(url, tmp_path, trajectories_per_shard=3, show_progress=False)
+    remote = upload(s3, local.group, "kinetix-split")
+    assert len(local.shard_sizes) > 1
+    for here, there in ((local.group, remote), (local.group / "shard-000001", f"{remote}/shard-000001")):
+        a, b = load_kinetix_levels(here), load_kinetix_levels(there)
+        assert a.static == b.static
+        for x, y in zip(jax_leaves(a), jax_leaves(b), strict=True):
+            np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+    with pytest.raises(DatasetError, match=f"{remote}/nothing: neither a Kinetix-Offline split"):
+        load_kinetix_levels(f"{remote}/nothing")
+
+
+def test_levels_export_and_run_read_a_dataset_config_from_s3(s3_dataset, tmp_path, capsys):
+    url, local = s3_dataset
+    for config in (url, f"{url}/config.yaml"):
+        assert load_config(config) == load_config(local / "config.yaml") == load_config(local)
+    outputs = []
+    for index, config in enumerate((url, str(local / "config.yaml"))):
+        out = tmp_path / str(index)
+        levels_main(["export", config, "1", "4", "--out", str(out), "--no-progress"])
+        outputs.append({path.name: path.read_bytes() for path in sorted(out.iterdir())})
+    assert list(outputs[0]) == ["level-0000001.json", "level-0000004.json"] and outputs[0] == outputs[1]
+    with pytest.raises(ConfigError, match=f"config file not found: {url}-missing/config.yaml"):
+        load_config(f"{url}-missing")
+
+
+def test_stats_on_s3_sizes_objects_from_the_records_and_reads_them_only_for_older_records(
+    s3, s3_trajectories, monkeypatch
+):
+    """Records written now carry each data object's size, so stats reads no data object; records without sizes
+    (written before they were recorded) still give the same bytes, by reading the objects."""
+    url, _ = s3_trajectories
+    listed = {}
+    for page in s3.get_paginator("list_objects_v2").paginate(Bucket=BUCKET, Prefix="handbuilt/"):
+        listed.update({item["Key"].removeprefix("handbuilt/"): item["Size"] for item in page.get("Contents", ())})
+    expected = sum(size for key, size in listed.items() if key.startswith("data/"))
+    sized = []
+    real_size = Store.size
+    monkeypatch.setattr(Store, "size", lambda store, key: sized.append(key) or real_size(store, key))
+    stats = collect_stats(url, show_progress=False)
+    assert stats.data_bytes == expected
+    assert stats.manifest_bytes == sum(size for key, size in listed.items() if key.startswith("manifest/"))
+    data_objects = {file for record in iter_records(url) for file in record.object_sizes}
+    assert data_objects and not data_objects & set(sized)  # only the arrays' zarr.json metadata are read
+
+    copy_prefix(s3, "handbuilt", "unsized")
+    for key in keys(s3, "unsized/manifest/"):
+        record = json.loads(s3.get_object(Bucket=BUCKET, Key=key)["Body"].read())
+        for entry in record["arrays"].values():
+            entry.pop("size", None)
+        s3.put_object(Bucket=BUCKET, Key=key, Body=json.dumps(record, indent=1, sort_keys=True).encode())
+    sized.clear()
+    old = collect_stats(f"s3://{BUCKET}/unsized", show_progress=False)
+    assert all(size is None for record in iter_records(old.root) for size in record.object_sizes.values())
+    assert old.data_bytes == expected and data_objects <= set(sized)
 
 
 def test_a_flipped_byte_in_one_object_is_found_by_verify_and_named(s3, s3_trajectories, capsys):
@@ -171,20 +253,38 @@ def test_a_flipped_byte_in_one_object_is_found_by_verify_and_named(s3, s3_trajec
 
 
 def test_the_lease_on_s3_refuses_a_second_job_and_is_taken_over_when_stale(s3):
-    url = f"s3://{BUCKET}/leased"
-    with Lease.acquire(url, job_id="first", heartbeat_s=60) as lease:
+    assert_lease_refuses_and_takes_over(f"s3://{BUCKET}/leased")
+
+
+def test_the_lease_on_s3_is_gone_after_an_error(s3, s3_dataset):
+    url = f"s3://{BUCKET}/erring"
+    copy_prefix(s3, "tiny", "erring")
+    with pytest.raises(ResumeRefused):
+        run_job(tiny_job(url, "split.seed=1"), show_progress=False)
+    assert read_holder(url) is None and keys(s3, "erring/manifest/")
+
+
+def test_readers_take_no_lease_and_see_only_committed_batches_while_a_job_writes(s3, s3_trajectories, tmp_path):
+    """A job holds the lease and has written a level batch's data but not its record: the loader, stats, verify
+    and the export read the three committed batches and leave the lease as it is."""
+    copy_prefix(s3, "handbuilt", "writing")
+    url = f"s3://{BUCKET}/writing"
+    uncommitted = next(iter_records(url))
+    s3.delete_object(Bucket=BUCKET, Key=f"writing/{record_key(uncommitted.shard, uncommitted.batch)}")
+    committed = sorted(slot for record in iter_records(url) for slot in record.kept_slots)
+    assert len(committed) == 6 and not set(uncommitted.kept_slots) & set(committed)
+    with Lease.acquire(url, job_id="writer", heartbeat_s=60) as lease:
+        with TrajectoryDatasetManager(url, batch_size=2, seed=0) as loader:
+            assert sorted(loader.slots.tolist()) == committed
+            seen = {
+                int(slot) for _ in range(loader.batches_per_epoch) for slot in loader.load_next_batch().trajectory_index
+            }
+            assert seen == set(committed)
+        assert collect_stats(url, show_progress=False).batches_committed == 3
+        assert export_kinetix(url, tmp_path, show_progress=False).num_trajectories == 6
+        reports = verify_dataset(url, allow_incomplete=True)
+        assert all(report.ok for report in reports) and sum(len(report.committed) for report in reports) == 3
         assert read_holder(url) == lease.holder
-        with pytest.raises(LeaseHeld, match=r"in use by job first \(host .*, pid \d+\), last heartbeat \d+ s ago"):
-            Lease.acquire(url, job_id="second")
-    assert read_holder(url) is None
-    an_hour_ago = time.time() - 3600
-    crashed = LeaseHolder("elsewhere", 1, "crashed", an_hour_ago, an_hour_ago)
-    s3.put_object(Bucket=BUCKET, Key=f"leased/{LEASE_KEY}", Body=crashed.to_bytes())
-    messages = []
-    with Lease.acquire(url, job_id="third", log=messages.append) as lease:
-        assert read_holder(url).job_id == "third"
-    assert len(messages) == 1
-    assert messages[0].startswith(f"{url}: taking over the stale lease of job crashed (host elsewhere, pid 1)")
     assert read_holder(url) is None
 
 

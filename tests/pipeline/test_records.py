@@ -1,5 +1,5 @@
-"""Typed commit records: every filter reason has an outcome, records round-trip through JSON unchanged, a malformed
-record is named."""
+"""Typed commit records: every filter reason has an outcome, records round-trip through JSON unchanged, object sizes
+are optional, a malformed record is named."""
 
 from __future__ import annotations
 
@@ -41,7 +41,10 @@ RECORD = {
             "episode_lengths": [],
         },
     ],
-    "arrays": {"done": {"file": "data/done/c/1/0", "sha256": "ab", "data_sha256": "cd"}},
+    "arrays": {
+        "done": {"file": "data/done/c/1/0", "sha256": "ab", "data_sha256": "cd", "size": 321},
+        "action": {"file": None, "sha256": None, "data_sha256": "ef"},
+    },
     "curve_env_steps": [128, 256],
     "provenance": {"seconds": {"total": 1.5}, "worker": "w"},
 }
@@ -65,6 +68,18 @@ def test_a_record_round_trips_through_the_manifest_unchanged(tmp_path):
         == stored
         == json.loads((tmp_path / "manifest/shard-000000/batch-001.json").read_text())
     )
+
+
+def test_object_sizes_are_read_and_a_record_without_them_reads_as_before(tmp_path):
+    """`arrays.*.size` is an optional key of record version 1: records written before it read with sizes unknown."""
+    write_record(tmp_path, 0, 1, RECORD)
+    assert read_record(tmp_path, 0, 1).object_sizes == {"data/done/c/1/0": 321}
+    older = json.loads(json.dumps(RECORD))
+    del older["arrays"]["done"]["size"]
+    write_record(tmp_path, 0, 1, older)
+    record = read_record(tmp_path, 0, 1)
+    assert record.object_sizes == {"data/done/c/1/0": None} and record.arrays["done"].sha256 == "ab"
+    assert "size" not in record.to_json()["arrays"]["done"]
 
 
 def test_a_malformed_record_is_named(tmp_path):

@@ -223,3 +223,16 @@ def test_opening_a_bad_or_mismatching_dataset_names_the_problem(tmp_path):
     meta_path.write_text(json.dumps(meta))
     with pytest.raises(DatasetError, match=r"ds: dataset format version 99; this code reads version 2$"):
         open_dataset(root)
+
+
+def test_reading_shard_objects_whole_gives_the_same_values_as_slot_by_slot(dataset_dir):
+    """Level batches 0 and 2 read whole and their slots picked, batch 3 slot by slot, in one call, in any order."""
+    dataset = open_dataset(dataset_dir)
+    names = [spec.name for spec in dataset.layout.fields]
+    slots = [7, 1, 10, 6, 0]  # level batches 2, 0, 3, 2, 0 (three levels per batch)
+    whole = np.array([True, False, True, False])
+    by_slot = dataset.read(names, slots)
+    picked = dataset.read(names, slots, whole={name: whole for name in names})
+    for name in names:
+        np.testing.assert_array_equal(picked[name], by_slot[name], err_msg=name)
+    assert by_slot["meta/valid"].all()
