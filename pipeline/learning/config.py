@@ -52,6 +52,7 @@ class TrainSection:
     levels: int | None = None  # learn from the first N kept levels by id (validation included); null: all
     seed: int = 0  # parameter initialisation, validation levels and batch order
     prefetch: int = 2  # batches the loader reads ahead in a background thread
+    cache_gb: float = 4.0  # [GiB] hold the training trajectories in host memory when they fit (decoded); 0: stream
 
 
 @dataclasses.dataclass
@@ -95,7 +96,7 @@ class BCConfig:
     tracking: BCTrackingSection = dataclasses.field(default_factory=BCTrackingSection)
 
 
-RESUMABLE_CHANGES = {("train", "num_steps"), ("train", "prefetch"), ("output_dir",)} | {
+RESUMABLE_CHANGES = {("train", "num_steps"), ("train", "prefetch"), ("train", "cache_gb"), ("output_dir",)} | {
     ("tracking", field.name) for field in dataclasses.fields(BCTrackingSection)
 }
 """Keys a resumed run may change; any other difference from the run directory's config is refused."""
@@ -164,6 +165,8 @@ def check_bc_config(config: BCConfig) -> None:
         raise ConfigError(f"train.weight_decay must be >= 0, got {config.train.weight_decay}")
     if config.train.levels is not None and config.train.levels < 1:
         raise ConfigError(f"train.levels must be >= 1 or null, got {config.train.levels}")
+    if config.train.cache_gb < 0:
+        raise ConfigError(f"train.cache_gb must be >= 0, got {config.train.cache_gb}")
     if config.train.prefetch < 0:
         raise ConfigError(f"train.prefetch must be >= 0, got {config.train.prefetch}")
     if not 0 <= config.validation.fraction < 1:

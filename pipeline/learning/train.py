@@ -45,6 +45,7 @@ SUMMARY_FILE = "summary.json"
 DATA_AXIS = "data"
 """Mesh axis over which a batch's trajectories are split."""
 WANDB_MODE_ENV = "WANDB_MODE"
+BYTES_PER_GIB = 1 << 30
 
 
 @struct.dataclass
@@ -158,7 +159,8 @@ class TrainSummary:
     validation_accuracy: float | None
     validation_slot_accuracy: list[float | None] | None  # per action slot; None where no level uses the slot
     seconds: float  # [s] wall time of this invocation's steps
-    loader_wait_seconds: float  # [s] of which waiting for the loader's next batch
+    loader_wait_seconds: float  # [s] of which the device waited for the loader's next batch
+    cached: bool  # the training trajectories were held in host memory
     loader_wait_share: float  # [-] loader_wait_seconds / seconds
     transitions_per_s: float  # trained transitions per second of wall time
 
@@ -285,6 +287,7 @@ def train_bc(
         prefetch=train.prefetch,
         level_ids=train_ids,
         start_batch=start,
+        cache_bytes=int(train.cache_gb * BYTES_PER_GIB),
     )
     tracking = _start_wandb(config, run_dir)
     end = train.num_steps if stop_after_steps is None else min(train.num_steps, start + stop_after_steps)
@@ -298,6 +301,8 @@ def train_bc(
     try:
         with loader:
             while step < end:
+                if pending:  # the device finished the previous step: from here on it waits for data
+                    jax.block_until_ready(pending[-1]["loss"])
                 asked = time.perf_counter()
                 batch = loader.load_next_batch()
                 wait += time.perf_counter() - asked
@@ -337,7 +342,8 @@ def train_bc(
     seconds = time.perf_counter() - began
     if pending:
         latest["train"] = _mean_metrics(pending)
-    summary = _summary(config, run_dir, start, step, train_ids, validation_ids, latest, seconds, wait, learner)
+    summary = _summary(config, run_dir, start, step, (train_ids, validation_ids), latest, (seconds, wait), learner)
+    summary = dataclasses.replace(summary, cached=loader.cached)
     (run_dir / SUMMARY_FILE).write_text(json.dumps(dataclasses.asdict(summary), indent=1))
     if tracking is not None:
         tracking.summary.update({"loader_wait_share": summary.loader_wait_share})
@@ -366,7 +372,8 @@ def _postfix(latest: dict) -> str:
     return ", ".join(parts)
 
 
-def _summary(config, run_dir, start, step, train_ids, validation_ids, latest, seconds, wait, learner) -> TrainSummary:
+def _summary(config, run_dir, start, step, level_ids, latest, times, learner) -> TrainSummary:
+    (train_ids, validation_ids), (seconds, wait) = level_ids, times
     validation = latest["validation"]
     train = latest["train"] or {"loss": float("nan"), "accuracy": float("nan")}
     transitions = (step - start) * config.train.batch_size * learner.window_steps
@@ -384,6 +391,7 @@ def _summary(config, run_dir, start, step, train_ids, validation_ids, latest, se
         validation_slot_accuracy=None if validation is None else validation["slot_accuracy"],
         seconds=seconds,
         loader_wait_seconds=wait,
+        cached=False,
         loader_wait_share=wait / seconds if seconds > 0 else 0.0,
         transitions_per_s=transitions / seconds if seconds > 0 else 0.0,
     )

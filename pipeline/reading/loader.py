@@ -56,12 +56,15 @@ class TrajectoryDatasetManager:
     """Endless deterministic batches of (B, T, ...) trajectories from a dataset directory.
 
     `render_fn(env_state) -> observation` of one state (e.g. `lambda s: env.observe(s, static, type)`) is applied
-    to every step of a batch, compiled once. With `prefetch=k`, a background thread reads and decodes the next k
-    batches while the caller works on the current one (same batches, same order). `level_ids` restricts the reader
-    to the trajectories of those levels (e.g. a training set without its validation levels); `start_batch=n`
-    starts at this reader's n-th batch, as if n batches had been loaded (a resumed learner continues its sequence).
+    to every step of a batch, compiled once. With `prefetch=k`, a background thread reads, decodes and puts on the
+    device the next k batches while the caller works on the current one (same batches, same order). `level_ids`
+    restricts the reader to the trajectories of those levels (e.g. a training set without its validation levels);
+    `start_batch=n` starts at this reader's n-th batch, as if n batches had been loaded (a resumed learner
+    continues its sequence).
     On an object store, shard objects up to `whole_object_bytes` are read whole (`WHOLE_OBJECT_BYTES`; 0: every
-    trajectory by its own range requests); the batches are the same either way.
+    trajectory by its own range requests); the batches are the same either way. With `cache_bytes`, the reader's
+    trajectories are read once into host memory when their decoded size fits (`cached` says whether they did), and
+    batches are gathered from there: the same batches, without storage reads.
     """
 
     def __init__(
@@ -77,6 +80,7 @@ class TrajectoryDatasetManager:
         level_ids: Collection[int] | None = None,
         start_batch: int = 0,
         whole_object_bytes: int = WHOLE_OBJECT_BYTES,
+        cache_bytes: int = 0,
     ):
         if batch_size < 1:
             raise ValueError(f"batch_size must be >= 1, got {batch_size}")
@@ -117,10 +121,31 @@ class TrajectoryDatasetManager:
         self.epoch = 0
         """Epoch of the batch `load_next_batch` returned last."""
         self._render = None if render_fn is None else jax.jit(jax.vmap(jax.vmap(render_fn)))
+        self._cache: dict[str, np.ndarray] | None = None
+        if 0 < self.decoded_bytes(len(self.slots)) <= cache_bytes:
+            self._cache = self._read_stored(self.slots)
         self._upcoming = itertools.islice(self._slot_batches(), start_batch, None)
         self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="loader") if prefetch else None
         self._queue: collections.deque[tuple[int, np.ndarray, Future]] = collections.deque()
         self._prefetch = prefetch
+
+    @property
+    def cached(self) -> bool:
+        """The reader's trajectories are held in host memory."""
+        return self._cache is not None
+
+    def decoded_bytes(self, num_trajectories: int) -> int:
+        """Host bytes of that many decoded trajectories as stored (per-level fields once, not over time)."""
+        layout = self.dataset.layout
+        per_trajectory = sum(
+            np.dtype(spec.dtype).itemsize * int(np.prod(spec.full_shape(layout.num_steps)))
+            for spec in layout.fields
+            if spec.name in self._field_names()
+        )
+        return per_trajectory * num_trajectories
+
+    def _field_names(self) -> list[str]:
+        return [ACTION, ACTION_MASK, DONE, VALID] + [spec.name for spec in self.dataset.layout.state_fields]
 
     def _whole_objects(self, records: list[BatchRecord], max_bytes: int) -> dict[str, np.ndarray]:
         """Field -> bool per level batch: the per-step shard objects read whole (object stores only; sizes from the
@@ -157,9 +182,9 @@ class TrajectoryDatasetManager:
             return self._to_batch(slots, self._read(slots))
         while len(self._queue) <= self._prefetch:
             epoch, slots = next(self._upcoming)
-            self._queue.append((epoch, slots, self._pool.submit(self._read, slots)))
-        self.epoch, slots, future = self._queue.popleft()
-        return self._to_batch(slots, future.result())
+            self._queue.append((epoch, slots, self._pool.submit(self.load_slots, slots)))
+        self.epoch, _, future = self._queue.popleft()
+        return future.result()
 
     def close(self) -> None:
         """Stop prefetching; later batches are the same, read when asked for."""
@@ -180,18 +205,27 @@ class TrajectoryDatasetManager:
         """The batch made of the given global slots (in that order); they must hold committed trajectories."""
         return self._to_batch(slots, self._read(slots))
 
-    def _read(self, slots: np.ndarray) -> dict[str, np.ndarray]:
-        """Host arrays of the given slots (decoded, static fields broadcast over time), checked to be kept."""
+    def _read_stored(self, slots: np.ndarray) -> dict[str, np.ndarray]:
+        """Decoded arrays of the given slots as stored, checked to be committed."""
         slots = np.asarray(slots)
-        layout = self.dataset.layout
-        names = [ACTION, ACTION_MASK, DONE, VALID] + [spec.name for spec in layout.state_fields]
-        arrays = self.dataset.read(names, slots, self._whole)
+        arrays = self.dataset.read(self._field_names(), slots, self._whole)
         empty = slots[~arrays[VALID]]
         if len(empty):
             raise DatasetError(
                 f"{self.dataset.root}: committed slots {empty.tolist()} read as empty (missing data files?); "
                 "run `kforge verify` on the dataset"
             )
+        return arrays
+
+    def _read(self, slots: np.ndarray) -> dict[str, np.ndarray]:
+        """Host arrays of the given slots (decoded, static fields broadcast over time), checked to be kept."""
+        slots = np.asarray(slots)
+        rows = None if self._cache is None else np.searchsorted(self.slots, slots)
+        if rows is not None and np.all(rows < len(self.slots)) and np.array_equal(self.slots[rows], slots):
+            arrays = {name: value[rows] for name, value in self._cache.items()}
+        else:
+            arrays = self._read_stored(slots)
+        layout = self.dataset.layout
         steps = layout.num_steps
 
         def over_time(name: str) -> np.ndarray:
@@ -200,7 +234,7 @@ class TrajectoryDatasetManager:
                 return value
             return np.broadcast_to(value[:, None], (value.shape[0], steps) + value.shape[1:])
 
-        return {name: over_time(name) for name in names if name != VALID}
+        return {name: over_time(name) for name in self._field_names() if name != VALID}
 
     def _to_batch(self, slots: np.ndarray, arrays: dict[str, np.ndarray]) -> ActionEnvStateMask:
         layout = self.dataset.layout

@@ -144,3 +144,17 @@ def test_a_missing_or_corrupt_data_file_is_a_named_error(dataset_dir, tmp_path):
     # tensorstore reports the chunk's crc32c mismatch or, for most bytes, Blosc's own check failing first
     with pytest.raises(DatasetError, match="cannot read action: .*([Dd]igest mismatch|[Bb]losc)"):
         TrajectoryDatasetManager(root, batch_size=1).load_slots(np.array([3]))
+
+
+def test_a_cached_reader_gives_the_batches_of_a_streaming_one(dataset_dir):
+    streaming = TrajectoryDatasetManager(dataset_dir, batch_size=3, seed=2)
+    cached = TrajectoryDatasetManager(dataset_dir, batch_size=3, seed=2, cache_bytes=1 << 30, prefetch=1)
+    too_small = TrajectoryDatasetManager(dataset_dir, batch_size=3, seed=2, cache_bytes=cached.decoded_bytes(8) - 1)
+    assert cached.cached and not streaming.cached and not too_small.cached
+    for _ in range(5):  # across an epoch boundary
+        first, second = streaming.load_next_batch(), cached.load_next_batch()
+        np.testing.assert_array_equal(first.trajectory_index, second.trajectory_index)
+        for a, b in zip(jax.tree.leaves(first.env_state), jax.tree.leaves(second.env_state), strict=True):
+            np.testing.assert_array_equal(a, b)
+        np.testing.assert_array_equal(first.action, second.action)
+    cached.close()
