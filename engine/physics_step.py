@@ -35,7 +35,7 @@ from engine.joint_solver import (
     warm_start_joints,
 )
 from engine.pairs import pair_layout
-from engine.params import MotorLaw, SimParams, StaticSimParams
+from engine.params import ForceTiming, MotorLaw, SimParams, StaticSimParams
 from engine.softness import Softness, make_softness
 from engine.state import NO_FEATURE, ContactCache, SimState
 
@@ -81,6 +81,7 @@ class SolverScalars:
     substep: jnp.ndarray  # [s]
     inverse_substep: jnp.ndarray  # [1/s]
     max_push_velocity: jnp.ndarray  # [m/s]
+    force_at_step_start: jnp.ndarray  # bool: gravity and thrust act as one impulse before the first substep
     restitution_threshold: jnp.ndarray  # [m/s]
     joint_softness: Softness
 
@@ -165,10 +166,12 @@ def substep_solver(static: StaticSimParams, batch_last: bool = True):
             )
             return (velocity, pose, contact_impulses, joint_impulses), None
 
-        def substep_body(carry, _):
+        def substep_body(carry, index):
             """Integrate velocities, warm start, soft solve, integrate positions, then relax without bias."""
             velocity, pose, contact_impulses, joint_impulses = carry
-            velocity = tuple(v + scalars.substep * a for v, a in zip(velocity, acceleration, strict=True))
+            at_start = jnp.where(index == 0, static.num_substeps, 0)
+            share = jnp.where(scalars.force_at_step_start, at_start, 1) * scalars.substep
+            velocity = tuple(v + share * a for v, a in zip(velocity, acceleration, strict=True))
             velocity = warm_start_joints(
                 velocity, joint_rows, joint_frames(joint_rows, pose, start_pose[2]), joint_impulses
             )
@@ -178,7 +181,7 @@ def substep_solver(static: StaticSimParams, batch_last: bool = True):
 
         carry = (velocity, start_pose, solver_input.contact_impulses, solver_input.joint_impulses)
         (velocity, pose, contact_impulses, joint_impulses), _ = jax.lax.scan(
-            substep_body, carry, None, length=static.num_substeps
+            substep_body, carry, jnp.arange(static.num_substeps)
         )
         velocity, contact_impulses = apply_restitution(
             velocity, rows, contact_impulses, layout, scalars.restitution_threshold
@@ -285,6 +288,7 @@ def prepare_step(
         substep=substep,
         inverse_substep=1.0 / substep,
         max_push_velocity=params.max_push_velocity,
+        force_at_step_start=params.force_timing == ForceTiming.STEP_START,
         restitution_threshold=params.restitution_threshold,
         joint_softness=make_softness(params.joint_hertz, params.joint_damping_ratio, substep),
     )
