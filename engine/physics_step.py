@@ -50,8 +50,10 @@ SOLVER_PASSES = np.array([True, False])
 class StepInfo:
     """What happened during a step, per candidate pair (layout of `engine.pairs.pair_layout`)."""
 
-    # (K,) bool: both shapes active, their collision modes allow contact, closer than touch_distance at step start;
-    # joints are ignored here (as in Kinetix), so jointed shapes that overlap count as touching.
+    # (K,) bool: both shapes active, their collision modes allow contact, and closer than touch_distance at step start
+    # or pushed apart by their contact during the step (a speculative contact that acted: in Kinetix, which has none,
+    # the shapes would have overlapped); joints are ignored at step start (as in Kinetix), so jointed shapes that
+    # overlap count as touching.
     touching: jnp.ndarray
     separation: jnp.ndarray  # (K,) [m] smallest separation of the pair's contact points (inf when none)
 
@@ -345,6 +347,13 @@ def finish_step(
     return state.replace(bodies=new_bodies, joints=new_joints, contacts=cache)
 
 
+def _info_after_solve(prepared: Prepared, solved: SolverOutput, static: StaticSimParams) -> StepInfo:
+    """The step's `StepInfo`, counting as touching also the pairs whose contact pushed during the step."""
+    largest = from_colour_layout(solved.contact_impulses.max_normal, pair_layout(static))
+    pushed = functools.reduce(jnp.logical_or, [impulse > 0.0 for impulse in largest])
+    return prepared.info.replace(touching=prepared.info.touching | pushed)
+
+
 @functools.cache
 def _batched_step(static: StaticSimParams, batching: Batching):
     """The step of `static` with the vmap rule of `batching` (`engine.batch_last`)."""
@@ -352,7 +361,7 @@ def _batched_step(static: StaticSimParams, batching: Batching):
     def one_step(state, params, motor_actions, thruster_actions):
         prepared = prepare_step(state, params, motor_actions, thruster_actions, static)
         solved = substep_solver(static, batching.chunked)(prepared.solver_input)
-        return finish_step(state, params, prepared, solved, static), prepared.info
+        return finish_step(state, params, prepared, solved, static), _info_after_solve(prepared, solved, static)
 
     return vmap_in_chunks(one_step, batching.chunk_limit) if batching.chunked else one_step
 
