@@ -8,6 +8,8 @@ Two jobs, one JSON document on stdout:
 - `--levels FILE ...`: play each level file under the no-op policy (one episode: it is deterministic) and the uniform
   random multi-discrete policy (`--episodes` episodes), up to one episode's length from the level's start, and count
   how the first episode ends: success (green touches blue), failure (green touches red), timeout, unstable (NaN).
+  Every level of a size and both policies run in one compiled program from a work queue, so finished episodes
+  cost no steps (random hand-designed s levels: 61 % of the steps of full-length episodes).
 
 Not importable from the project's environment.
 """
@@ -36,10 +38,10 @@ from kinetix.util.saving import expand_env_state, export_env_state_to_json, load
 MULTI_DISCRETE_SIZES = (3, 3, 3, 3, 2, 2)
 OUTCOMES = ("timeout", "success", "failure", "unstable")
 """Outcome names by code; the order of `env.Outcome` in kforge."""
-EPISODES_PER_CALL = 4096
-"""Most episodes stepped together in one compiled call (levels x episodes are cut into calls of this size)."""
+QUEUE_SLOTS = 512
+"""Episodes stepped together; Kinetix's env steps per second stop growing from about 256 on a CPU."""
 CALL_ROUNDING = 64
-"""A smaller call is padded to a multiple of this many episodes."""
+"""Fewer episodes than slots take a multiple of this many slots."""
 
 
 def log(line: str) -> None:
@@ -88,70 +90,83 @@ def play(paths: list[str], episodes: int, seed: int) -> dict:
         )
         levels = jax.tree.map(lambda *xs: jnp.stack(xs), *(state for _, state in members))
         started = time.perf_counter()
-        noop = _outcomes(env, params, levels, 1, None)
-        random = _outcomes(env, params, levels, episodes, jax.random.key(seed))
-        log(f"kinetix {size}: {len(members)} levels x {episodes} episodes in {time.perf_counter() - started:.0f} s")
+        codes, steps = _queue_outcomes(env, params, levels, episodes, jax.random.key(seed))
+        log(
+            f"kinetix {size}: {len(members)} levels x {episodes} episodes in {time.perf_counter() - started:.0f} s "
+            f"({steps} env steps, {steps / (len(members) * (episodes + 1) * int(params.max_timesteps)):.0%} of "
+            f"full-length episodes)"
+        )
         for index, (path, _) in enumerate(members):
             report[path] = {
                 "size": size,
-                "noop": OUTCOMES[int(noop[index, 0])],
-                "random": {name: int((random[index] == code).sum()) for code, name in enumerate(OUTCOMES)},
+                "noop": OUTCOMES[int(codes[index, 0])],
+                "random": {name: int((codes[index, 1:] == code).sum()) for code, name in enumerate(OUTCOMES)},
             }
     return report
 
 
-def _outcomes(env, params, levels, episodes: int, key) -> np.ndarray:
-    """(levels, episodes) outcome codes of the first episode; random actions when `key` is given, else no-op."""
+def _queue_outcomes(env, params, levels, episodes: int, key) -> tuple[np.ndarray, int]:
+    """(levels, 1 + episodes) first-episode outcome codes (column 0: the no-op; then random actions) and the env
+    steps taken. Episodes run from a work queue in QUEUE_SLOTS slots: a slot whose episode ended takes the next
+    episode, so no step is spent on finished episodes and one compiled program plays every level of a size."""
     num_levels = jax.tree.leaves(levels)[0].shape[0]
-    level_index = np.repeat(np.arange(num_levels), episodes)
-    call = min(EPISODES_PER_CALL, -(-len(level_index) // CALL_ROUNDING) * CALL_ROUNDING)
-    codes = []
-    for start in range(0, len(level_index), call):
-        chunk = level_index[start : start + call]
-        padded = np.concatenate([chunk, np.full(call - len(chunk), chunk[-1])])
-        batch = jax.tree.map(lambda x, rows=padded: x[rows], levels)
-        call_key = jax.random.fold_in(key, start) if key is not None else jax.random.key(0)
-        codes.append(np.asarray(_rollout(env, params, batch, call_key, key is not None))[: len(chunk)])
-    return np.concatenate(codes).reshape(num_levels, episodes)
-
-
-def _rollout(env, params, states, key, random: bool):
-    return _compiled_rollout(env, params, random)(states, key)
+    per_level = episodes + 1
+    total = num_levels * per_level
+    slots = min(QUEUE_SLOTS, -(-total // CALL_ROUNDING) * CALL_ROUNDING)
+    codes, steps = _compiled_queue(env, params, per_level, total, slots)(levels, key)
+    return np.asarray(codes).reshape(num_levels, per_level), int(steps)
 
 
 _COMPILED = {}
 
 
-def _compiled_rollout(env, params, random: bool):
-    """jit(states, key) -> first-episode outcome codes, one compile per env and policy."""
-    cache_key = (id(env), random)  # one jit per env and policy; it retraces for each call size
+def _compiled_queue(env, params, per_level: int, total: int, slots: int):
+    """jit(levels, key) -> (outcome code per episode, env steps taken); episode e plays level e // per_level, with
+    the no-op when e % per_level == 0, else uniform random actions from key (e, timestep)."""
+    cache_key = (id(env), per_level, total, slots)
     if cache_key not in _COMPILED:
         sizes = jnp.asarray(MULTI_DISCRETE_SIZES)
-        num_steps = int(params.max_timesteps)
 
-        def rollout(states, key):
-            batch = jax.tree.leaves(states)[0].shape[0]
+        def start_of(levels, episode):
+            level = jnp.clip(episode, 0, total - 1) // per_level
+            return jax.tree.map(lambda x: x[level], levels)
 
-            def body(carry, t):
-                states, outcome, done = carry
-                step_key = jax.random.fold_in(key, t)
-                if random:
-                    actions = jax.random.randint(step_key, (batch, len(sizes)), 0, sizes)
-                else:
-                    actions = jnp.zeros((batch, len(sizes)), jnp.int32)
-                keys = jax.random.split(step_key, batch)
-                _, new_states, reward, now_done, _ = jax.vmap(env.step, (0, 0, 0, None))(keys, states, actions, params)
-                unstable = jax.vmap(_has_nan)(new_states)
-                this = jnp.where(unstable, 3, jnp.where(reward > 0, 1, jnp.where(reward < 0, 2, 0)))
-                ended = now_done & ~done
-                outcome = jnp.where(ended, this, outcome)
-                return (new_states, outcome, done | now_done), None
+        def actions_of(key, episode, timestep):
+            action_key = jax.random.fold_in(jax.random.fold_in(key, episode), timestep)
+            random = jax.random.randint(action_key, (len(MULTI_DISCRETE_SIZES),), 0, sizes)
+            return jnp.where(episode % per_level == 0, 0, random)
 
-            start = (states, jnp.zeros(batch, jnp.int32), jnp.zeros(batch, bool))
-            (_, outcome, _), _ = jax.lax.scan(body, start, jnp.arange(num_steps))
-            return outcome
+        def run(levels, key):
+            def body(carry):
+                states, episode, next_episode, codes, steps = carry
+                actions = jax.vmap(actions_of, (None, 0, 0))(key, episode, states.timestep)
+                keys = jax.random.split(jax.random.fold_in(key, steps), slots)
+                _, stepped, reward, done, _ = jax.vmap(env.step, (0, 0, 0, None))(keys, states, actions, params)
+                unstable = jax.vmap(_has_nan)(stepped)
+                code = jnp.where(unstable, 3, jnp.where(reward > 0, 1, jnp.where(reward < 0, 2, 0)))
+                playing = episode < total
+                ended = done & playing
+                codes = codes.at[jnp.where(ended, episode, total)].set(code, mode="drop")
+                new_episode = next_episode + jnp.cumsum(ended) - 1
+                episode = jnp.where(ended, jnp.where(new_episode < total, new_episode, total), episode)
+                fresh = jax.vmap(start_of, (None, 0))(levels, episode)
+                states = jax.tree.map(
+                    lambda f, s: jnp.where(ended.reshape((-1,) + (1,) * (f.ndim - 1)), f, s), fresh, stepped
+                )
+                return states, episode, next_episode + ended.sum(), codes, steps + playing.sum()
 
-        _COMPILED[cache_key] = jax.jit(rollout)
+            episode = jnp.arange(slots)
+            start = (
+                jax.vmap(start_of, (None, 0))(levels, episode),
+                jnp.where(episode < total, episode, total),
+                jnp.asarray(slots),
+                jnp.zeros(total, jnp.int32),
+                jnp.asarray(0),
+            )
+            _, _, _, codes, steps = jax.lax.while_loop(lambda carry: (carry[1] < total).any(), body, start)
+            return codes, steps
+
+        _COMPILED[cache_key] = jax.jit(run)
     return _COMPILED[cache_key]
 
 

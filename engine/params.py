@@ -18,6 +18,16 @@ KINETIX_SIZES: dict[str, tuple[int, int, int, int]] = {
 """Kinetix env sizes: (polygons, circles, joints, thrusters), reserved boundary polygons included."""
 
 
+class ForceTiming(enum.IntEnum):
+    """When in a step gravity and thrust change the velocities."""
+
+    SPREAD = 0
+    """A share in every substep, before its solve (Box2D v3): positions follow the acceleration to second order."""
+    STEP_START = 1
+    """Kinetix's (Jax2D's): the whole step's impulse before the first substep, so a body in free flight moves dt
+    x (v + a dt) per step, dt^2 a x 3/8 further than SPREAD with 4 substeps (6 cm more fall per second of flight)."""
+
+
 class MotorLaw(enum.IntEnum):
     """How a joint motor drives its joint."""
 
@@ -61,6 +71,8 @@ class SimParams:
     motor_law: int = MotorLaw.SERVO  # `MotorLaw`: Kinetix's servo impulse or a constraint row
     motor_decay: float = 0.1  # [s/rad] servo: the impulse is tanh(motor_decay x speed error) of its bound
     motor_limit_fade: float = 0.1  # [rad] servo: the impulse fades to 0 over this angle before a joint limit
+
+    force_timing: int = ForceTiming.SPREAD  # `ForceTiming`: gravity and thrust spread over substeps or at step start
 
     # Safety clips applied after every step
     max_position: float = 15.0  # [m] per coordinate

@@ -35,7 +35,7 @@ from engine.joint_solver import (
     warm_start_joints,
 )
 from engine.pairs import pair_layout
-from engine.params import MotorLaw, SimParams, StaticSimParams
+from engine.params import ForceTiming, MotorLaw, SimParams, StaticSimParams
 from engine.softness import Softness, make_softness
 from engine.state import NO_FEATURE, ContactCache, SimState
 
@@ -50,8 +50,10 @@ SOLVER_PASSES = np.array([True, False])
 class StepInfo:
     """What happened during a step, per candidate pair (layout of `engine.pairs.pair_layout`)."""
 
-    # (K,) bool: both shapes active, their collision modes allow contact, closer than touch_distance at step start;
-    # joints are ignored here (as in Kinetix), so jointed shapes that overlap count as touching.
+    # (K,) bool: both shapes active, their collision modes allow contact, and closer than touch_distance at step start
+    # or pushed apart by their contact during the step (a speculative contact that acted: in Kinetix, which has none,
+    # the shapes would have overlapped); joints are ignored at step start (as in Kinetix), so jointed shapes that
+    # overlap count as touching.
     touching: jnp.ndarray
     separation: jnp.ndarray  # (K,) [m] smallest separation of the pair's contact points (inf when none)
 
@@ -81,6 +83,7 @@ class SolverScalars:
     substep: jnp.ndarray  # [s]
     inverse_substep: jnp.ndarray  # [1/s]
     max_push_velocity: jnp.ndarray  # [m/s]
+    force_at_step_start: jnp.ndarray  # bool: gravity and thrust act as one impulse before the first substep
     restitution_threshold: jnp.ndarray  # [m/s]
     joint_softness: Softness
 
@@ -165,10 +168,12 @@ def substep_solver(static: StaticSimParams, batch_last: bool = True):
             )
             return (velocity, pose, contact_impulses, joint_impulses), None
 
-        def substep_body(carry, _):
+        def substep_body(carry, index):
             """Integrate velocities, warm start, soft solve, integrate positions, then relax without bias."""
             velocity, pose, contact_impulses, joint_impulses = carry
-            velocity = tuple(v + scalars.substep * a for v, a in zip(velocity, acceleration, strict=True))
+            at_start = jnp.where(index == 0, static.num_substeps, 0)
+            share = jnp.where(scalars.force_at_step_start, at_start, 1) * scalars.substep
+            velocity = tuple(v + share * a for v, a in zip(velocity, acceleration, strict=True))
             velocity = warm_start_joints(
                 velocity, joint_rows, joint_frames(joint_rows, pose, start_pose[2]), joint_impulses
             )
@@ -178,7 +183,7 @@ def substep_solver(static: StaticSimParams, batch_last: bool = True):
 
         carry = (velocity, start_pose, solver_input.contact_impulses, solver_input.joint_impulses)
         (velocity, pose, contact_impulses, joint_impulses), _ = jax.lax.scan(
-            substep_body, carry, None, length=static.num_substeps
+            substep_body, carry, jnp.arange(static.num_substeps)
         )
         velocity, contact_impulses = apply_restitution(
             velocity, rows, contact_impulses, layout, scalars.restitution_threshold
@@ -285,6 +290,7 @@ def prepare_step(
         substep=substep,
         inverse_substep=1.0 / substep,
         max_push_velocity=params.max_push_velocity,
+        force_at_step_start=params.force_timing == ForceTiming.STEP_START,
         restitution_threshold=params.restitution_threshold,
         joint_softness=make_softness(params.joint_hertz, params.joint_damping_ratio, substep),
     )
@@ -341,6 +347,13 @@ def finish_step(
     return state.replace(bodies=new_bodies, joints=new_joints, contacts=cache)
 
 
+def _info_after_solve(prepared: Prepared, solved: SolverOutput, static: StaticSimParams) -> StepInfo:
+    """The step's `StepInfo`, counting as touching also the pairs whose contact pushed during the step."""
+    largest = from_colour_layout(solved.contact_impulses.max_normal, pair_layout(static))
+    pushed = functools.reduce(jnp.logical_or, [impulse > 0.0 for impulse in largest])
+    return prepared.info.replace(touching=prepared.info.touching | pushed)
+
+
 @functools.cache
 def _batched_step(static: StaticSimParams, batching: Batching):
     """The step of `static` with the vmap rule of `batching` (`engine.batch_last`)."""
@@ -348,7 +361,7 @@ def _batched_step(static: StaticSimParams, batching: Batching):
     def one_step(state, params, motor_actions, thruster_actions):
         prepared = prepare_step(state, params, motor_actions, thruster_actions, static)
         solved = substep_solver(static, batching.chunked)(prepared.solver_input)
-        return finish_step(state, params, prepared, solved, static), prepared.info
+        return finish_step(state, params, prepared, solved, static), _info_after_solve(prepared, solved, static)
 
     return vmap_in_chunks(one_step, batching.chunk_limit) if batching.chunked else one_step
 
