@@ -218,19 +218,13 @@ def _axial(impulse: JointImpulses):
 
 
 def warm_start_joints(velocity: Motion, rows: JointRows, frames: JointFrames, impulses: JointImpulses) -> Motion:
-    """Apply every joint's accumulated impulses to the velocities, one joint after another."""
+    """Apply every joint's accumulated impulses to the velocities, one joint after another.
 
-    def apply(velocity, j, impulse):
-        return _apply_impulse(velocity, _take(rows, j), _take(frames, j), impulse.linear, _axial(impulse))
-
-    def no_inputs(velocity, j):
-        return ()
-
-    def accumulated(_, j):
-        return _take(impulses, j)
-
-    zero = jax.tree_util.tree_map(jnp.zeros_like, impulses)
-    velocity, _ = pipelined_sweep(velocity, rows.body_a.shape[0], zero, no_inputs, accumulated, apply)
+    Nothing is solved, so the joints are unrolled: XLA fuses the chain of updates into one loop per component.
+    """
+    for j in range(rows.body_a.shape[0]):
+        impulse = _take(impulses, j)
+        velocity = _apply_impulse(velocity, _take(rows, j), _take(frames, j), impulse.linear, _axial(impulse))
     return velocity
 
 

@@ -6,7 +6,6 @@ import functools
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 from flax import struct
 
 from engine.batch_last import Batching, current_batching, vmap_batch_last, vmap_in_chunks
@@ -42,8 +41,9 @@ from engine.state import NO_FEATURE, ContactCache, SimState
 STATIC_CONTACT_STIFFNESS_FACTOR = 2.0
 """Contacts against static bodies are this many times stiffer (in Hz) than between movable bodies."""
 
-SOLVER_PASSES = np.array([True, False])
-"""Each substep solves with position bias (soft step), integrates positions, then relaxes without bias."""
+SOLVER_PASSES = (True, False)
+"""Each substep solves with position bias (soft step), integrates positions, then relaxes without bias. The two
+passes are unrolled with `use_bias` static, so that each compiles without the other's branches."""
 
 
 @struct.dataclass
@@ -126,8 +126,8 @@ class Prepared:
 def substep_solver(static: StaticSimParams, batch_last: bool = True):
     """The substep loop and restitution for `static`: `SolverInput -> SolverOutput`, batch-last under vmap if asked.
 
-    Loops are `lax.scan`s (substeps, the biased and relaxing pass of a substep, joints, colours), so the compiled
-    size does not grow with the number of substeps, joints or colours.
+    Substeps, joints and colours are `lax.scan`s, so the compiled size does not grow with their number; the two
+    passes of a substep are unrolled, and joints' warm starting (nothing solved) is unrolled into one fusion.
     """
     layout = pair_layout(static)
 
@@ -166,7 +166,7 @@ def substep_solver(static: StaticSimParams, batch_last: bool = True):
             pose = tuple(
                 jnp.where(move & use_bias, p + scalars.substep * v, p) for p, v in zip(pose, velocity, strict=True)
             )
-            return (velocity, pose, contact_impulses, joint_impulses), None
+            return velocity, pose, contact_impulses, joint_impulses
 
         def substep_body(carry, index):
             """Integrate velocities, warm start, soft solve, integrate positions, then relax without bias."""
@@ -179,7 +179,9 @@ def substep_solver(static: StaticSimParams, batch_last: bool = True):
             )
             velocity = warm_start_contacts(velocity, rows, contact_impulses, layout)
             carry = (velocity, pose, contact_impulses, joint_impulses)
-            return jax.lax.scan(solver_pass, carry, SOLVER_PASSES)[0], None
+            for use_bias in SOLVER_PASSES:
+                carry = solver_pass(carry, use_bias)
+            return carry, None
 
         carry = (velocity, start_pose, solver_input.contact_impulses, solver_input.joint_impulses)
         (velocity, pose, contact_impulses, joint_impulses), _ = jax.lax.scan(

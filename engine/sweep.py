@@ -4,9 +4,9 @@ A sweep visits items in order; each item's new impulses depend on the velocities
 Written naively, XLA fuses the computation of an item's new impulses into every consumer (each velocity
 component it updates) and computes it several times over; on CPU, `optimization_barrier` does not prevent this.
 Values carried across a loop iteration are always materialised, so the sweep is pipelined: step i applies item
-i-1's impulse changes to the velocities, then solves item i and carries its new impulses to step i+1. The scan
-has count + 1 steps (the last only applies), so XLA never inlines it, and its body is compiled once whatever the
-number of items.
+i-1's impulse changes to the velocities, then solves item i and carries its new impulses to step i+1; the last
+item's change is applied after the loop. The body is compiled once whatever the number of items. XLA inlines a
+loop of one step, so a single item runs as two steps, the second only applying (under a `cond`).
 """
 
 from __future__ import annotations
@@ -33,14 +33,23 @@ def pipelined_sweep(velocity, count: int, old, gather, solve, apply):
     def take(tree, i):
         return jax.tree_util.tree_map(lambda x: x[i], tree)
 
+    steps = max(count, 2)
+
     def step(carry, i):
         velocity, previous = carry
         before = jnp.maximum(i - 1, 0)
         change = jax.tree_util.tree_map(lambda n, o: n - o, previous, take(old, before))
         velocity = apply(velocity, before, change)  # step 0 applies a zero change (item 0's start impulses)
         inputs = gather(velocity, jnp.minimum(i, count - 1))
-        new = jax.lax.cond(i < count, lambda: solve(inputs, i), lambda: previous)
+        if steps == count:
+            new = solve(inputs, i)
+        else:
+            new = jax.lax.cond(i < count, lambda: solve(inputs, i), lambda: previous)
         return (velocity, new), previous
 
-    (velocity, _), emitted = jax.lax.scan(step, (velocity, take(old, 0)), jnp.arange(count + 1))
-    return velocity, jax.tree_util.tree_map(lambda x: x[1:], emitted)
+    (velocity, last), emitted = jax.lax.scan(step, (velocity, take(old, 0)), jnp.arange(steps))
+    if steps > count:
+        return velocity, jax.tree_util.tree_map(lambda x: x[1:], emitted)
+    change = jax.tree_util.tree_map(lambda n, o: n - o, last, take(old, count - 1))
+    new = jax.tree_util.tree_map(lambda x, y: jnp.concatenate([x[1:], y[None]]), emitted, last)
+    return apply(velocity, count - 1, change), new
