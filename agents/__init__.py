@@ -1,7 +1,8 @@
 """RL agents that train on env tasks: PPO specialists, one parameter set per level, many levels per program.
 
-Public surface: the config, training of a level batch, evaluation, expert windows for the dataset, and the pieces
-they are made of (GAE, loss, policy), and progress reports from a training program while it runs.
+Public surface: the config, training of a level batch, evaluation, expert windows for the dataset, training in
+segments for adaptive budgets, the pieces they are made of (GAE, loss, policy), and progress reports from a training
+program while it runs.
 """
 
 from agents.collect import WINDOW_STEPS, Window, collect_windows
@@ -22,6 +23,7 @@ from agents.ppo import (
     train_levels,
 )
 from agents.progress import ProgressListener, training_progress
+from agents.segments import LevelTraining, SegmentOutput, check_segmented, put_slot, start_level, train_segments
 
 __all__ = [
     "WINDOW_STEPS",
@@ -29,13 +31,16 @@ __all__ = [
     "Batch",
     "Episode",
     "EvalOutput",
+    "LevelTraining",
     "LossTerms",
     "PPOConfig",
     "ProgressListener",
+    "SegmentOutput",
     "Selection",
     "TrainOutput",
     "UpdateMetrics",
     "Window",
+    "check_segmented",
     "collect_windows",
     "evaluate",
     "gae",
@@ -43,8 +48,11 @@ __all__ = [
     "level_episodes",
     "make_network",
     "ppo_loss",
+    "put_slot",
+    "start_level",
     "train_from",
     "train_level",
     "train_levels",
+    "train_segments",
     "training_progress",
 ]
