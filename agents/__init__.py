@@ -1,8 +1,9 @@
 """RL agents that train on env tasks: PPO specialists, one parameter set per level, many levels per program.
 
-Public surface: the config, training of a level batch, evaluation, expert windows for the dataset, and the pieces
-they are made of (GAE, loss, policy), and progress reports from a training program while it runs; for behaviour
-cloning, its policy networks and objective, and episodes of any policy given as an actor function.
+Public surface: the config, training of a level batch, evaluation, expert windows for the dataset, training in
+segments for adaptive budgets, the pieces they are made of (GAE, loss, policy), and progress reports from a training
+program while it runs; for behaviour cloning, its policy networks and objective, and episodes of any policy given as
+an actor function.
 """
 
 from agents.bc_networks import Architecture, EntityTransformerPolicy, MLPPolicy, NetworkConfig, make_bc_network
@@ -25,6 +26,7 @@ from agents.ppo import (
     train_levels,
 )
 from agents.progress import ProgressListener, training_progress
+from agents.segments import LevelTraining, SegmentOutput, check_segmented, put_slot, start_level, train_segments
 
 __all__ = [
     "WINDOW_STEPS",
@@ -36,15 +38,18 @@ __all__ = [
     "Episode",
     "EvalOutput",
     "ImitationTerms",
+    "LevelTraining",
     "LossTerms",
     "MLPPolicy",
     "NetworkConfig",
     "PPOConfig",
     "ProgressListener",
+    "SegmentOutput",
     "Selection",
     "TrainOutput",
     "UpdateMetrics",
     "Window",
+    "check_segmented",
     "collect_windows",
     "evaluate",
     "gae",
@@ -55,9 +60,12 @@ __all__ = [
     "make_network",
     "network_actor",
     "ppo_loss",
+    "put_slot",
     "run_episode",
+    "start_level",
     "train_from",
     "train_level",
     "train_levels",
+    "train_segments",
     "training_progress",
 ]

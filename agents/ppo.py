@@ -256,6 +256,62 @@ def train_from(
     `progress`: a token from `agents.training_progress` (not batched under `vmap`), told the updates done at the
     start of every evaluation segment.
     """
+    train_and_evaluate = _segment_program(level, config, env_params, static)
+    carry = _initial_carry(level, params, key, config, static)
+    selection_key = jax.random.fold_in(key, SELECTION_STREAM)
+    best = _Best(params, jnp.array(-jnp.inf, jnp.float32), jnp.array(-1, jnp.int32))
+    points = config.selection_updates
+    every = points[0]
+    regular = config.num_updates // every  # evaluations after `every` updates each; one more after a remainder
+
+    def regular_segment(state, index):
+        if progress is not None:
+            report_updates(progress, index * every, config.num_updates)
+        carry, best, metrics, evaluation = train_and_evaluate(*state, index, (index + 1) * every, selection_key, every)
+        return (carry, best), (metrics, evaluation)
+
+    (carry, best), (metrics, evaluations) = jax.lax.scan(
+        regular_segment, (carry, best), jnp.arange(regular, dtype=jnp.int32)
+    )
+    metrics = jax.tree.map(lambda x: x.reshape((regular * every,) + x.shape[2:]), metrics)
+    if len(points) > regular:
+        carry, best, last_metrics, last = train_and_evaluate(
+            carry,
+            best,
+            jnp.int32(regular),
+            config.num_updates,
+            selection_key,
+            config.num_updates - regular * every,
+        )
+        metrics = jax.tree.map(lambda a, b: jnp.concatenate([a, b]), metrics, last_metrics)
+        evaluations = jax.tree.map(lambda a, b: jnp.concatenate([a, b[None]]), evaluations, last)
+    selection = Selection(
+        env_steps=jnp.asarray(points, jnp.int32) * config.steps_per_update,
+        success_rate=evaluations[0],
+        mean_return=evaluations[1],
+        best=best.index,
+    )
+    return TrainOutput(params=best.params, metrics=metrics, selection=selection)
+
+
+def _initial_carry(level: Level, params, key: jax.Array, config: PPOConfig, static: StaticEnvParams) -> _TrainCarry:
+    """Training state before the first update: every env at the level's start."""
+    start = reset(level)
+    start_obs = observe(start, static, config.observation_type)
+    return _TrainCarry(
+        params=params,
+        opt_state=make_optimizer(config).init(params),
+        env_state=_tile(start, config.num_envs),
+        obs=_tile(start_obs, config.num_envs),
+        episode_return=jnp.zeros((config.num_envs,), jnp.float32),
+        key=key,
+    )
+
+
+def _segment_program(level: Level, config: PPOConfig, env_params: EnvParams, static: StaticEnvParams) -> Callable:
+    """`train_and_evaluate(carry, best, index, updates_done, selection_key, num_updates)` on `level`:
+    `num_updates` PPO updates, then evaluation `index` of the policy, kept as best unless a better one was;
+    returns (carry, best, per-update metrics, (success rate, mean return) of the evaluation)."""
     network = make_network(config)
     optimizer = make_optimizer(config)
     mask = action_mask(level)
@@ -330,13 +386,8 @@ def train_from(
         )
         return carry._replace(params=params, opt_state=opt_state), metrics
 
-    selection_key = jax.random.fold_in(key, SELECTION_STREAM)
-
-    def train_and_evaluate(carry: _TrainCarry, best: _Best, index, updates_done, num_updates: int):
-        """`num_updates` updates, then evaluation `index` of the policy; keeps it as best unless a better one was.
-
-        The episodes' key depends on the updates done, so a policy gets the same episodes whatever the period.
-        """
+    def train_and_evaluate(carry: _TrainCarry, best: _Best, index, updates_done, selection_key, num_updates: int):
+        """The episodes' key depends on the updates done, so a policy gets the same episodes whatever the period."""
         carry, metrics = jax.lax.scan(update, carry, None, length=num_updates)
         episodes = level_episodes(
             carry.params,
@@ -356,42 +407,7 @@ def train_from(
         )
         return carry, best, metrics, (success_rate, jnp.mean(episodes.episode_return))
 
-    carry = _TrainCarry(
-        params=params,
-        opt_state=optimizer.init(params),
-        env_state=_tile(start, config.num_envs),
-        obs=_tile(start_obs, config.num_envs),
-        episode_return=jnp.zeros((config.num_envs,), jnp.float32),
-        key=key,
-    )
-    best = _Best(params, jnp.array(-jnp.inf, jnp.float32), jnp.array(-1, jnp.int32))
-    points = config.selection_updates
-    every = points[0]
-    regular = config.num_updates // every  # evaluations after `every` updates each; one more after a remainder
-
-    def regular_segment(state, index):
-        if progress is not None:
-            report_updates(progress, index * every, config.num_updates)
-        carry, best, metrics, evaluation = train_and_evaluate(*state, index, (index + 1) * every, every)
-        return (carry, best), (metrics, evaluation)
-
-    (carry, best), (metrics, evaluations) = jax.lax.scan(
-        regular_segment, (carry, best), jnp.arange(regular, dtype=jnp.int32)
-    )
-    metrics = jax.tree.map(lambda x: x.reshape((regular * every,) + x.shape[2:]), metrics)
-    if len(points) > regular:
-        carry, best, last_metrics, last = train_and_evaluate(
-            carry, best, jnp.int32(regular), config.num_updates, config.num_updates - regular * every
-        )
-        metrics = jax.tree.map(lambda a, b: jnp.concatenate([a, b]), metrics, last_metrics)
-        evaluations = jax.tree.map(lambda a, b: jnp.concatenate([a, b[None]]), evaluations, last)
-    selection = Selection(
-        env_steps=jnp.asarray(points, jnp.int32) * config.steps_per_update,
-        success_rate=evaluations[0],
-        mean_return=evaluations[1],
-        best=best.index,
-    )
-    return TrainOutput(params=best.params, metrics=metrics, selection=selection)
+    return train_and_evaluate
 
 
 @functools.partial(jax.jit, static_argnames=("config", "static"))

@@ -8,17 +8,21 @@ level batch (which compiles every program), bytes of shard files per stored tran
 every worker count wrote the same data.
 `--json` prints one JSON document instead. `--storage s3` measures the storage layer instead, against an S3 API
 server (moto) on 127.0.0.1: transitions written per second and the loader's read rate from S3 against a local
-folder, with and without prefetch (benchmarks/object_storage.py).
+folder, with and without prefetch (benchmarks/object_storage.py). `--cost` measures what a dataset costs instead:
+kept levels and transitions per machine-hour of split 1M/s at its release budget, fixed and adaptive expert budgets
+side by side, against Kinetix's PPO measured in the same run (benchmarks/cost.py).
 
     python benchmarks/pipeline.py
     python benchmarks/pipeline.py --sizes s --levels 32 --workers 1 2 --json
     python benchmarks/pipeline.py --storage s3 --sizes s --levels-per-batch 8 --batches-per-shard 4
+    python benchmarks/pipeline.py --cost --levels 16 --levels-per-batch 4 --json
 """
 
 from __future__ import annotations
 
 import argparse
 import contextlib
+import functools
 import json
 import os
 import sys
@@ -30,6 +34,7 @@ import jax
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
+from benchmarks import cost  # noqa: E402
 from benchmarks.machine import describe_machine  # noqa: E402
 from pipeline.generation.config import load_config  # noqa: E402
 from pipeline.generation.run import run_job  # noqa: E402
@@ -262,7 +267,16 @@ def main(argv=None) -> None:
     )
     parser.add_argument("--window-steps", type=int, default=256, help="--storage s3: steps per trajectory")
     parser.add_argument("--prefetch", type=int, default=2, help="--storage s3: loader prefetch depth compared with 0")
+    cost.add_arguments(parser)
     args = parser.parse_args(argv)
+    if args.cost:
+        log = functools.partial(print, file=sys.stderr, flush=True) if args.json else print  # progress, figures
+        with contextlib.ExitStack() as stack:
+            scratch = args.keep or Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="kforge-cost-")))
+            report = cost.run_cost(args, scratch, log) | {"machine": describe_machine()}
+        if args.json:
+            print(json.dumps(report, indent=1))
+        return
     if args.storage == "s3":
         from benchmarks.object_storage import lines
         from benchmarks.object_storage import run as run_storage

@@ -25,9 +25,10 @@ from omegaconf import MISSING, DictConfig, OmegaConf
 from omegaconf.errors import ConfigKeyError, MissingMandatoryValue, OmegaConfBaseException, ValidationError
 
 import configs
-from agents import PPOConfig
+from agents import PPOConfig, check_segmented
 from engine import KINETIX_SIZES
 from env import EnvParams, StaticEnvParams
+from pipeline.generation.compile_cache import DEFAULT_COMPILE_CACHE_DIR
 from pipeline.storage import (
     CONFIG_FILE,
     DEFAULT_HEARTBEAT_S,
@@ -90,6 +91,15 @@ class PPOSection:
 
 
 @dataclasses.dataclass
+class ExpertsConfig:
+    """How long each expert trains (docs/experts.md, adaptive budgets)."""
+
+    budget_mode: str = "fixed"  # fixed: every level trains split.expert_budget; adaptive: until its evaluations decide
+    solved_evaluations: int = 2  # adaptive: stop after this many consecutive evaluations with every episode successful
+    give_up_env_steps: int = 250_000  # adaptive: give up once trained this long without any successful episode
+
+
+@dataclasses.dataclass
 class CollectConfig:
     """The stored window of each expert."""
 
@@ -137,6 +147,14 @@ class TrackingConfig:
 
 
 @dataclasses.dataclass
+class CompileCacheConfig:
+    """JAX's persistent compilation cache of the workers (on a cluster: storage the nodes share); none of these change
+    the data."""
+
+    dir: str | None = DEFAULT_COMPILE_CACHE_DIR  # folder of compiled programs reused by workers and re-runs; null: off
+
+
+@dataclasses.dataclass
 class JobConfig:
     """A generation job: the split, how it is cut and trained, and where it runs and writes."""
 
@@ -147,14 +165,21 @@ class JobConfig:
     filter: FilterConfig = dataclasses.field(default_factory=FilterConfig)
     env: EnvSection = dataclasses.field(default_factory=EnvSection)
     ppo: PPOSection = dataclasses.field(default_factory=PPOSection)
+    experts: ExpertsConfig = dataclasses.field(default_factory=ExpertsConfig)
     collect: CollectConfig = dataclasses.field(default_factory=CollectConfig)
     ray: RayConfig = dataclasses.field(default_factory=RayConfig)
     lease: LeaseConfig = dataclasses.field(default_factory=LeaseConfig)
     tracking: TrackingConfig = dataclasses.field(default_factory=TrackingConfig)
+    compile_cache: CompileCacheConfig = dataclasses.field(default_factory=CompileCacheConfig)
 
 
-DATA_SECTIONS = ("split", "work", "filter", "env", "ppo", "collect")
+DATA_SECTIONS = ("split", "work", "filter", "env", "ppo", "experts", "collect")
 """Config sections that determine the dataset's content; a resumed job must agree on all of them."""
+
+FIXED_BUDGET_MODE, ADAPTIVE_BUDGET_MODE = "fixed", "adaptive"
+BUDGET_MODES = (FIXED_BUDGET_MODE, ADAPTIVE_BUDGET_MODE)
+"""Values of `experts.budget_mode`; a fixed-budget job's data definition leaves the `experts` section out (its data
+is the data of jobs made before the section existed)."""
 
 
 class ConfigError(ValueError):
@@ -374,12 +399,25 @@ def check_config(job: JobConfig) -> None:
             f"lease.heartbeat_s ({job.lease.heartbeat_s}) must be > 0 and below lease.stale_after_s "
             f"({job.lease.stale_after_s})"
         )
+    if job.experts.budget_mode not in BUDGET_MODES:
+        raise ConfigError(
+            f"experts.budget_mode must be one of {', '.join(BUDGET_MODES)}, got {job.experts.budget_mode!r}"
+        )
+    if job.experts.solved_evaluations < 1:
+        raise ConfigError(f"experts.solved_evaluations must be >= 1, got {job.experts.solved_evaluations}")
+    if job.experts.give_up_env_steps < 0:
+        raise ConfigError(f"experts.give_up_env_steps must be >= 0, got {job.experts.give_up_env_steps}")
     if job.tracking.wandb not in TRACKING_MODES:
         raise ConfigError(f"tracking.wandb must be one of {', '.join(TRACKING_MODES)}, got {job.tracking.wandb!r}")
     try:
-        ppo_config(job)
+        config = ppo_config(job)
     except ValueError as error:
         raise ConfigError(f"ppo / split.expert_budget: {error}") from error
+    if job.experts.budget_mode != FIXED_BUDGET_MODE:
+        try:
+            check_segmented(config)
+        except ValueError as error:
+            raise ConfigError(f"experts.budget_mode={job.experts.budget_mode}: {error}") from error
 
 
 def ppo_config(job: JobConfig) -> PPOConfig:
@@ -398,7 +436,8 @@ def environment(job: JobConfig) -> tuple[EnvParams, StaticEnvParams]:
 def data_definition(job: JobConfig) -> dict:
     """What defines the dataset's content: the config's data sections, and the engine's physics parameters (set by
     the code, not the config, so that data made by code with other physics is told apart)."""
-    data = {section: dataclasses.asdict(getattr(job, section)) for section in DATA_SECTIONS}
+    sections = [name for name in DATA_SECTIONS if name != "experts" or job.experts.budget_mode != FIXED_BUDGET_MODE]
+    data = {section: dataclasses.asdict(getattr(job, section)) for section in sections}
     return data | {"physics": dataclasses.asdict(environment(job)[0].sim)}
 
 

@@ -12,6 +12,7 @@ from __future__ import annotations
 import enum
 import functools
 import time
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -19,7 +20,7 @@ import numpy as np
 
 from agents import ProgressListener, collect_windows, train_levels, training_progress
 from env import FilterReason, Level, filter_levels, sample_levels
-from pipeline.generation.config import JobConfig, environment, ppo_config
+from pipeline.generation.config import FIXED_BUDGET_MODE, JobConfig, environment, ppo_config
 from pipeline.generation.devices import over_local_devices
 from pipeline.storage import BatchTrajectories, Outcome, learning_curves
 
@@ -61,6 +62,15 @@ def sample_batch(job: JobConfig, level_indices: np.ndarray) -> Level:
     return sample_levels(level_keys(job.split.seed, level_indices, KeyPurpose.SAMPLE), static)
 
 
+def sample_and_filter(job: JobConfig, indices: np.ndarray):
+    """(levels, the filter's verdicts, (L,) bool dropped by the filter) of a level batch."""
+    params, static = environment(job)
+    levels = sample_batch(job, indices)
+    filtered = jax.device_get(filter_levels(levels, params, static, noop_steps=job.filter.noop_steps))
+    dropped = ~filtered.keep if job.filter.enabled else np.zeros_like(filtered.keep)
+    return levels, filtered, dropped
+
+
 def run_level_batch(
     job: JobConfig, shard: int, batch: int, on_progress: ProgressListener | None = None
 ) -> BatchTrajectories:
@@ -73,10 +83,7 @@ def run_level_batch(
     clock = PhaseClock()
     params, static = environment(job)
     indices = batch_level_indices(job, shard, batch)
-    levels = sample_batch(job, indices)
-
-    filtered = jax.device_get(filter_levels(levels, params, static, noop_steps=job.filter.noop_steps))
-    dropped = ~filtered.keep if job.filter.enabled else np.zeros_like(filtered.keep)
+    levels, filtered, dropped = sample_and_filter(job, indices)
     clock.lap("sample_and_filter")
 
     config = ppo_config(job)
@@ -87,11 +94,48 @@ def run_level_batch(
         trained = jax.block_until_ready(train(levels, train_keys, params, token))
     listener(config.num_updates, config.num_updates)
     clock.lap("train")
+    metrics, selection = jax.device_get((trained.metrics, trained.selection))
+    experts = Experts(
+        params=trained.params,
+        success_rate=selection.at_best(selection.success_rate).astype(np.float32),
+        env_steps=selection.at_best(selection.env_steps).astype(np.int64),
+        trained_env_steps=np.full(indices.shape, config.env_steps_per_level, np.int64),
+        curve_success_rate=np.asarray(metrics.success_rate),
+        curve_mean_return=np.asarray(metrics.mean_return),
+    )
+    return batch_result(job, indices, levels, filtered, dropped, experts, clock, FIXED_BUDGET_MODE)
+
+
+class Experts(NamedTuple):
+    """The trained experts of a level batch (leading axis L), as the dataset records them."""
+
+    params: dict  # network parameters of each level's expert
+    success_rate: np.ndarray  # (L,) f32 [-] evaluation success rate of the expert
+    env_steps: np.ndarray  # (L,) int [env steps] the expert had trained for
+    trained_env_steps: np.ndarray  # (L,) int [env steps] the level's training used
+    curve_success_rate: np.ndarray  # (L, U) f32 per update (NaN: no episode ended or the update did not run)
+    curve_mean_return: np.ndarray  # (L, U) f32
+
+
+def batch_result(
+    job: JobConfig,
+    indices: np.ndarray,
+    levels: Level,
+    filtered,
+    dropped: np.ndarray,
+    experts: Experts,
+    clock: PhaseClock,
+    budget_mode: str,
+) -> BatchTrajectories:
+    """Roll out every expert of the batch for its window, and each level's outcome: the batch's data."""
+    params, static = environment(job)
+    config = ppo_config(job)
     collect = _collect_program(config, static, len(indices), job.collect.window_steps, job.collect.greedy)
-    window = collect(trained.params, levels, level_keys(job.split.seed, indices, KeyPurpose.COLLECT), params)
-    window, metrics, selection = jax.device_get((window, trained.metrics, trained.selection))
+    window = jax.device_get(
+        collect(experts.params, levels, level_keys(job.split.seed, indices, KeyPurpose.COLLECT), params)
+    )
     clock.lap("collect")
-    finite = _finite_per_level(trained.params) & _finite_per_level(window)
+    finite = _finite_per_level(experts.params) & _finite_per_level(window)
     in_split = indices < job.split.num_levels
     outcomes = [
         level_outcome(bool(in_split[i]), bool(dropped[i]), int(filtered.reason[i]), bool(finite[i]), bool(ok))
@@ -105,12 +149,12 @@ def run_level_batch(
         kept=np.array([outcome == Outcome.KEPT for outcome in outcomes]),
         level_id=indices,
         level_seed=np.full(indices.shape, job.split.seed),
-        expert_success_rate=selection.at_best(selection.success_rate).astype(np.float32),
-        expert_env_steps=selection.at_best(selection.env_steps).astype(np.int64),
+        expert_success_rate=experts.success_rate,
+        expert_env_steps=experts.env_steps,
+        trained_env_steps=experts.trained_env_steps,
+        budget_mode=budget_mode,
         outcome=outcomes,
-        curves=learning_curves(
-            np.asarray(metrics.success_rate), np.asarray(metrics.mean_return), config.steps_per_update
-        ),
+        curves=learning_curves(experts.curve_success_rate, experts.curve_mean_return, config.steps_per_update),
         seconds=clock.seconds,
     )
 
@@ -144,6 +188,10 @@ class PhaseClock:
 
     def __init__(self):
         self.seconds: dict[str, float] = {}
+        self._last = time.perf_counter()
+
+    def restart(self) -> None:
+        """Start the next phase now: the time since the last lap belongs to no phase."""
         self._last = time.perf_counter()
 
     def lap(self, phase: str) -> None:

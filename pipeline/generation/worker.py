@@ -5,11 +5,14 @@ from __future__ import annotations
 import functools
 import os
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
-from pipeline.generation.config import JobConfig
+from pipeline.generation.adaptive import adaptive_level_batches
+from pipeline.generation.compile_cache import enable_compile_cache
+from pipeline.generation.config import ADAPTIVE_BUDGET_MODE, JobConfig
 from pipeline.generation.level_batch import run_level_batch
-from pipeline.storage import PROVENANCE, clean_uncommitted, open_dataset, stage_level_batch
+from pipeline.storage import PROVENANCE, BatchTrajectories, clean_uncommitted, open_dataset, stage_level_batch
 
 FAULT_INJECTION_ENV = "KFORGE_WORKER_FAULT"
 """Fault drill: "N:PATH" makes the first worker that finds no file at PATH create it and kill its own process
@@ -33,6 +36,7 @@ class Worker:
     """Generates level batches for the shards the coordinator leases to it (one writer per shard)."""
 
     def __init__(self, job: JobConfig, name: str):
+        enable_compile_cache(job.compile_cache.dir)
         self._job = job
         self._name = name
         self._staged = 0
@@ -46,14 +50,8 @@ class Worker:
         # Safe under the job's lease on the dataset; the coordinator's shard lease makes this worker its only writer.
         clean_uncommitted(dataset.store, shard, _call(coordinator.job_id))
         summaries = []
-        while (batch := _call(coordinator.claim_batch, shard)) is not None:
-            started = time.perf_counter()
-            result = run_level_batch(
-                self._job,
-                shard,
-                batch,
-                on_progress=functools.partial(_notify, coordinator.report_training, shard, batch),
-            )
+        started = time.perf_counter()
+        for batch, result in self._batches(coordinator, shard):
             written = time.perf_counter()
             record = stage_level_batch(dataset, shard, batch, result)
             provenance = record.setdefault(PROVENANCE, {"seconds": {}})
@@ -72,7 +70,19 @@ class Worker:
                     "seconds": time.perf_counter() - started,
                 }
             )
+            started = time.perf_counter()
         return summaries
+
+    def _batches(self, coordinator, shard: int) -> Iterator[tuple[int, BatchTrajectories]]:
+        """(batch, its data) for each level batch of `shard` the coordinator hands out, as each is done."""
+        claim = functools.partial(_call, coordinator.claim_batch, shard)
+        if self._job.experts.budget_mode == ADAPTIVE_BUDGET_MODE:
+            report = functools.partial(_notify, coordinator.report_training, shard)
+            yield from adaptive_level_batches(self._job, shard, claim, on_progress=report)
+            return
+        while (batch := claim()) is not None:
+            report = functools.partial(_notify, coordinator.report_training, shard, batch)
+            yield batch, run_level_batch(self._job, shard, batch, on_progress=report)
 
 
 def _call(method, *args):

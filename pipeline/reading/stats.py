@@ -86,6 +86,7 @@ KEY_CONFIG_VALUES = (
     "split.seed",
     "split.num_levels",
     "split.expert_budget",
+    "experts.budget_mode",
     "scale",
     "work.levels_per_shard",
     "work.levels_per_batch",
@@ -124,6 +125,8 @@ class DatasetStats:
     curve_env_steps: list[int] | None  # x axis of the learning curves (None: the records have none)
     curves: np.ndarray  # (held levels, points) f32 [-] success-rate curves of every curve_stride-th trained level
     curve_stride: int  # curves are held for trained levels whose id is a multiple of this
+    budget_modes: collections.Counter  # experts.budget_mode -> level batches trained with it (None: not recorded)
+    trained_env_steps: np.ndarray  # (trained levels with it recorded,) int [env steps] each level's training used
     seconds: dict[str, float]  # summed wall time per phase and "total" over the timed level batches
     timed_batches: int  # level batches whose record holds provenance wall times
     workers: list[str]
@@ -207,6 +210,7 @@ def collect_stats(root: str | os.PathLike, show_progress: bool = True) -> Datase
         config = dict(attributes.get("data_config", {}))
     batches = [(shard, batch) for shard, found in all_committed(store).items() for batch in found]
     outcomes, rates, curves, curve_steps, workers = collections.Counter(), [], [], None, set()
+    budget_modes, trained_steps = collections.Counter(), []
     lengths = {outcome: collections.Counter() for outcome in WINDOW_OUTCOMES}
     curve_stride = -(-dataset.geometry.num_slots // MAX_CURVE_LEVELS)
     seconds, timed = collections.Counter(), 0
@@ -218,6 +222,7 @@ def collect_stats(root: str | os.PathLike, show_progress: bool = True) -> Datase
         sizes.update(record.object_sizes)
         shard_counts = shards[shard]
         shard_counts["batches"] += 1
+        budget_modes[record.budget_mode] += 1
         for level in record.levels:
             outcome = level.outcome
             if outcome == Outcome.PADDING:
@@ -232,6 +237,8 @@ def collect_stats(root: str | os.PathLike, show_progress: bool = True) -> Datase
                 lengths[outcome].update(level.episode_lengths)
             if trained:
                 rates.append(_float(level.expert_success_rate))
+                if level.trained_env_steps is not None:
+                    trained_steps.append(level.trained_env_steps)
                 if level.curve_success_rate is not None and level.level_id % curve_stride == 0:
                     curves.append([_float(value) for value in level.curve_success_rate])
         steps = None if record.curve_env_steps is None else list(record.curve_env_steps)
@@ -260,6 +267,8 @@ def collect_stats(root: str | os.PathLike, show_progress: bool = True) -> Datase
         curve_env_steps=curve_steps,
         curves=np.asarray(curves, np.float32).reshape(len(curves), len(curve_steps or ())),
         curve_stride=curve_stride,
+        budget_modes=budget_modes,
+        trained_env_steps=np.asarray(trained_steps, np.int64),
         seconds=dict(seconds),
         timed_batches=timed,
         workers=sorted(workers),
@@ -369,6 +378,10 @@ def card_markdown(stats: DatasetStats, figures: dict[str, str]) -> str:
         f"transition: {_per(stats.data_bytes, transitions)} of data arrays, {_per(stats.total_bytes, transitions)} "
         f"in total; per kept level: {_bytes(stats.total_bytes / kept) if kept else 'n/a'} in total.",
         "",
+        "## Expert budgets",
+        "",
+        *_budget_lines(stats),
+        "",
         "## Time",
         "",
     ]
@@ -381,6 +394,24 @@ def card_markdown(stats: DatasetStats, figures: dict[str, str]) -> str:
     lines += ["", f"Every key with its type and meaning: `{CONFIG_FILE}` in the dataset directory.", "", "## Plots", ""]
     lines += [f"![{title}]({path})" for title, path in figures.items()]
     return "\n".join(lines) + "\n"
+
+
+def _budget_lines(stats: DatasetStats) -> list[str]:
+    """Budget modes of the level batches, and the env steps their experts trained."""
+    modes = ", ".join(
+        f"{mode or 'not recorded (fixed, before budget modes)'}: {count:,}"
+        for mode, count in sorted(stats.budget_modes.items(), key=lambda item: str(item[0]))
+    )
+    lines = [f"Level batches by `experts.budget_mode`: {modes or 'none committed'}."]
+    steps, budget = stats.trained_env_steps, _config_value(stats.config, "split.expert_budget")
+    if len(steps):
+        share = f", {_share(steps.mean(), budget)} of the budget" if budget else ""
+        lines += [
+            "",
+            f"Env steps trained per trained level: mean {steps.mean():,.0f}{share} (min {steps.min():,}, max "
+            f"{steps.max():,}), {steps.sum():,} in all over {len(steps):,} levels.",
+        ]
+    return lines
 
 
 def _time_lines(stats: DatasetStats) -> list[str]:
@@ -401,6 +432,8 @@ def _time_lines(stats: DatasetStats) -> list[str]:
     train = seconds.get("train", 0.0)
     trained_steps = (
         stats.timed_batches * stats.levels_per_batch * (_config_value(stats.config, "split.expert_budget") or 0)
+        if None in stats.budget_modes or "fixed" in stats.budget_modes
+        else int(stats.trained_env_steps.sum())
     )
     lines += [
         "",

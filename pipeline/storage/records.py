@@ -69,6 +69,7 @@ class LevelRecord:
     expert_success_rate: float | None  # [-] None: no evaluation episode ended (a NaN)
     episode_lengths: tuple[int, ...]  # [env steps] of the completed episodes of the window
     expert_env_steps: int | None = None
+    trained_env_steps: int | None = None  # [env steps] the level's training used (None: records made before budgets)
     curve_success_rate: tuple[float | None, ...] | None = None  # [-] per curve point (None: NaN)
     curve_mean_return: tuple[float | None, ...] | None = None
 
@@ -88,6 +89,8 @@ class LevelRecord:
         }
         if self.expert_env_steps is not None:
             data["expert_env_steps"] = self.expert_env_steps
+        if self.trained_env_steps is not None:
+            data["trained_env_steps"] = self.trained_env_steps
         if self.curve_success_rate is not None:
             data["learning_curve"] = {
                 "success_rate": list(self.curve_success_rate),
@@ -110,7 +113,8 @@ class LevelRecord:
                 level_seed=int(data["level_seed"]),
                 expert_success_rate=None if rate is None else float(rate),
                 episode_lengths=tuple(int(length) for length in data["episode_lengths"]),
-                expert_env_steps=None if data.get("expert_env_steps") is None else int(data["expert_env_steps"]),
+                expert_env_steps=_optional_int(data.get("expert_env_steps")),
+                trained_env_steps=_optional_int(data.get("trained_env_steps")),
                 curve_success_rate=None if curve is None else tuple(curve["success_rate"]),
                 curve_mean_return=None if curve is None else tuple(curve["mean_return"]),
             )
@@ -153,6 +157,7 @@ class BatchRecord:
     levels: tuple[LevelRecord, ...]
     arrays: Mapping[str, ArrayEntry]  # field name -> its shard object
     curve_env_steps: tuple[int, ...] | None = None  # x axis of the levels' learning curves
+    budget_mode: str | None = None  # experts.budget_mode the batch was trained with (None: records made before it)
     provenance: Mapping | None = None  # wall times and worker: not part of the data
 
     def to_json(self) -> dict:
@@ -167,6 +172,8 @@ class BatchRecord:
         }
         if self.curve_env_steps is not None:
             data["curve_env_steps"] = list(self.curve_env_steps)
+        if self.budget_mode is not None:
+            data["budget_mode"] = self.budget_mode
         if self.provenance is not None:
             data[PROVENANCE] = dict(self.provenance)
         return data
@@ -186,6 +193,7 @@ class BatchRecord:
                 ),
                 arrays={name: ArrayEntry.from_json(entry) for name, entry in data["arrays"].items()},
                 curve_env_steps=None if steps is None else tuple(int(step) for step in steps),
+                budget_mode=None if data.get("budget_mode") is None else str(data["budget_mode"]),
                 provenance=data.get(PROVENANCE),
             )
         except KeyError as error:
@@ -201,3 +209,7 @@ class BatchRecord:
     def object_sizes(self) -> dict[str, int | None]:
         """Key -> recorded byte size (None where the record predates sizes) of each data object it commits."""
         return {entry.file: entry.size for entry in self.arrays.values() if entry.file is not None}
+
+
+def _optional_int(value) -> int | None:
+    return None if value is None else int(value)

@@ -53,6 +53,8 @@ class BatchTrajectories:
     expert_success_rate: np.ndarray  # (L,) f32 [-] success rate of the level's expert in evaluation
     outcome: Sequence[str]  # (L,) KEPT, or why the level was not kept (e.g. "filtered:trivial", "unsolved")
     expert_env_steps: np.ndarray | None = None  # (L,) int: env steps the selected expert had trained for
+    trained_env_steps: np.ndarray | None = None  # (L,) int: env steps each level's training used
+    budget_mode: str | None = None  # how long experts trained: "fixed" (the whole budget) or "adaptive"
     curves: LearningCurves | None = None  # the experts' training curves, for dataset cards
     seconds: dict[str, float] = dataclasses.field(default_factory=dict)  # wall time per phase (not data)
 
@@ -224,6 +226,7 @@ def stage_level_batch(dataset: Dataset, shard: int, batch: int, result: BatchTra
             expert_success_rate=_json_number(result.expert_success_rate[i]),
             episode_lengths=tuple(episode_lengths(np.asarray(result.done[i])).tolist()),
             expert_env_steps=None if result.expert_env_steps is None else int(result.expert_env_steps[i]),
+            trained_env_steps=None if result.trained_env_steps is None else int(result.trained_env_steps[i]),
             curve_success_rate=None if curves is None else tuple(_json_number(v) for v in curves.success_rate[i]),
             curve_mean_return=None if curves is None else tuple(_json_number(v) for v in curves.mean_return[i]),
         )
@@ -238,6 +241,7 @@ def stage_level_batch(dataset: Dataset, shard: int, batch: int, result: BatchTra
         levels=levels,
         arrays=files,
         curve_env_steps=None if curves is None else tuple(curves.env_steps.tolist()),
+        budget_mode=result.budget_mode,
         provenance={"seconds": dict(result.seconds)} if result.seconds else None,
     )
     return record.to_json()

@@ -36,8 +36,8 @@ TINY_PPO = {"num_envs": 8, "num_steps": 32, "select_every_updates": 128}
 """The only PPO keys the tiny scale changes (documented in configs/scales/tiny.yaml)."""
 
 LOCAL_LEVELS = 64
-DATA_SETTINGS = ("filter", "env", "collect")
-"""Sections a scale never changes: the split's filter, env and collection settings."""
+DATA_SETTINGS = ("filter", "env", "experts", "collect")
+"""Sections a scale never changes: the split's filter, env, expert budget mode and collection settings."""
 
 
 def split_file(name: str) -> Path:

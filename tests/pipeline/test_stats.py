@@ -143,18 +143,23 @@ def test_plots_are_pngs_with_content(card):
 
 
 def test_records_without_timings_or_curves_still_give_a_card(dataset, tmp_path):
-    """Records of older datasets lack provenance and learning curves; the counts remain and the plots say so."""
+    """Records of older datasets lack provenance, learning curves and budget modes; the counts remain and the card
+    and plots say so."""
     copy = tmp_path / "dataset"
     shutil.copytree(dataset, copy)
     for path in (copy / "manifest").rglob("*.json"):
         record = json.loads(path.read_text())
         record.pop("provenance")
         record.pop("curve_env_steps")
+        record.pop("budget_mode")
         for level in record["levels"]:
             level.pop("learning_curve")
+            level.pop("trained_env_steps")
         path.write_text(json.dumps(record))
     text = Path(write_card(collect_stats(copy, show_progress=False), tmp_path / "out")).read_text()
     assert "No level batch records wall times" in text
+    budgets = _section(text, "Expert budgets")
+    assert "not recorded (fixed, before budget modes)" in budgets and "Env steps trained" not in budgets
     rows = _table(text, "Levels")
     assert {label: int(_number(cells[0])) for label, cells in rows.items()} == expected_counts(dataset)
     assert all((tmp_path / "out" / FIGURES_DIR / f"{stem}.png").is_file() for stem in PLOTS)
@@ -166,3 +171,12 @@ def test_a_directory_that_is_not_a_dataset_is_refused(tmp_path, capsys):
     assert exit_info.value.code == 1
     assert re.search(rf"error: {re.escape(str(tmp_path))}: not a dataset", capsys.readouterr().err)
     assert not (tmp_path / CARD_FILE).exists()
+
+
+def test_card_shows_the_budget_mode_and_the_env_steps_each_expert_trained(dataset, card):
+    records = list(iter_records(dataset))
+    budgets = _section(card[0], "Expert budgets")
+    assert f"Level batches by `experts.budget_mode`: fixed: {len(records)}." in budgets
+    trained = [level.trained_env_steps for r in records for level in r.levels if level.outcome.is_trained]
+    assert set(trained) == {256}  # the fixed mode trains every level for the split's budget
+    assert f"mean 256, 100.0 % of the budget (min 256, max 256), {256 * len(trained):,} in all" in budgets

@@ -1,0 +1,253 @@
+"""Adaptive budgets (`experts.budget_mode: adaptive`): a shard's levels stream through the slots of one training
+program, and each level trains only until its evaluations decide.
+
+The program trains `work.levels_per_batch` slots together for one evaluation period at a time
+(`agents.train_segments`). After each period a level stops when its last `experts.solved_evaluations` evaluations
+all succeeded in every episode (solved), when it has trained `experts.give_up_env_steps` without one successful
+episode in training or evaluation (given up), or when its budget is spent; its slot then takes the next level of the
+shard, claiming the shard's next level batch when needed, so the program stays full. Levels the filter drops take
+no slot. A level batch is rolled out and handed back once all its levels are done. A level's training depends only
+on its key (level index and split seed) and the config, not on its slot, the levels beside it or when it ran.
+"""
+
+from __future__ import annotations
+
+import collections
+import dataclasses
+import enum
+import math
+import time
+from collections.abc import Callable, Iterator
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from agents import PPOConfig, check_segmented, put_slot, start_level, train_segments
+from pipeline.generation.config import ADAPTIVE_BUDGET_MODE, JobConfig, environment, ppo_config
+from pipeline.generation.level_batch import (
+    Experts,
+    KeyPurpose,
+    PhaseClock,
+    batch_level_indices,
+    batch_result,
+    level_key,
+    sample_and_filter,
+)
+from pipeline.storage import BatchTrajectories
+
+
+class Verdict(enum.Enum):
+    """Why a level's training stopped."""
+
+    SOLVED = "solved"  # its last evaluations succeeded in every episode
+    GAVE_UP = "gave_up"  # no successful episode by the give-up point
+    BUDGET_SPENT = "budget_spent"  # trained the whole budget
+
+
+@dataclasses.dataclass(frozen=True)
+class StopRule:
+    """When a level stops training, in evaluations (one per segment of `select_every_updates` updates)."""
+
+    solved_evaluations: int  # consecutive evaluations with every episode successful
+    give_up_evaluations: int  # evaluations without any successful episode after which the level gives up
+    num_evaluations: int  # evaluations of the whole budget
+
+    @classmethod
+    def of(cls, job: JobConfig, config: PPOConfig) -> StopRule:
+        segment_steps = config.select_every_updates * config.steps_per_update
+        return cls(
+            solved_evaluations=job.experts.solved_evaluations,
+            give_up_evaluations=math.ceil(job.experts.give_up_env_steps / segment_steps),
+            num_evaluations=config.num_updates // config.select_every_updates,
+        )
+
+    def verdict(self, success_rates: list[float], succeeded_in_training: bool) -> Verdict | None:
+        """The verdict after the evaluations so far (`success_rates`), or None to train on."""
+        done = len(success_rates)
+        recent = success_rates[-self.solved_evaluations :]
+        if done >= self.solved_evaluations and all(rate >= 1.0 for rate in recent):
+            return Verdict.SOLVED
+        if done >= self.num_evaluations:
+            return Verdict.BUDGET_SPENT
+        if done >= self.give_up_evaluations and not succeeded_in_training and max(success_rates) <= 0.0:
+            return Verdict.GAVE_UP
+        return None
+
+
+@dataclasses.dataclass
+class _LevelRun:
+    """A level in a slot: where it belongs and what its evaluations said so far."""
+
+    batch: int
+    position: int  # in its level batch
+    success_rates: list[float] = dataclasses.field(default_factory=list)
+    succeeded_in_training: bool = False
+    curve_success_rate: list[np.ndarray] = dataclasses.field(default_factory=list)
+    curve_mean_return: list[np.ndarray] = dataclasses.field(default_factory=list)
+
+
+@dataclasses.dataclass
+class _BatchWork:
+    """A claimed level batch while its levels train."""
+
+    batch: int
+    indices: np.ndarray
+    levels: object  # Level with leading axis L
+    filtered: object
+    dropped: np.ndarray
+    clock: PhaseClock
+    params: list  # per position: the expert's parameters (None until done)
+    success_rate: np.ndarray
+    env_steps: np.ndarray
+    trained_env_steps: np.ndarray
+    curve_success_rate: np.ndarray
+    curve_mean_return: np.ndarray
+    train_seconds: float = 0.0
+
+    @property
+    def pending(self) -> int:
+        return sum(params is None for params in self.params)
+
+
+def adaptive_level_batches(
+    job: JobConfig,
+    shard: int,
+    claim: Callable[[], int | None],
+    on_progress: Callable[[int, int, int], None] | None = None,
+) -> Iterator[tuple[int, BatchTrajectories]]:
+    """(batch, its data) for every level batch of `shard` that `claim` hands out (None: no more), each as soon as
+    all its levels are trained and rolled out. `on_progress(batch, updates done, updates of the whole budget)` is
+    told after every evaluation period, summed over the batch's levels."""
+    config = ppo_config(job)
+    check_segmented(config)
+    env_params, static = environment(job)
+    rule = StopRule.of(job, config)
+    num_slots = job.work.levels_per_batch
+    segment_steps = config.select_every_updates * config.steps_per_update
+    works: dict[int, _BatchWork] = {}
+    queue: collections.deque[_LevelRun] = collections.deque()
+    slots: list[_LevelRun | None] = [None] * num_slots
+    slot_levels = trainings = None
+    claiming = True
+
+    def train_key(work: _BatchWork, position: int):
+        return level_key(job.split.seed, int(work.indices[position]), KeyPurpose.TRAIN)
+
+    def claim_work() -> list[tuple[int, BatchTrajectories]]:
+        """Claim and prepare the next level batch: its trainable levels join the queue; the rest get fresh
+        parameters (they are never kept). Returns it at once if it has nothing to train."""
+        nonlocal claiming
+        batch = claim()
+        if batch is None:
+            claiming = False
+            return []
+        clock = PhaseClock()
+        indices = batch_level_indices(job, shard, batch)
+        levels, filtered, dropped = sample_and_filter(job, indices)
+        count, curve = len(indices), (len(indices), config.num_updates)
+        work = _BatchWork(
+            batch, indices, levels, filtered, dropped, clock, [None] * count,
+            np.full(count, np.nan, np.float32), np.zeros(count, np.int64), np.zeros(count, np.int64),
+            np.full(curve, np.nan, np.float32), np.full(curve, np.nan, np.float32),
+        )  # fmt: skip
+        clock.lap("sample_and_filter")
+        works[batch] = work
+        for position in range(count):
+            if dropped[position] or indices[position] >= job.split.num_levels:
+                fresh = start_level(_level_at(levels, position), train_key(work, position), config, static)
+                work.params[position] = jax.device_get(fresh.best.params)
+            else:
+                queue.append(_LevelRun(batch, position))
+        return [finish(work)] if work.pending == 0 else []
+
+    def finish(work: _BatchWork) -> tuple[int, BatchTrajectories]:
+        del works[work.batch]
+        work.clock.seconds["train"] = work.train_seconds  # its share of the segments its levels trained in
+        work.clock.restart()
+        experts = Experts(
+            params=jax.tree.map(lambda *leaves: jnp.stack(leaves), *work.params),
+            success_rate=work.success_rate,
+            env_steps=work.env_steps,
+            trained_env_steps=work.trained_env_steps,
+            curve_success_rate=work.curve_success_rate,
+            curve_mean_return=work.curve_mean_return,
+        )
+        return work.batch, batch_result(
+            job, work.indices, work.levels, work.filtered, work.dropped, experts, work.clock, ADAPTIVE_BUDGET_MODE
+        )
+
+    def done(slot: int, run: _LevelRun) -> list[tuple[int, BatchTrajectories]]:
+        """Record the level of `slot`, which has stopped, in its batch; the batch if it is complete."""
+        work = works[run.batch]
+        best = jax.device_get(jax.tree.map(lambda x: x[slot], trainings.best))
+        trained = len(run.success_rates)
+        work.params[run.position] = best.params
+        work.success_rate[run.position] = run.success_rates[int(best.index)]
+        work.env_steps[run.position] = (int(best.index) + 1) * segment_steps
+        work.trained_env_steps[run.position] = trained * segment_steps
+        updates = trained * config.select_every_updates
+        work.curve_success_rate[run.position, :updates] = np.concatenate(run.curve_success_rate)
+        work.curve_mean_return[run.position, :updates] = np.concatenate(run.curve_mean_return)
+        return [finish(work)] if work.pending == 0 else []
+
+    while True:
+        ready = []
+        for slot in range(num_slots):
+            if slots[slot] is not None:
+                continue
+            while not queue and claiming:
+                ready += claim_work()
+            if not queue:
+                break
+            run = queue.popleft()
+            work = works[run.batch]
+            level = _level_at(work.levels, run.position)
+            training = start_level(level, train_key(work, run.position), config, static)
+            if trainings is None:  # the first level fills every slot; the others take theirs as they come
+                slot_levels = jax.tree.map(lambda x: jnp.stack([x] * num_slots), level)
+                trainings = jax.tree.map(lambda x: jnp.stack([x] * num_slots), training)
+            else:
+                slot_levels = put_slot(slot_levels, jnp.int32(slot), level)
+                trainings = put_slot(trainings, jnp.int32(slot), training)
+            slots[slot] = run
+        yield from ready
+        occupied = [slot for slot in range(num_slots) if slots[slot] is not None]
+        if not occupied:
+            return
+        started = time.perf_counter()
+        trainings, output = train_segments(slot_levels, trainings, config, env_params, static)
+        output = jax.device_get(output)
+        seconds = time.perf_counter() - started
+        ready = []
+        for slot in occupied:
+            run = slots[slot]
+            works[run.batch].train_seconds += seconds / len(occupied)
+            run.success_rates.append(float(output.success_rate[slot]))
+            rates = np.asarray(output.metrics.success_rate[slot])
+            run.succeeded_in_training |= bool(np.nanmax(rates, initial=0.0) > 0.0)
+            run.curve_success_rate.append(rates)
+            run.curve_mean_return.append(np.asarray(output.metrics.mean_return[slot]))
+            if rule.verdict(run.success_rates, run.succeeded_in_training) is not None:
+                slots[slot] = None
+                ready += done(slot, run)
+        if on_progress is not None:
+            _report(on_progress, works, slots, config)
+        yield from ready
+
+
+def _level_at(levels, position: int):
+    return jax.tree.map(lambda x: x[position], levels)
+
+
+def _report(on_progress, works: dict[int, _BatchWork], slots: list[_LevelRun | None], config: PPOConfig) -> None:
+    """Updates done per batch in progress: a level that is done counts its whole budget."""
+    running = {(run.batch, run.position): len(run.success_rates) for run in slots if run is not None}
+    for batch, work in works.items():
+        done = sum(
+            config.num_updates
+            if params is not None
+            else running.get((batch, position), 0) * config.select_every_updates
+            for position, params in enumerate(work.params)
+        )
+        on_progress(batch, done, len(work.params) * config.num_updates)

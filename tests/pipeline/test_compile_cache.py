@@ -1,0 +1,50 @@
+"""JAX's persistent compilation cache (`compile_cache.dir`): a re-run loads the workers' programs, same data."""
+
+import os
+import subprocess
+import sys
+
+import pytest
+from pipeline_test_helpers import tiny_job
+
+from pipeline.generation.compile_cache import cache_folder
+from pipeline.generation.config import to_yaml
+from pipeline.storage import iter_records
+
+JOB_TIMEOUT_SECONDS = 1800  # [s] a busy 2-core machine compiles slowly
+CACHE_ENTRY_SUFFIX = "-cache"
+"""Name ending of JAX's cache entries (one per compiled program)."""
+
+
+def run_job_in_subprocess(tmp_path, name: str, *overrides) -> list:
+    """`kforge run` of a two-level job in a fresh process; the data digests of its commit records."""
+    output = tmp_path / name
+    config_file = tmp_path / f"{name}.yaml"
+    job = tiny_job(output, "split.num_levels=2", "work.levels_per_shard=2", *overrides)
+    config_file.write_text(to_yaml(job))
+    command = [sys.executable, "-m", "pipeline", "run", str(config_file), "--no-progress"]
+    environment = {**os.environ, "RAY_AUTH_MODE": "disabled"}
+    subprocess.run(command, check=True, capture_output=True, timeout=JOB_TIMEOUT_SECONDS, env=environment)
+    return sorted((r.global_batch, n, e.data_sha256) for r in iter_records(output) for n, e in r.arrays.items())
+
+
+def entries(folder) -> set[str]:
+    return {path.name for path in folder.rglob(f"*{CACHE_ENTRY_SUFFIX}")}
+
+
+@pytest.mark.slow
+def test_a_second_run_finds_every_program_in_the_cache_and_writes_the_same_data(tmp_path):
+    cache = tmp_path / "jax-cache"
+    first = run_job_in_subprocess(tmp_path, "first", f"compile_cache.dir={cache}")
+    cached = entries(cache)
+    assert cached, "the first run stored no compiled program"
+    second = run_job_in_subprocess(tmp_path, "second", f"compile_cache.dir={cache}")
+    assert entries(cache) == cached  # nothing compiled anew: every program was loaded
+    assert second == first and first
+
+
+def test_the_cache_folder_expands_the_home_directory_and_null_turns_it_off(monkeypatch, tmp_path):
+    monkeypatch.setenv("HOME", str(tmp_path))
+    assert cache_folder("~/.cache/kforge/jax") == tmp_path / ".cache" / "kforge" / "jax"
+    assert cache_folder(None) is None
+    assert tiny_job(tmp_path / "d").compile_cache.dir == "~/.cache/kforge/jax"
