@@ -92,7 +92,10 @@ def test_every_package_names_its_public_surface(package):
     assert ast.get_docstring(tree), f"{init.relative_to(REPO)} has no docstring naming its public surface"
 
 
-@pytest.mark.parametrize("arguments", [["--help"], ["verify", "--help"], ["run", "--help"]])
+@pytest.mark.parametrize(
+    "arguments",
+    [["--help"], ["verify", "--help"], ["run", "--help"], ["bc", "train", "--help"], ["evaluate", "--help"]],
+)
 def test_the_command_line_answers_help_without_jax_or_ray(arguments):
     probe = (
         "import sys\nfrom pipeline.cli import main\n"
