@@ -172,9 +172,11 @@ TINY_JOB = [
     "ppo.select_episodes=2",
     "collect.window_steps=24",
     "filter.noop_steps=24",
+    "compile_cache.dir=null",
 ]
 """A job small enough for tests: 6 levels in 2 shards of 2 level batches; every test uses these shapes, so the
-training and rollout programs compile once per test session."""
+training and rollout programs compile once per test session. No persistent compilation cache: the suite writes
+nothing into the user's cache, and the tests that interrupt a job keep the time it takes to compile as their window."""
 
 
 def tiny_job(output_dir, *extra):

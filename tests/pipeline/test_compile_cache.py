@@ -8,7 +8,7 @@ import pytest
 from pipeline_test_helpers import tiny_job
 
 from pipeline.generation.compile_cache import cache_folder
-from pipeline.generation.config import to_yaml
+from pipeline.generation.config import load_config, to_yaml
 from pipeline.storage import iter_records
 
 JOB_TIMEOUT_SECONDS = 1800  # [s] a busy 2-core machine compiles slowly
@@ -47,4 +47,4 @@ def test_the_cache_folder_expands_the_home_directory_and_null_turns_it_off(monke
     monkeypatch.setenv("HOME", str(tmp_path))
     assert cache_folder("~/.cache/kforge/jax") == tmp_path / ".cache" / "kforge" / "jax"
     assert cache_folder(None) is None
-    assert tiny_job(tmp_path / "d").compile_cache.dir == "~/.cache/kforge/jax"
+    assert load_config(None, ["split.name=test/s", f"output_dir={tmp_path}"]).compile_cache.dir == "~/.cache/kforge/jax"
