@@ -253,6 +253,12 @@ def _worker_started(session: int) -> bool:
     return False
 
 
+def _as_a_terminal_job() -> None:
+    """Default SIGINT handling in the job, as a shell gives a foreground command: an ignored SIGINT is inherited
+    across exec, so a test run started in the background (where shells ignore SIGINT) would pass it on."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 @pytest.mark.parametrize("whom", ["SIGINT to the terminal's process group", "SIGTERM to the driver"])
 def test_a_signal_ends_the_job_with_one_line_naming_what_was_committed_and_how_to_resume(whom, tmp_path):
     output = tmp_path / "dataset"
@@ -266,6 +272,7 @@ def test_a_signal_ends_the_job_with_one_line_naming_what_was_committed_and_how_t
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         env={**os.environ, "RAY_AUTH_MODE": "disabled"},
+        preexec_fn=_as_a_terminal_job,
     )
     try:
         deadline = time.monotonic() + JOB_TIMEOUT_SECONDS
