@@ -35,7 +35,7 @@ from pipeline.generation.level_batch import (
     sample_batch,
 )
 from pipeline.generation.run import DatasetDamaged, JobInterrupted, prepare_output, run_job, summarize
-from pipeline.generation.tracking import start_tracking
+from pipeline.generation.tracking import start_tracking, tracking_mode
 from pipeline.generation.worker import Worker
 
 __all__ = [
@@ -73,4 +73,5 @@ __all__ = [
     "summarize",
     "to_schema_object",
     "to_yaml",
+    "tracking_mode",
 ]

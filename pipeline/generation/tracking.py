@@ -44,8 +44,9 @@ KNOWN_OUTCOMES = (KEPT, UNSOLVED, FAILED) + tuple(
 """Outcomes of levels in the split, always logged (as 0 when absent) so every chart has a point per step."""
 
 
-def tracking_mode(job: JobConfig) -> str:
-    """The run's wandb mode: `WANDB_MODE` if set, else `tracking.wandb` (validated with the config)."""
+def tracking_mode(job) -> str:
+    """The run's wandb mode: `WANDB_MODE` if set, else the config's `tracking.wandb` (a job's or a BC run's,
+    validated with the config)."""
     mode = os.environ.get(WANDB_MODE_ENV) or job.tracking.wandb
     if mode not in TRACKING_MODES:
         raise ConfigError(f"environment variable {WANDB_MODE_ENV}={mode!r} must be one of {', '.join(TRACKING_MODES)}")

@@ -29,7 +29,7 @@ from tqdm import tqdm
 
 from agents import ImitationTerms, NetworkConfig, imitation_terms, make_bc_network
 from env import EnvState, StaticEnvParams, observation_shape, observe
-from pipeline.generation import ConfigError, to_schema_object, to_yaml
+from pipeline.generation import ConfigError, to_schema_object, to_yaml, tracking_mode
 from pipeline.learning.checkpoints import checkpoint_steps, restore_checkpoint, save_checkpoint
 from pipeline.learning.config import RUN_CONFIG_FILE, BCConfig, changed_keys, network_config
 from pipeline.learning.data import kept_levels, validation_split
@@ -44,7 +44,6 @@ SUMMARY_FILE = "summary.json"
 """The finished run's closing figures."""
 DATA_AXIS = "data"
 """Mesh axis over which a batch's trajectories are split."""
-WANDB_MODE_ENV = "WANDB_MODE"
 BYTES_PER_GIB = 1 << 30
 
 
@@ -165,16 +164,9 @@ class TrainSummary:
     transitions_per_s: float  # trained transitions per second of wall time
 
 
-def _tracking_mode(config: BCConfig) -> str:
-    mode = os.environ.get(WANDB_MODE_ENV) or config.tracking.wandb
-    if mode not in ("offline", "online", "disabled"):
-        raise ConfigError(f"environment variable {WANDB_MODE_ENV}={mode!r} must be offline, online or disabled")
-    return mode
-
-
 def _start_wandb(config: BCConfig, run_dir: Path):
     """A wandb run of the BC run (None when disabled); its files under <run>/logs."""
-    mode = _tracking_mode(config)
+    mode = tracking_mode(config)
     if mode == "disabled":
         return None
     import wandb
