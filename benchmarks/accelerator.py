@@ -10,7 +10,10 @@ Measures, on the default JAX backend (a GPU or TPU when one is installed, else t
   a few updates), and Kinetix's own PPO in the same run when `--kinetix-venv` holds kinetix-env (see
   benchmarks/env.py; it is not built here, so that the run stays unattended and offline);
 - pipeline: a tiny `kforge run` end to end (Ray, one worker with the accelerator, zarr output), its wall time and
-  level outcomes.
+  level outcomes;
+- determinism: an engine rollout with random actions run twice on the accelerator (bitwise equal?) and once on the
+  CPU (largest difference), with XLA's deterministic GPU ops off and on (engine/determinism.py), and the tiny job
+  run twice (byte-identical data? its workers turn the deterministic ops on).
 
 It prints one JSON document with every figure and, under "targets", each target of the accelerator issue checked
 (null where a figure is missing): engine >= 2x Jax2D in the same run and >= Jax2D's published peaks, PPO >= 5x
@@ -27,15 +30,22 @@ import argparse
 import contextlib
 import dataclasses
 import functools
+import hashlib
 import json
 import os
+import subprocess
 import sys
 import tempfile
 import time
 import traceback
 from pathlib import Path
 
-import jax
+# The report's own measurements and the pipeline section's Ray worker share one accelerator: JAX must allocate
+# as it goes rather than take most of the device's memory at start.
+os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
+
+import jax  # noqa: E402
+import numpy as np  # noqa: E402
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
@@ -46,7 +56,7 @@ ENGINE_SPEEDUP_TARGET = 2.0
 """Engine steps/s at least this many times Jax2D's, measured in the same run."""
 PPO_SPEEDUP_TARGET = 5.0
 """PPO training env steps/s at least this many times Kinetix's PPO, measured in the same run."""
-SECTION_SHARES = {"engine": 0.45, "env": 0.15, "ppo": 0.25, "pipeline": 0.15}
+SECTION_SHARES = {"engine": 0.45, "env": 0.15, "ppo": 0.25, "pipeline": 0.1, "determinism": 0.05}
 """Share of the time budget by which each section's measurements must have started (cumulative, in this order)."""
 
 
@@ -62,6 +72,8 @@ class Plan:
     ppo_overrides: tuple[str, ...]  # PPOConfig key=value overrides of configs/ppo_specialist.yaml
     pipeline_overrides: tuple[str, ...]  # job config overrides of the tiny pipeline run
     repeats: int
+    determinism_batch: int  # scenes of the repeated engine rollout
+    determinism_steps: int  # its physics steps
 
 
 FULL = Plan(
@@ -75,11 +87,13 @@ FULL = Plan(
     ppo_overrides=(),
     pipeline_overrides=(
         "split.num_levels=16",
-        "split.expert_budget=65536",
+        "split.expert_budget=64000",  # a multiple of num_envs * num_steps = 16 * 125
         "work.levels_per_shard=16",
         "work.levels_per_batch=16",
     ),
     repeats=2,
+    determinism_batch=1024,
+    determinism_steps=100,
 )
 QUICK = Plan(
     sizes=("s",),
@@ -103,25 +117,35 @@ QUICK = Plan(
         "collect.window_steps=8",
     ),
     repeats=1,
+    determinism_batch=8,
+    determinism_steps=4,
 )
 
 
 class Budget:
     """Section deadlines from a total number of seconds and `SECTION_SHARES`."""
 
-    def __init__(self, seconds: float):
+    def __init__(self, seconds: float, sections=tuple(SECTION_SHARES)):
         self._start = time.monotonic()
+        total_share = sum(SECTION_SHARES[section] for section in sections)
         self._deadlines, elapsed_share = {}, 0.0
-        for section, share in SECTION_SHARES.items():
-            elapsed_share += share
-            self._deadlines[section] = seconds * elapsed_share
+        for section in SECTION_SHARES:
+            if section in sections:
+                elapsed_share += SECTION_SHARES[section] / total_share
+                self._deadlines[section] = seconds * elapsed_share
+
+    def enabled(self, section: str) -> bool:
+        return section in self._deadlines
 
     def allows(self, section: str) -> bool:
-        return time.monotonic() - self._start < self._deadlines[section]
+        """False for a section not asked for, or one whose share of the budget has passed."""
+        return section in self._deadlines and time.monotonic() - self._start < self._deadlines[section]
 
 
 def _attempt(report: dict, section: str, key: str, budget: Budget, measure, log):
     """Run `measure()` into report[section][key] unless the section's time is up; errors are recorded, not raised."""
+    if not budget.enabled(section):
+        return None
     entries = report.setdefault(section, {})
     if not budget.allows(section):
         entries[key] = {"skipped": "time budget"}
@@ -150,16 +174,24 @@ def measure_engine(size: str, batch: int, plan: Plan, with_jax2d: bool) -> dict:
     from benchmarks.engine import compile_rollout_ours
     from benchmarks.timing import best_time, best_times_interleaved
 
+    started = time.perf_counter()
     calls = [compile_rollout_ours(size, batch, plan.engine_steps)]
+    compile_seconds = [time.perf_counter() - started]
     if with_jax2d:
+        started = time.perf_counter()
         calls.append(jax2d_baseline.compile_rollout(size, batch, plan.engine_steps)[0])
+        compile_seconds.append(time.perf_counter() - started)
         seconds = best_times_interleaved(calls, plan.repeats)
     else:
         seconds = [best_time(calls[0], plan.repeats)[0]]
     rates = [batch * plan.engine_steps / s for s in seconds]
-    result = {"ours_steps_per_second": rates[0]}
+    result = {"ours_steps_per_second": rates[0], "ours_compile_seconds": compile_seconds[0]}
     if with_jax2d:
-        result |= {"jax2d_steps_per_second": rates[1], "speedup_vs_jax2d": rates[0] / rates[1]}
+        result |= {
+            "jax2d_steps_per_second": rates[1],
+            "jax2d_compile_seconds": compile_seconds[1],
+            "speedup_vs_jax2d": rates[0] / rates[1],
+        }
     return result
 
 
@@ -206,6 +238,85 @@ def measure_pipeline(size: str, plan: Plan, scratch: Path) -> dict:
     return {"wall_seconds": summary["seconds"], "levels": summary["levels"], "outcomes": summary["outcomes"]}
 
 
+def engine_determinism(size: str, batch: int, steps: int) -> dict:
+    """A rollout of `steps` with random motor and thruster actions: run twice on the default backend, and on the CPU."""
+    from benchmarks.engine import _batched_states
+    from benchmarks.scenes import build_scene
+    from engine import SimParams, step
+
+    static = build_scene(size, 0)[1]
+    params = SimParams()
+    batched = jax.vmap(lambda state, motor, thruster: step(state, params, motor, thruster, static=static)[0])
+
+    def rollout(states, key):
+        def one(states, key):
+            motor_key, thruster_key = jax.random.split(key)
+            motors = jax.random.uniform(motor_key, (batch, static.num_joints), minval=-1.0, maxval=1.0)
+            thrusters = jax.random.uniform(thruster_key, (batch, static.num_thrusters))
+            return batched(states, motors, thrusters), None
+
+        return jax.lax.scan(one, states, jax.random.split(key, steps))[0]
+
+    key = jax.random.key(0)
+    states = _batched_states(size, batch)
+    compiled = jax.jit(rollout)
+    first, second = compiled(states, key), compiled(states, key)
+    cpu = jax.devices("cpu")[0]
+    on_cpu = jax.jit(rollout)(jax.device_put(states, cpu), jax.device_put(key, cpu))
+    leaves = zip(jax.tree.leaves(first), jax.tree.leaves(second), jax.tree.leaves(on_cpu), strict=True)
+    bitwise, finite, cpu_difference = True, True, 0.0
+    for a, b, c in leaves:
+        a, b, c = np.asarray(a), np.asarray(b), np.asarray(c)
+        bitwise &= a.tobytes() == b.tobytes()
+        if np.issubdtype(a.dtype, np.floating):
+            finite &= bool(np.isfinite(a).all())
+            cpu_difference = max(cpu_difference, float(np.nanmax(np.abs(a - c), initial=0.0)))
+    return {
+        "batch": batch,
+        "steps": steps,
+        "repeat_bitwise_equal": bool(bitwise),
+        "max_abs_difference_vs_cpu": cpu_difference,
+        "finite": finite,
+    }
+
+
+def measure_engine_determinism(size: str, batch: int, steps: int) -> dict:
+    """`engine_determinism` in fresh processes (XLA reads its flags once per process), with XLA's deterministic GPU
+    ops off and on."""
+    from engine.determinism import XLA_FLAGS_ENV, with_deterministic_ops
+
+    results = {}
+    for ops, flag in (("default_ops", "--xla_gpu_deterministic_ops=false"), ("deterministic_ops", "")):
+        flags = with_deterministic_ops(f"{os.environ.get(XLA_FLAGS_ENV, '')} {flag}".strip())
+        command = [sys.executable, os.path.abspath(__file__), "--engine-determinism", size, str(batch), str(steps)]
+        finished = subprocess.run(
+            command, env={**os.environ, XLA_FLAGS_ENV: flags}, capture_output=True, text=True, check=True
+        )
+        results[ops] = json.loads(finished.stdout.strip().splitlines()[-1])
+    return results
+
+
+def _data_digests(root: Path) -> dict[str, str]:
+    from pipeline.storage.shard_store import DATA_DIR
+
+    return {
+        str(path.relative_to(root)): hashlib.sha256(path.read_bytes()).hexdigest()
+        for path in sorted((root / DATA_DIR).rglob("*"))
+        if path.is_file()
+    }
+
+
+def measure_pipeline_determinism(size: str, plan: Plan, scratch: Path) -> dict:
+    """The tiny job twice into fresh folders: are its stored arrays byte-identical?"""
+    digests = []
+    for run in ("first", "second"):
+        measure_pipeline(size, plan, scratch / run)
+        digests.append(_data_digests(scratch / run / f"pipeline-{size}"))
+    differing = sorted(name for name in digests[0] if digests[0][name] != digests[1].get(name))
+    return {"data_files": len(digests[0]), "byte_identical": not differing and digests[0] == digests[1],
+            "differing_files": differing[:20]}  # fmt: skip
+
+
 def check_targets(report: dict) -> dict:
     """Each target of the accelerator issue: true, false, or null where a figure is missing."""
     targets = {"engine_vs_jax2d": {}, "engine_vs_published_peak": {}, "ppo_vs_kinetix": {}}
@@ -226,8 +337,8 @@ def check_targets(report: dict) -> dict:
     return targets
 
 
-def run(plan: Plan, budget_seconds: float, kinetix_venv: Path | None, log) -> dict:
-    budget = Budget(budget_seconds)
+def run(plan: Plan, budget_seconds: float, kinetix_venv: Path | None, log, sections=tuple(SECTION_SHARES)) -> dict:
+    budget = Budget(budget_seconds, sections)
     with_jax2d = _jax2d_available()
     report = {
         "machine": describe_machine(),
@@ -272,6 +383,24 @@ def run(plan: Plan, budget_seconds: float, kinetix_venv: Path | None, log) -> di
             functools.partial(measure_pipeline, plan.sizes[0], plan, Path(scratch)),
             log,
         )
+    for size in plan.sizes[:1]:
+        _attempt(
+            report,
+            "determinism",
+            f"engine/{size}",
+            budget,
+            functools.partial(measure_engine_determinism, size, plan.determinism_batch, plan.determinism_steps),
+            log,
+        )
+    with tempfile.TemporaryDirectory(prefix="kforge-accelerator-") as scratch:
+        _attempt(
+            report,
+            "determinism",
+            f"pipeline/{plan.sizes[0]}",
+            budget,
+            functools.partial(measure_pipeline_determinism, plan.sizes[0], plan, Path(scratch)),
+            log,
+        )
     report["targets"] = check_targets(report)
     return report
 
@@ -287,10 +416,27 @@ def main(argv=None) -> None:
     parser.add_argument("--budget", type=float, default=540.0, help="seconds for all measurements (default 540)")
     parser.add_argument("--sizes", nargs="+", choices=["s", "m", "l"], help="override the plan's sizes")
     parser.add_argument("--kinetix-venv", type=Path, help="virtualenv holding kinetix-env, for Kinetix's PPO")
+    parser.add_argument(
+        "--sections", nargs="+", choices=list(SECTION_SHARES), default=list(SECTION_SHARES), help="what to measure"
+    )
+    parser.add_argument("--engine-batches", nargs="+", type=int, help="override the plan's engine batches")
+    parser.add_argument("--env-batches", nargs="+", type=int, help="override the plan's env batches")
+    parser.add_argument("--ppo-levels", nargs="+", type=int, help="override the plan's PPO level batches")
+    parser.add_argument("--engine-determinism", nargs=3, metavar=("SIZE", "BATCH", "STEPS"), help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
+    if args.engine_determinism:  # the child process of `measure_engine_determinism`
+        size, batch, steps = args.engine_determinism
+        print(json.dumps(engine_determinism(size, int(batch), int(steps))))
+        return
     plan = QUICK if args.quick else FULL
-    if args.sizes:
-        plan = dataclasses.replace(plan, sizes=tuple(args.sizes))
+    for option, field in (
+        ("sizes", "sizes"),
+        ("engine_batches", "engine_batches"),
+        ("env_batches", "env_batches"),
+        ("ppo_levels", "ppo_levels"),
+    ):
+        if getattr(args, option):
+            plan = dataclasses.replace(plan, **{field: tuple(getattr(args, option))})
     if args.dry_run:
         print(
             json.dumps(
@@ -299,7 +445,7 @@ def main(argv=None) -> None:
         )
         return
     with contextlib.redirect_stdout(sys.stderr):  # Ray and the measurements may print; stdout holds only the JSON
-        report = run(plan, args.budget, args.kinetix_venv, _log)
+        report = run(plan, args.budget, args.kinetix_venv, _log, tuple(args.sections))
     print(json.dumps(report, indent=2))
 
 

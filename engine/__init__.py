@@ -1,12 +1,13 @@
 """Rigid-body 2D physics in JAX: fixed-shape scenes of convex polygons and circles, joints and thrusters.
 
-Public surface: state and parameter types, the scene builder, `step`, and how batched steps run per backend
-(`set_batching`).
+Public surface: state and parameter types, the scene builder, `step`, how batched steps run per backend
+(`set_batching`), and bitwise-repeatable GPU execution (`use_deterministic_ops`).
 """
 
 from engine.batch_last import BATCHING_MODES, Batching, current_batching, set_batching
 from engine.collision import manifolds, world_geometry
 from engine.collision_filter import joint_collision_matrix, modes_collide
+from engine.determinism import use_deterministic_ops, with_deterministic_ops
 from engine.geometry import (
     CONVEXITY_TOLERANCE,
     MIN_POLYGON_AREA,
@@ -58,6 +59,8 @@ __all__ = [
     "rotate_host",
     "set_batching",
     "step",
+    "use_deterministic_ops",
+    "with_deterministic_ops",
     "world_geometry",
     "write_gif",
 ]

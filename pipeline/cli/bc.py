@@ -47,9 +47,12 @@ def main(argv: Sequence[str] | None = None, prog: str | None = None) -> None:
     if args.stop_after is not None and args.stop_after < 1:
         train.error(f"--stop-after must be >= 1, got {args.stop_after}")
 
+    from engine import use_deterministic_ops
     from pipeline.generation import ConfigError, to_yaml
     from pipeline.learning import TrainingInterrupted, load_bc_config, train_bc
     from pipeline.storage import DatasetError
+
+    use_deterministic_ops()  # before the first computation: repeatable on GPUs too
 
     previous = signal.signal(signal.SIGTERM, _terminate_as_interrupt)
     try:

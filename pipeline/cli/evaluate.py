@@ -44,8 +44,11 @@ def main(argv: Sequence[str] | None = None, prog: str | None = None) -> None:
     if args.max_levels is not None and args.max_levels < 1:
         parser.error(f"--max-levels must be >= 1, got {args.max_levels}")
 
+    from engine import use_deterministic_ops
     from pipeline.learning import LEVEL_SETS, evaluate_policy, load_policy, report_table
     from pipeline.storage import DatasetError
+
+    use_deterministic_ops()  # before the first computation: repeatable on GPUs too
 
     unknown = [name for name in sets if name not in LEVEL_SETS]
     if unknown or not sets:

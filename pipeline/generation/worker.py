@@ -8,6 +8,7 @@ import time
 from collections.abc import Iterator
 from pathlib import Path
 
+from engine import use_deterministic_ops
 from pipeline.generation.adaptive import adaptive_level_batches
 from pipeline.generation.compile_cache import enable_compile_cache
 from pipeline.generation.config import ADAPTIVE_BUDGET_MODE, JobConfig
@@ -36,6 +37,7 @@ class Worker:
     """Generates level batches for the shards the coordinator leases to it (one writer per shard)."""
 
     def __init__(self, job: JobConfig, name: str):
+        use_deterministic_ops()  # before the worker's first computation: the same data on a GPU, run after run
         enable_compile_cache(job.compile_cache.dir)
         self._job = job
         self._name = name

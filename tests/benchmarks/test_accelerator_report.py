@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from benchmarks.accelerator import FULL, check_targets
+from benchmarks.accelerator import FULL, Budget, check_targets
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
 SCRIPT = REPO_ROOT / "benchmarks" / "accelerator.py"
@@ -39,6 +39,12 @@ def test_targets_compare_with_jax2d_its_published_peaks_and_kinetix():
     assert targets["ppo_vs_kinetix"] == {"s": True, "m": None}
 
 
+def test_a_budget_for_some_sections_gives_them_all_of_its_time():
+    budget = Budget(100.0, ("ppo", "pipeline"))
+    assert not budget.enabled("engine") and not budget.allows("engine")
+    assert budget.enabled("ppo") and budget.allows("ppo") and budget.allows("pipeline")
+
+
 @pytest.mark.slow
 def test_quick_report_runs_every_section_on_the_cpu():
     output = subprocess.run(
@@ -46,7 +52,7 @@ def test_quick_report_runs_every_section_on_the_cpu():
     )
     report = json.loads(output.stdout)
     assert report["backend"] == "cpu"
-    for section in ("engine", "env", "ppo", "pipeline"):
+    for section in ("engine", "env", "ppo", "pipeline", "determinism"):
         for key, figures in report[section].items():
             assert "error" not in figures and "skipped" not in figures, (section, key, figures)
     assert report["engine"]["s/8"]["ours_steps_per_second"] > 0
@@ -55,3 +61,8 @@ def test_quick_report_runs_every_section_on_the_cpu():
     assert report["ppo"]["s/2"]["steps_per_second"] > 0
     assert report["pipeline"]["s"]["levels"] == 2
     assert set(report["targets"]["engine_vs_jax2d"]) == {"s/8"}
+    for ops in ("default_ops", "deterministic_ops"):  # on the CPU both repeat, and "vs the CPU" compares with itself
+        assert report["determinism"]["engine/s"][ops]["repeat_bitwise_equal"] is True
+        assert report["determinism"]["engine/s"][ops]["max_abs_difference_vs_cpu"] == 0.0
+    assert report["determinism"]["pipeline/s"]["byte_identical"] is True
+    assert report["determinism"]["pipeline/s"]["data_files"] > 0
