@@ -3,7 +3,9 @@ fixed and adaptive expert budgets side by side, and Kinetix's cost for the same 
 
 Kinetix is measured first, then each mode generates the same levels (the split's first `--levels`, one shard,
 `--levels-per-batch` slots, one worker, a fresh compilation cache, so each pays its compilations once) and is timed
-end to end. Kinetix's cost: its PPO (benchmarks/kinetix_ppo_baseline.py, its 5 x 128 network, our envs, rollout,
+end to end. With `--warm-cache` each mode first generates the first `--levels-per-batch` levels untimed into a
+scratch folder with its cache, so the timed run loads its programs as a cluster's workers do after the first one
+compiled them. Kinetix's cost: its PPO (benchmarks/kinetix_ppo_baseline.py, its 5 x 128 network, our envs, rollout,
 epochs and minibatches) measured on one level on this machine, times the budget, for every sampled level its no-op
 filter keeps; its kept levels are taken to be the fixed mode's (the same experts' quality), so the ratio compares
 the machine time per kept level.
@@ -36,13 +38,11 @@ TARGET_VS_KINETIX = 10.0
 >= 10x Kinetix's."""
 
 
-def measure_mode(mode: str, args, scratch: Path) -> dict:
-    """Generate the levels with `experts.budget_mode=mode`; its cost figures."""
-    output = scratch / mode
-    overrides = [
+def _mode_overrides(mode: str, args, scratch: Path, output: Path, levels: int) -> list[str]:
+    return [
         f"output_dir={output}",
-        f"split.num_levels={args.levels}",
-        f"work.levels_per_shard={args.levels}",
+        f"split.num_levels={levels}",
+        f"work.levels_per_shard={levels}",
         f"work.levels_per_batch={args.levels_per_batch}",
         f"experts.budget_mode={mode}",
         f"compile_cache.dir={scratch / f'compile-cache-{mode}'}",
@@ -50,7 +50,18 @@ def measure_mode(mode: str, args, scratch: Path) -> dict:
         "tracking.wandb=disabled",
         *args.set,
     ]
-    job = load_config(RELEASE_SPLIT, overrides)
+
+
+def measure_mode(mode: str, args, scratch: Path) -> dict:
+    """Generate the levels with `experts.budget_mode=mode`; its cost figures."""
+    if args.warm_cache:
+        warm_up = scratch / f"{mode}-warm-up"
+        run_job(
+            load_config(RELEASE_SPLIT, _mode_overrides(mode, args, scratch, warm_up, args.levels_per_batch)),
+            show_progress=False,
+        )
+    output = scratch / mode
+    job = load_config(RELEASE_SPLIT, _mode_overrides(mode, args, scratch, output, args.levels))
     wall = run_job(job, show_progress=False)["seconds"]
     levels = [level for record in iter_records(output) for level in record.levels if level.outcome != Outcome.PADDING]
     kept = [level for level in levels if level.kept]
@@ -114,7 +125,12 @@ def run_cost(args, scratch: Path, log=print) -> dict:
     kinetix = kinetix_cost(measured, runs["fixed"])
     fixed, adaptive = runs["fixed"], runs["adaptive"]
     report = {
-        "settings": {"split": RELEASE_SPLIT, "levels": args.levels, "levels_per_batch": args.levels_per_batch},
+        "settings": {
+            "split": RELEASE_SPLIT,
+            "levels": args.levels,
+            "levels_per_batch": args.levels_per_batch,
+            "compile_cache": "warm" if args.warm_cache else "cold",
+        },
         "runs": runs,
         "kinetix": kinetix,
         "adaptive_vs_fixed_kept_levels_per_hour": adaptive["kept_levels_per_hour"] / fixed["kept_levels_per_hour"]
@@ -172,3 +188,6 @@ def add_arguments(parser) -> None:
     )
     parser.add_argument("--kinetix-venv", type=Path, default=DEFAULT_KINETIX_VENV, help="--cost: Kinetix's venv")
     parser.add_argument("--kinetix-updates", type=int, default=2, help="--cost: Kinetix PPO updates timed")
+    parser.add_argument(
+        "--warm-cache", action="store_true", help="--cost: fill each mode's compilation cache before its timed run"
+    )
