@@ -1,12 +1,14 @@
-"""Adaptive budgets (`experts.budget_mode: adaptive`): a shard's levels stream through the slots of one training
-program, and each level trains only until its evaluations decide.
+"""Streamed and adaptive budgets (`experts.budget_mode: streamed | adaptive`): a shard's levels stream through the
+slots of one training program; streamed, each level trains the whole budget; adaptive, only until its evaluations
+decide.
 
 The program trains `work.levels_per_batch` slots together for one evaluation period at a time
-(`agents.train_segments`). After each period a level stops when its last `experts.solved_evaluations` evaluations
-all succeeded in every episode (solved), when it has trained `experts.give_up_env_steps` without one successful
-episode in training or evaluation (given up), or when its budget is spent; its slot then takes the next level of the
-shard, claiming the shard's next level batch when needed, so the program stays full. Levels the filter drops take
-no slot. A level batch is rolled out and handed back once all its levels are done. A level's training depends only
+(`agents.train_segments`). After each period a level stops when its budget is spent or, adaptive only, when its
+last `experts.solved_evaluations` evaluations all succeeded in every episode (solved) or it has trained
+`experts.give_up_env_steps` without one successful episode in training or evaluation (given up); its slot then takes
+the next level of the shard, claiming the shard's next level batch when needed, so the program stays full. Levels the
+filter drops take no slot. A level batch is rolled out and handed back once all its levels are done. A level's
+training depends only
 on its key (level index and split seed) and the config, not on its slot, the levels beside it or when it ran.
 """
 
@@ -55,11 +57,16 @@ class StopRule:
 
     @classmethod
     def of(cls, job: JobConfig, config: PPOConfig) -> StopRule:
+        """The job's rule: adaptive's, or for the streamed mode one that only stops when the budget is spent."""
         segment_steps = config.select_every_updates * config.steps_per_update
+        num_evaluations = config.num_updates // config.select_every_updates
+        if job.experts.budget_mode != ADAPTIVE_BUDGET_MODE:
+            never = num_evaluations + 1
+            return cls(solved_evaluations=never, give_up_evaluations=never, num_evaluations=num_evaluations)
         return cls(
             solved_evaluations=job.experts.solved_evaluations,
             give_up_evaluations=math.ceil(job.experts.give_up_env_steps / segment_steps),
-            num_evaluations=config.num_updates // config.select_every_updates,
+            num_evaluations=num_evaluations,
         )
 
     def verdict(self, success_rates: list[float], succeeded_in_training: bool) -> Verdict | None:
@@ -110,7 +117,7 @@ class _BatchWork:
         return sum(params is None for params in self.params)
 
 
-def adaptive_level_batches(
+def streamed_level_batches(
     job: JobConfig,
     shard: int,
     claim: Callable[[], int | None],
@@ -174,7 +181,7 @@ def adaptive_level_batches(
             curve_mean_return=work.curve_mean_return,
         )
         return work.batch, batch_result(
-            job, work.indices, work.levels, work.filtered, work.dropped, experts, work.clock, ADAPTIVE_BUDGET_MODE
+            job, work.indices, work.levels, work.filtered, work.dropped, experts, work.clock, job.experts.budget_mode
         )
 
     def done(slot: int, run: _LevelRun) -> list[tuple[int, BatchTrajectories]]:

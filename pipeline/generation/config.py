@@ -94,7 +94,7 @@ class PPOSection:
 class ExpertsConfig:
     """How long each expert trains (docs/experts.md, adaptive budgets)."""
 
-    budget_mode: str = "fixed"  # fixed: every level trains split.expert_budget; adaptive: until its evaluations decide
+    budget_mode: str = "fixed"  # fixed, streamed (filtered levels take no slot) or adaptive: docs/experts.md
     solved_evaluations: int = 2  # adaptive: stop after this many consecutive evaluations with every episode successful
     give_up_env_steps: int = 250_000  # adaptive: give up once trained this long without any successful episode
 
@@ -176,8 +176,8 @@ class JobConfig:
 DATA_SECTIONS = ("split", "work", "filter", "env", "ppo", "experts", "collect")
 """Config sections that determine the dataset's content; a resumed job must agree on all of them."""
 
-FIXED_BUDGET_MODE, ADAPTIVE_BUDGET_MODE = "fixed", "adaptive"
-BUDGET_MODES = (FIXED_BUDGET_MODE, ADAPTIVE_BUDGET_MODE)
+FIXED_BUDGET_MODE, STREAMED_BUDGET_MODE, ADAPTIVE_BUDGET_MODE = "fixed", "streamed", "adaptive"
+BUDGET_MODES = (FIXED_BUDGET_MODE, STREAMED_BUDGET_MODE, ADAPTIVE_BUDGET_MODE)
 """Values of `experts.budget_mode`; a fixed-budget job's data definition leaves the `experts` section out (its data
 is the data of jobs made before the section existed)."""
 

@@ -9,9 +9,9 @@ from collections.abc import Iterator
 from pathlib import Path
 
 from engine import use_deterministic_ops
-from pipeline.generation.adaptive import adaptive_level_batches
+from pipeline.generation.adaptive import streamed_level_batches
 from pipeline.generation.compile_cache import enable_compile_cache
-from pipeline.generation.config import ADAPTIVE_BUDGET_MODE, JobConfig
+from pipeline.generation.config import FIXED_BUDGET_MODE, JobConfig
 from pipeline.generation.level_batch import run_level_batch
 from pipeline.storage import PROVENANCE, BatchTrajectories, clean_uncommitted, open_dataset, stage_level_batch
 
@@ -78,9 +78,9 @@ class Worker:
     def _batches(self, coordinator, shard: int) -> Iterator[tuple[int, BatchTrajectories]]:
         """(batch, its data) for each level batch of `shard` the coordinator hands out, as each is done."""
         claim = functools.partial(_call, coordinator.claim_batch, shard)
-        if self._job.experts.budget_mode == ADAPTIVE_BUDGET_MODE:
+        if self._job.experts.budget_mode != FIXED_BUDGET_MODE:
             report = functools.partial(_notify, coordinator.report_training, shard)
-            yield from adaptive_level_batches(self._job, shard, claim, on_progress=report)
+            yield from streamed_level_batches(self._job, shard, claim, on_progress=report)
             return
         while (batch := claim()) is not None:
             report = functools.partial(_notify, coordinator.report_training, shard, batch)

@@ -54,7 +54,7 @@ class BatchTrajectories:
     outcome: Sequence[str]  # (L,) KEPT, or why the level was not kept (e.g. "filtered:trivial", "unsolved")
     expert_env_steps: np.ndarray | None = None  # (L,) int: env steps the selected expert had trained for
     trained_env_steps: np.ndarray | None = None  # (L,) int: env steps each level's training used
-    budget_mode: str | None = None  # how long experts trained: "fixed" (the whole budget) or "adaptive"
+    budget_mode: str | None = None  # how experts trained: "fixed" / "streamed" (the whole budget) or "adaptive"
     curves: LearningCurves | None = None  # the experts' training curves, for dataset cards
     seconds: dict[str, float] = dataclasses.field(default_factory=dict)  # wall time per phase (not data)
 

@@ -1,5 +1,6 @@
 """Adaptive budgets: levels stop when their evaluations decide, slots refill, and a level's result depends only on
-its index and the config (not on its slot, the levels beside it, or the order batches are claimed in)."""
+its index and the config (not on its slot, the levels beside it, or the order batches are claimed in). Streamed
+budgets: the same streaming, every trained level its whole budget."""
 
 from pathlib import Path
 
@@ -8,7 +9,7 @@ import numpy as np
 import pytest
 from pipeline_test_helpers import run_in_process, tiny_job
 
-from pipeline.generation.adaptive import StopRule, Verdict, adaptive_level_batches
+from pipeline.generation.adaptive import StopRule, Verdict, streamed_level_batches
 from pipeline.generation.config import ConfigError, data_definition, data_fingerprint, ppo_config
 from pipeline.reading.stats import collect_stats, write_card
 from pipeline.storage import FILTERED_PREFIX, iter_records
@@ -46,7 +47,9 @@ def test_the_stop_rule_counts_evaluations_from_the_configs_env_steps(tmp_path):
 def test_adaptive_budgets_need_an_evaluation_period_dividing_the_updates(tmp_path):
     with pytest.raises(ConfigError, match="experts.budget_mode=adaptive: .*select_every_updates"):
         tiny_job(tmp_path, *ADAPTIVE_JOB, "ppo.select_every_updates=5")
-    with pytest.raises(ConfigError, match="experts.budget_mode must be one of fixed, adaptive"):
+    with pytest.raises(ConfigError, match="experts.budget_mode=streamed: .*select_every_updates"):
+        tiny_job(tmp_path, *ADAPTIVE_JOB, "experts.budget_mode=streamed", "ppo.select_every_updates=5")
+    with pytest.raises(ConfigError, match="experts.budget_mode must be one of fixed, streamed, adaptive"):
         tiny_job(tmp_path, "experts.budget_mode=elastic")
 
 
@@ -61,9 +64,22 @@ def test_the_fixed_mode_keeps_the_data_fingerprint_of_jobs_made_before_budget_mo
     assert data_definition(adaptive)["experts"]["budget_mode"] == "adaptive"
 
 
+def test_the_streamed_rule_trains_every_level_its_whole_budget(tmp_path):
+    job = tiny_job(tmp_path, *ADAPTIVE_JOB, "experts.budget_mode=streamed")
+    rule = StopRule.of(job, ppo_config(job))
+    assert rule.num_evaluations == 4
+    for first_three in ([1.0, 1.0, 1.0], [0.0, 0.0, 0.0]):  # adaptive would have stopped both
+        assert rule.verdict(first_three, False) is None
+        assert rule.verdict([*first_three, first_three[-1]], False) is Verdict.BUDGET_SPENT
+    streamed = data_definition(job)
+    assert streamed["experts"]["budget_mode"] == "streamed"
+    others = {data_fingerprint(tiny_job(tmp_path)), data_fingerprint(tiny_job(tmp_path, *ADAPTIVE_JOB))}
+    assert data_fingerprint(job) not in others
+
+
 def batches_in_order(job, order):
     claims = iter(order)
-    return dict(adaptive_level_batches(job, 0, lambda: next(claims, None)))
+    return dict(streamed_level_batches(job, 0, lambda: next(claims, None)))
 
 
 @pytest.mark.slow
@@ -103,3 +119,15 @@ def test_an_adaptive_job_commits_records_with_the_mode_and_each_experts_env_step
     card = Path(write_card(collect_stats(job.output_dir, show_progress=False), tmp_path / "card")).read_text()
     assert "Level batches by `experts.budget_mode`: adaptive: 4." in card
     assert f"Env steps trained per trained level: mean {np.mean(trained):,.0f}" in card
+
+
+def test_a_streamed_job_trains_the_whole_budget_and_gives_filtered_levels_no_slot(tmp_path):
+    job = tiny_job(tmp_path / "data", *ADAPTIVE_JOB, "experts.budget_mode=streamed")
+    run_in_process(job)
+    records = list(iter_records(job.output_dir))
+    assert len(records) == 4 and {record.budget_mode for record in records} == {"streamed"}
+    levels = [level for record in records for level in record.levels]
+    trained = [level for level in levels if level.outcome.is_trained]
+    assert trained and len(trained) < len(levels)  # the tiny split's filter drops some levels
+    assert {level.trained_env_steps for level in trained} == {1024}
+    assert {level.trained_env_steps for level in levels if not level.outcome.is_trained} == {0}
