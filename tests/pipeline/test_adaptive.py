@@ -121,6 +121,7 @@ def test_an_adaptive_job_commits_records_with_the_mode_and_each_experts_env_step
     assert f"Env steps trained per trained level: mean {np.mean(trained):,.0f}" in card
 
 
+@pytest.mark.slow
 def test_a_streamed_job_trains_the_whole_budget_and_gives_filtered_levels_no_slot(tmp_path):
     job = tiny_job(tmp_path / "data", *ADAPTIVE_JOB, "experts.budget_mode=streamed")
     run_in_process(job)
