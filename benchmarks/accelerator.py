@@ -30,7 +30,6 @@ import argparse
 import contextlib
 import dataclasses
 import functools
-import hashlib
 import json
 import os
 import subprocess
@@ -296,14 +295,11 @@ def measure_engine_determinism(size: str, batch: int, steps: int) -> dict:
     return results
 
 
-def _data_digests(root: Path) -> dict[str, str]:
-    from pipeline.storage.shard_store import DATA_DIR
+def _data_digests(root: Path) -> dict[tuple[int, str], str]:
+    """(level batch, array) -> the digest of its data, as the commit records give it."""
+    from pipeline.storage import iter_records
 
-    return {
-        str(path.relative_to(root)): hashlib.sha256(path.read_bytes()).hexdigest()
-        for path in sorted((root / DATA_DIR).rglob("*"))
-        if path.is_file()
-    }
+    return {(r.global_batch, name): e.data_sha256 for r in iter_records(root) for name, e in r.arrays.items()}
 
 
 def measure_pipeline_determinism(size: str, plan: Plan, scratch: Path) -> dict:
@@ -312,9 +308,11 @@ def measure_pipeline_determinism(size: str, plan: Plan, scratch: Path) -> dict:
     for run in ("first", "second"):
         measure_pipeline(size, plan, scratch / run)
         digests.append(_data_digests(scratch / run / f"pipeline-{size}"))
-    differing = sorted(name for name in digests[0] if digests[0][name] != digests[1].get(name))
-    return {"data_files": len(digests[0]), "byte_identical": not differing and digests[0] == digests[1],
-            "differing_files": differing[:20]}  # fmt: skip
+    differing = sorted(
+        f"{batch}/{name}" for batch, name in digests[0] if digests[0][batch, name] != digests[1].get((batch, name))
+    )
+    return {"data_arrays": len(digests[0]), "byte_identical": not differing and digests[0] == digests[1],
+            "differing_arrays": differing[:20]}  # fmt: skip
 
 
 def check_targets(report: dict) -> dict:
@@ -429,14 +427,9 @@ def main(argv=None) -> None:
         print(json.dumps(engine_determinism(size, int(batch), int(steps))))
         return
     plan = QUICK if args.quick else FULL
-    for option, field in (
-        ("sizes", "sizes"),
-        ("engine_batches", "engine_batches"),
-        ("env_batches", "env_batches"),
-        ("ppo_levels", "ppo_levels"),
-    ):
-        if getattr(args, option):
-            plan = dataclasses.replace(plan, **{field: tuple(getattr(args, option))})
+    for field in ("sizes", "engine_batches", "env_batches", "ppo_levels"):
+        if getattr(args, field):
+            plan = dataclasses.replace(plan, **{field: tuple(getattr(args, field))})
     if args.dry_run:
         print(
             json.dumps(

@@ -65,4 +65,4 @@ def test_quick_report_runs_every_section_on_the_cpu():
         assert report["determinism"]["engine/s"][ops]["repeat_bitwise_equal"] is True
         assert report["determinism"]["engine/s"][ops]["max_abs_difference_vs_cpu"] == 0.0
     assert report["determinism"]["pipeline/s"]["byte_identical"] is True
-    assert report["determinism"]["pipeline/s"]["data_files"] > 0
+    assert report["determinism"]["pipeline/s"]["data_arrays"] > 0
