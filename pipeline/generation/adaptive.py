@@ -8,8 +8,8 @@ last `experts.solved_evaluations` evaluations all succeeded in every episode (so
 `experts.give_up_env_steps` without one successful episode in training or evaluation (given up); its slot then takes
 the next level of the shard, claiming the shard's next level batch when needed, so the program stays full. Levels the
 filter drops take no slot. A level batch is rolled out and handed back once all its levels are done. A level's
-training depends only
-on its key (level index and split seed) and the config, not on its slot, the levels beside it or when it ran.
+training depends only on its key (level index and split seed) and the config, not on its slot, the levels beside it
+or when it ran.
 """
 
 from __future__ import annotations
