@@ -18,7 +18,15 @@ from engine.geometry import (
     rotate_host,
 )
 from engine.pairs import PairLayout, pair_layout
-from engine.params import KINETIX_SIZES, MAX_POLYGON_VERTICES, ForceTiming, MotorLaw, SimParams, StaticSimParams
+from engine.params import (
+    KINETIX_SIZES,
+    MAX_POLYGON_VERTICES,
+    ForceTiming,
+    LimitLaw,
+    MotorLaw,
+    SimParams,
+    StaticSimParams,
+)
 from engine.physics_step import StepInfo, step
 from engine.render import write_gif
 from engine.scene import ARENA_SIZE, FLOOR_TOP, SceneBuilder
@@ -38,6 +46,7 @@ __all__ = [
     "ContactCache",
     "Joints",
     "ForceTiming",
+    "LimitLaw",
     "MotorLaw",
     "PairLayout",
     "SceneBuilder",

@@ -38,6 +38,7 @@ class JointRows:
     solve_motor: jnp.ndarray  # (J,) bool
     solve_limits: jnp.ndarray  # (J,) bool
     reference_angle: jnp.ndarray  # (J,) [rad]
+    start_excess: jnp.ndarray  # (J,) [rad] how far the joint angle is beyond a limit at the step's start (signed)
     lower_angle: jnp.ndarray  # (J,) [rad]
     upper_angle: jnp.ndarray  # (J,) [rad]
     motor_target: jnp.ndarray  # (J,) [rad/s] target of angular_velocity_b - angular_velocity_a
@@ -68,6 +69,7 @@ def prepare_joints(
     movable = (response_a[:, 0] + response_b[:, 0] + inverse_inertia_sum) > 0
     revolute = joints.active & ~joints.is_fixed & movable
     rotatable = inverse_inertia_sum > 0
+    start_angle = pose[b, 2] - pose[a, 2] - joints.reference_angle
     return JointRows(
         body_a=a,
         body_b=b,
@@ -81,6 +83,7 @@ def prepare_joints(
         solve_motor=motor_rows & revolute & joints.motor_on & rotatable & (motor_actions != 0.0),  # 0 = motor off
         solve_limits=revolute & joints.has_limits & rotatable,
         reference_angle=joints.reference_angle,
+        start_excess=start_angle - jnp.clip(start_angle, joints.lower_angle, joints.upper_angle),
         lower_angle=joints.lower_angle,
         upper_angle=joints.upper_angle,
         motor_target=joints.motor_speed * base_motor_speed * jnp.clip(motor_actions, -1.0, 1.0),
@@ -254,10 +257,14 @@ def solve_joints(
     softness: Softness,
     inverse_substep,
     use_bias,
+    kinetix_limits,
+    limit_recovery_rate,
 ):
     """One sweep over the joints in index order: motor, limits, fixed angle, then the point constraint.
 
     `use_bias` (bool, may be traced) selects the soft position-correcting solve, otherwise the relaxing solve.
+    `kinetix_limits` (bool, may be traced) selects Kinetix's limit law (`engine.params.LimitLaw.KINETIX`): the
+    lower limit slot then holds the signed sum of this substep's limit impulses, and the upper slot 0.
     Returns the velocities and the new impulses.
     """
 
@@ -271,17 +278,30 @@ def solve_joints(
         new_motor = jnp.clip(impulse.motor - mass * (wb - wa - row.motor_target), -bound, bound)
         new_motor = jnp.where(row.solve_motor, new_motor, 0.0)
         wa, wb = wa - ia * (new_motor - impulse.motor), wb + ib * (new_motor - impulse.motor)
-        # Limits: one-sided rows.
+        # Limits: one-sided rows (speculative law), or Kinetix's turning back from beyond a limit.
         lower_old, upper_old = impulse.limit[0], impulse.limit[1]
         lower = _angular_row(
             mass, wb - wa, frame.angle - row.lower_angle, lower_old, softness, use_bias, inverse_substep, True
         )
         lower = jnp.where(row.solve_limits, jnp.maximum(lower, 0.0), 0.0)
-        wa, wb = wa - ia * (lower - lower_old), wb + ib * (lower - lower_old)
+        lower_change = lower - lower_old
         upper = _angular_row(
-            mass, wa - wb, row.upper_angle - frame.angle, upper_old, softness, use_bias, inverse_substep, True
+            mass,
+            (wa - ia * lower_change) - (wb + ib * lower_change),
+            row.upper_angle - frame.angle,
+            upper_old,
+            softness,
+            use_bias,
+            inverse_substep,
+            True,
         )
         upper = jnp.where(row.solve_limits, jnp.maximum(upper, 0.0), 0.0)
+        excess = row.start_excess
+        outward = row.solve_limits & (excess != 0.0) & (jnp.sign(wb - wa) == jnp.sign(excess))
+        turn_back = jnp.where(outward, -mass * (wb - wa + limit_recovery_rate * excess), 0.0)
+        lower = jnp.where(kinetix_limits, lower_old + turn_back, lower)
+        upper = jnp.where(kinetix_limits, upper_old, upper)
+        wa, wb = wa - ia * (lower - lower_old), wb + ib * (lower - lower_old)
         wa, wb = wa - ia * (upper_old - upper), wb + ib * (upper_old - upper)
         # Fixed joint: relative angle held at the reference.
         new_angular = _angular_row(

@@ -40,6 +40,18 @@ class MotorLaw(enum.IntEnum):
     within the same torque bound."""
 
 
+class LimitLaw(enum.IntEnum):
+    """How a revolute joint's angle limits hold."""
+
+    SPECULATIVE = 0
+    """One-sided soft rows with accumulated impulses (Box2D v3): a limit holds under load, within the joint's
+    softness, and a joint approaching it is stopped at it."""
+    KINETIX = 1
+    """Kinetix's (Jax2D's): in every solve, a joint beyond a limit and turning further out gets its relative angular
+    velocity set to -limit_recovery_rate x its excess angle; nothing is accumulated, so a load that pushes out again
+    after the joints' solve (contacts, the servo) bends it past the limit."""
+
+
 @struct.dataclass
 class SimParams:
     """Physical constants of a step; every field may differ per scene under `vmap`."""
@@ -53,7 +65,9 @@ class SimParams:
     max_push_velocity: float = 3.0  # [m/s] fastest speed at which overlapping shapes are pushed apart
     restitution_threshold: float = 1.0  # [m/s] approach speeds below this never bounce
     speculative_distance: float = 0.02  # [m] contacts are created this far before shapes touch
+    speculative_reach: float = 1.0  # [-] share of a step's motion added to the speculative distance
     touch_distance: float = 0.005  # [m] shapes closer than this count as touching
+    push_touch_distance: float = float("inf")  # [m] a contact that pushed counts as touching if this close at start
     base_friction: float = 0.4  # [-] friction of a pair = base_friction * sqrt(f_a^2 + f_b^2) (Kinetix's mixing)
 
     # Joints. A soft joint stretches under load by about load / (effective mass x (2 pi joint_hertz)^2), and the
@@ -71,6 +85,8 @@ class SimParams:
     motor_law: int = MotorLaw.SERVO  # `MotorLaw`: Kinetix's servo impulse or a constraint row
     motor_decay: float = 0.1  # [s/rad] servo: the impulse is tanh(motor_decay x speed error) of its bound
     motor_limit_fade: float = 0.1  # [rad] servo: the impulse fades to 0 over this angle before a joint limit
+    limit_law: int = LimitLaw.SPECULATIVE  # `LimitLaw`: how joint angle limits hold
+    limit_recovery_rate: float = 5.0  # [1/s] Kinetix limit law: turning speed back per unit of excess angle
 
     force_timing: int = ForceTiming.SPREAD  # `ForceTiming`: gravity and thrust spread over substeps or at step start
 

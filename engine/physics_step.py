@@ -34,7 +34,7 @@ from engine.joint_solver import (
     warm_start_joints,
 )
 from engine.pairs import pair_layout
-from engine.params import ForceTiming, MotorLaw, SimParams, StaticSimParams
+from engine.params import ForceTiming, LimitLaw, MotorLaw, SimParams, StaticSimParams
 from engine.softness import Softness, make_softness
 from engine.state import NO_FEATURE, ContactCache, SimState
 
@@ -86,6 +86,8 @@ class SolverScalars:
     force_at_step_start: jnp.ndarray  # bool: gravity and thrust act as one impulse before the first substep
     restitution_threshold: jnp.ndarray  # [m/s]
     joint_softness: Softness
+    kinetix_limits: jnp.ndarray  # bool: joint limits follow `LimitLaw.KINETIX`
+    limit_recovery_rate: jnp.ndarray  # [1/s]
 
 
 @struct.dataclass
@@ -152,6 +154,8 @@ def substep_solver(static: StaticSimParams, batch_last: bool = True):
                 scalars.joint_softness,
                 scalars.inverse_substep,
                 use_bias,
+                scalars.kinetix_limits,
+                scalars.limit_recovery_rate,
             )
             velocity, contact_impulses = solve_contacts(
                 velocity,
@@ -171,6 +175,8 @@ def substep_solver(static: StaticSimParams, batch_last: bool = True):
         def substep_body(carry, index):
             """Integrate velocities, warm start, soft solve, integrate positions, then relax without bias."""
             velocity, pose, contact_impulses, joint_impulses = carry
+            limits = jnp.where(scalars.kinetix_limits, 0.0, joint_impulses.limit)  # Kinetix's: nothing carried
+            joint_impulses = joint_impulses.replace(limit=limits)
             at_start = jnp.where(index == 0, static.num_substeps, 0)
             share = jnp.where(scalars.force_at_step_start, at_start, 1) * scalars.substep
             velocity = tuple(v + share * a for v, a in zip(velocity, acceleration, strict=True))
@@ -238,7 +244,7 @@ def prepare_step(
     a, b = layout.body_a, layout.body_b
     reach = norm2(velocity[:n, :2]) + jnp.abs(velocity[:n, 2]) * _bounding_radius(bodies)
     reach = reach + params.dt * norm2(acceleration[:n, :2])
-    margin = params.speculative_distance + params.dt * (reach[a] + reach[b])
+    margin = params.speculative_distance + params.speculative_reach * params.dt * (reach[a] + reach[b])
     manifold = manifolds(world_geometry(bodies), layout, margin)
     both_active = bodies.active[a] & bodies.active[b]
     modes = modes_collide(bodies.collision_mode[a], bodies.collision_mode[b])
@@ -295,6 +301,8 @@ def prepare_step(
         force_at_step_start=params.force_timing == ForceTiming.STEP_START,
         restitution_threshold=params.restitution_threshold,
         joint_softness=make_softness(params.joint_hertz, params.joint_damping_ratio, substep),
+        kinetix_limits=params.limit_law == LimitLaw.KINETIX,
+        limit_recovery_rate=params.limit_recovery_rate,
     )
     solver_input = SolverInput(
         velocity=velocity,
@@ -349,10 +357,12 @@ def finish_step(
     return state.replace(bodies=new_bodies, joints=new_joints, contacts=cache)
 
 
-def _info_after_solve(prepared: Prepared, solved: SolverOutput, static: StaticSimParams) -> StepInfo:
-    """The step's `StepInfo`, counting as touching also the pairs whose contact pushed during the step."""
+def _info_after_solve(prepared: Prepared, solved: SolverOutput, params: SimParams, static: StaticSimParams) -> StepInfo:
+    """The step's `StepInfo`, counting as touching also the pairs whose contact pushed during the step from closer
+    than `push_touch_distance` at its start."""
     largest = from_colour_layout(solved.contact_impulses.max_normal, pair_layout(static))
     pushed = functools.reduce(jnp.logical_or, [impulse > 0.0 for impulse in largest])
+    pushed = pushed & (prepared.info.separation < params.push_touch_distance)
     return prepared.info.replace(touching=prepared.info.touching | pushed)
 
 
@@ -363,7 +373,7 @@ def _batched_step(static: StaticSimParams, batching: Batching):
     def one_step(state, params, motor_actions, thruster_actions):
         prepared = prepare_step(state, params, motor_actions, thruster_actions, static)
         solved = substep_solver(static, batching.chunked)(prepared.solver_input)
-        return finish_step(state, params, prepared, solved, static), _info_after_solve(prepared, solved, static)
+        return finish_step(state, params, prepared, solved, static), _info_after_solve(prepared, solved, params, static)
 
     return vmap_in_chunks(one_step, batching.chunk_limit) if batching.chunked else one_step
 

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 from engine_test_helpers import SIZE_L, G, crossings, elliptic_k, joint_anchor_error, rotate, run
 
-from engine import MotorLaw, SceneBuilder, SimParams
+from engine import LimitLaw, MotorLaw, SceneBuilder, SimParams
 
 STATIC = SIZE_L
 PARAMS = SimParams()
@@ -238,6 +238,33 @@ def test_revolute_limits_under_gravity_and_release():
     assert released_after <= 30  # the limits let go when driven inward
     assert overshoot_drive < 0.05
     assert abs(drive_right[-1] - 0.5) < 0.05 and abs(drive_left[-1] + 0.5) < 0.05  # now held at the other limits
+
+
+@pytest.mark.parametrize("law", [LimitLaw.SPECULATIVE, LimitLaw.KINETIX])
+def test_a_spinning_wheel_meets_its_angle_limit(law):
+    """A wheel pinned at its centre (no gravity torque), limits +-0.5 rad, spinning at 2.7 rad/s (0.045 rad a step)
+    towards the upper limit. The speculative law stops it at the limit. Kinetix's law sees the limit only at a step's
+    start: the wheel reaches 0.54 rad (the first step start beyond 0.5), and that step turns it back at
+    limit_recovery_rate x 0.04 rad = 0.2 rad/s, which nothing changes after (it no longer turns outward)."""
+    builder = _builder_with_pivot()
+    wheel = builder.add_circle(PIVOT, 0.2)
+    builder.add_revolute_joint(0, wheel, PIVOT, limits=(-0.5, 0.5))
+    state = builder.build()
+    spin = np.zeros(state.bodies.angular_velocity.shape, np.float32)
+    spin[wheel] = 2.7
+    state = state.replace(bodies=state.bodies.replace(angular_velocity=jnp.asarray(spin)))
+    params = SimParams(limit_law=law)
+    _, traj = run(state, STATIC, 30, params=params)
+    angle, omega = _joint_angle(traj, state, 0), traj.angular_velocity[:, wheel]
+    measured(f"wheel at its limit ({law.name})", max_angle_rad=angle.max(), final_omega=omega[-1])
+    if law == LimitLaw.SPECULATIVE:
+        assert angle.max() < 0.5 + 1e-3
+        assert abs(omega[-1]) < 1e-3  # held at the limit
+    else:
+        peak = int(np.argmax(angle))
+        assert peak == 12 and abs(angle[peak] - 0.54) < 1e-4
+        np.testing.assert_allclose(omega[: peak + 1], 2.7, rtol=1e-5)
+        np.testing.assert_allclose(omega[peak + 1 :], -params.limit_recovery_rate * 0.04, rtol=1e-3)
 
 
 def _motor_wheel(motor_speed: float = 1.0, motor_power: float = 1.0):
