@@ -43,6 +43,7 @@ def test_the_returned_policy_is_the_best_evaluated_the_latest_on_ties(trained_mi
         np.testing.assert_array_equal(np.mod(rates * TRAIN_CONFIG.select_episodes, 1), 0)
 
 
+@pytest.mark.slow  # three programs compiled for it alone: 60-95 s on 2 cores
 def test_a_policy_that_unlearns_its_level_is_returned_as_it_was_at_its_best(trained_mixed):
     level, start_params = thruster_level(), _level(trained_mixed.params, 0)
     run = jax.jit(train_from, static_argnames=("config", "static"))
