@@ -9,7 +9,10 @@ Two jobs, one JSON document on stdout:
   random multi-discrete policy (`--episodes` episodes), up to one episode's length from the level's start, and count
   how the first episode ends: success (green touches blue), failure (green touches red), timeout, unstable (NaN).
   Every level of a size and both policies run in one compiled program from a work queue, so finished episodes
-  cost no steps (random hand-designed s levels: 61 % of the steps of full-length episodes).
+  cost no steps (random hand-designed s levels: 61 % of the steps of full-length episodes);
+- `--trace LEVEL --actions FILE --trace-out FILE`: play fixed multi-discrete action sequences (episodes, steps, 6)
+  from the level's start without reset and write every shape's pose and velocity and the reward and done flag after
+  each env step to an .npz file (benchmarks/fidelity_trace.py pairs them with kforge's).
 
 Not importable from the project's environment.
 """
@@ -170,6 +173,40 @@ def _compiled_queue(env, params, per_level: int, total: int, slots: int):
     return _COMPILED[cache_key]
 
 
+TRACE_FIELDS = {
+    "polygon_position": lambda s: s.polygon.position,
+    "polygon_rotation": lambda s: s.polygon.rotation,
+    "polygon_velocity": lambda s: s.polygon.velocity,
+    "polygon_angular_velocity": lambda s: s.polygon.angular_velocity,
+    "circle_position": lambda s: s.circle.position,
+    "circle_rotation": lambda s: s.circle.rotation,
+    "circle_velocity": lambda s: s.circle.velocity,
+    "circle_angular_velocity": lambda s: s.circle.angular_velocity,
+}
+"""What a trace records of Kinetix's state after each env step."""
+
+
+def trace(path: str, actions: np.ndarray, out: Path) -> None:
+    """Every episode of `actions` (episodes, steps, 6) played from the level's start; poses etc. per step to `out`."""
+    state, static, _ = load_from_json_file(str(Path(path).resolve()))
+    size = _size_of(static)
+    static, params = static_env_params_from_size(size), EnvParams(dense_reward_scale=0.0)
+    state = expand_env_state(state, static)
+    env = make_kinetix_env(
+        ActionType.MULTI_DISCRETE, ObservationType.SYMBOLIC_FLAT, None, params, static, auto_reset=False
+    )
+
+    def episode(episode_actions):
+        def body(current, action):
+            _, stepped, reward, done, _ = env.step(jax.random.key(0), current, action, params)
+            return stepped, ({name: get(stepped) for name, get in TRACE_FIELDS.items()}, reward, done)
+
+        return jax.lax.scan(body, state, episode_actions)[1]
+
+    fields, reward, done = jax.jit(jax.vmap(episode))(jnp.asarray(actions))
+    np.savez(out, reward=np.asarray(reward), done=np.asarray(done), **{k: np.asarray(v) for k, v in fields.items()})
+
+
 def _has_nan(state) -> jnp.ndarray:
     return jax.tree.reduce(jnp.logical_or, jax.tree.map(lambda x: jnp.isnan(x).any(), state), False)
 
@@ -182,7 +219,12 @@ def main(argv=None) -> None:
     parser.add_argument("--levels-from", type=Path, help="a text file listing level JSON files to play, one a line")
     parser.add_argument("--episodes", type=int, default=256, help="random-policy episodes per level")
     parser.add_argument("--seed", type=int, default=0, help="seed of the random policy's actions")
+    parser.add_argument("--trace", help="a level JSON file to play with --actions, recorded to --trace-out")
+    parser.add_argument("--actions", type=Path, help=".npy of multi-discrete actions (episodes, steps, 6)")
+    parser.add_argument("--trace-out", type=Path, help=".npz that receives the trace")
     args = parser.parse_args(argv)
+    if args.trace:
+        trace(args.trace, np.load(args.actions), args.trace_out)
     report = {"sampled": {}, "played": {}}
     for spec in args.sample:
         size, count, seed = spec.split(":")

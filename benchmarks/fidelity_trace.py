@@ -1,0 +1,171 @@
+"""One level, step by step in both engines: the same action sequences played in kforge and in kinetix-env.
+
+Where `benchmarks/fidelity.py` finds that a level's outcome rates disagree, this finds where the engines part: it
+draws `--episodes` uniform random multi-discrete action sequences once (or the no-op with `--noop`), plays each from
+the level's start in both engines without reset, and prints how the paired episodes ended (a table of kforge's
+outcome against Kinetix's) and, for each episode that ended differently, both ends and the first env step at which
+some shape's position differs by more than `--tolerance`. `--save FILE` keeps both traces (every shape's pose and
+velocity after each env step, in Kinetix's slot order) for a closer look.
+
+    python benchmarks/fidelity_trace.py l/mjc_half_cheetah --episodes 64
+    python benchmarks/fidelity_trace.py levels/s/k0-00002.json --noop --sim speculative_reach=0
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from benchmarks.env import DEFAULT_KINETIX_VENV, kinetix_python  # noqa: E402
+from benchmarks.fidelity import _sim_override  # noqa: E402
+from env import (  # noqa: E402
+    MULTI_DISCRETE_SIZES,
+    ActionType,
+    EnvParams,
+    advance,
+    bundled_level_path,
+    load_level,
+    reset,
+    state_to_kinetix,
+)
+
+KINETIX_SCRIPT = Path(__file__).resolve().parent / "kinetix_fidelity_baseline.py"
+OUTCOMES = ("timeout", "success", "failure")
+EPISODE_STEPS = 256
+"""Env steps of one episode (Kinetix's max_timesteps)."""
+TRACED = {
+    "polygon_position": "polygon/position",
+    "polygon_rotation": "polygon/rotation",
+    "polygon_velocity": "polygon/velocity",
+    "polygon_angular_velocity": "polygon/angular_velocity",
+    "circle_position": "circle/position",
+    "circle_rotation": "circle/rotation",
+    "circle_velocity": "circle/velocity",
+    "circle_angular_velocity": "circle/angular_velocity",
+}
+"""Trace field -> kforge's state leaf in Kinetix's naming (`env.state_to_kinetix`)."""
+
+
+def level_path(name: str) -> Path:
+    """A bundled level's name (`s/h1_thrust_over_ball`) or a level file's path."""
+    path = Path(name)
+    return path if path.suffix == ".json" else bundled_level_path(name)
+
+
+def random_actions(episodes: int, seed: int) -> np.ndarray:
+    """(episodes, EPISODE_STEPS, 6) uniform multi-discrete actions."""
+    rng = np.random.default_rng(seed)
+    columns = [rng.integers(0, size, (episodes, EPISODE_STEPS)) for size in MULTI_DISCRETE_SIZES]
+    return np.stack(columns, -1).astype(np.int32)
+
+
+def trace_ours(path: Path, actions: np.ndarray, sim_overrides: dict) -> dict:
+    """kforge's trace of `actions` on the level file: TRACED fields, reward sign and done per env step."""
+    loaded = load_level(path)
+    params = EnvParams(dense_reward_scale=0.0)
+    if sim_overrides:
+        params = params.replace(sim=dataclasses.replace(params.sim, **sim_overrides))
+
+    def episode(episode_actions):
+        def body(state, action):
+            stepped, result = advance(state, action, params, loaded.static, ActionType.MULTI_DISCRETE)
+            reward = jnp.where(result.success, 1.0, jnp.where(result.failure, -1.0, 0.0))
+            return stepped, (stepped, reward, result.done)
+
+        return jax.lax.scan(body, reset(loaded.level), episode_actions)[1]
+
+    states, reward, done = jax.jit(jax.vmap(episode))(jnp.asarray(actions))
+    leaves = state_to_kinetix(states, loaded.static)
+    return {field: leaves[leaf] for field, leaf in TRACED.items()} | {
+        "reward": np.asarray(reward),
+        "done": np.asarray(done),
+    }
+
+
+def trace_kinetix(python: Path, path: Path, actions: np.ndarray, folder: Path) -> dict:
+    actions_file, out = folder / "actions.npy", folder / "kinetix_trace.npz"
+    np.save(actions_file, actions)
+    command = [str(python), str(KINETIX_SCRIPT), "--trace", str(path), "--actions", str(actions_file)]
+    result = subprocess.run(
+        [*command, "--trace-out", str(out)], capture_output=True, text=True, cwd=KINETIX_SCRIPT.parent
+    )
+    if result.returncode != 0:
+        raise RuntimeError(f"Kinetix's side failed:\n{result.stderr[-3000:]}")
+    return dict(np.load(out))
+
+
+def episode_ends(trace: dict) -> tuple[np.ndarray, np.ndarray]:
+    """Per episode: the env step its first episode ended at (EPISODE_STEPS if never) and the outcome index."""
+    done = np.asarray(trace["done"], bool)
+    step = np.where(done.any(1), done.argmax(1), EPISODE_STEPS)
+    reward = np.take_along_axis(trace["reward"], np.minimum(step, EPISODE_STEPS - 1)[:, None], 1)[:, 0]
+    outcome = np.where(step == EPISODE_STEPS, 0, np.where(reward > 0, 1, np.where(reward < 0, 2, 0)))
+    return step, outcome
+
+
+def first_divergence(ours: dict, theirs: dict, active_polygons, active_circles, tolerance: float) -> np.ndarray:
+    """Per episode: the first env step after which some active shape is more than `tolerance` apart; -1 if none."""
+    gaps = [np.abs(ours["polygon_position"] - theirs["polygon_position"]).max(-1)[..., active_polygons]]
+    if active_circles.any():
+        gaps.append(np.abs(ours["circle_position"] - theirs["circle_position"]).max(-1)[..., active_circles])
+    apart = np.concatenate(gaps, -1).max(-1) > tolerance
+    return np.where(apart.any(1), apart.argmax(1), -1)
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("level", help="a bundled level (s/h1_thrust_over_ball) or a level JSON file")
+    parser.add_argument("--episodes", type=int, default=64, help="paired random-action episodes")
+    parser.add_argument("--noop", action="store_true", help="play the no-op policy (one episode) instead")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the random actions")
+    parser.add_argument("--sim", type=_sim_override, action="append", default=[], help="SimParams KEY=VALUE of ours")
+    parser.add_argument("--tolerance", type=float, default=0.01, help="[m] positions closer than this agree")
+    parser.add_argument("--kinetix-venv", type=Path, default=DEFAULT_KINETIX_VENV)
+    parser.add_argument("--save", type=Path, help=".npz that keeps both traces and the actions")
+    args = parser.parse_args(argv)
+
+    path = level_path(args.level)
+    actions = np.zeros((1, EPISODE_STEPS, 6), np.int32) if args.noop else random_actions(args.episodes, args.seed)
+    python = kinetix_python(args.kinetix_venv, print)
+    with tempfile.TemporaryDirectory(prefix="kforge-trace-") as folder:
+        theirs = trace_kinetix(python, path, actions, Path(folder))
+    ours = trace_ours(path, actions, dict(args.sim))
+    if args.save is not None:
+        np.savez(
+            args.save,
+            actions=actions,
+            **{f"kforge_{k}": v for k, v in ours.items()},
+            **{f"kinetix_{k}": v for k, v in theirs.items()},
+        )
+
+    start = state_to_kinetix(reset(load_level(path).level), load_level(path).static)
+    apart = first_divergence(
+        ours, theirs, start["polygon/active"].astype(bool), start["circle/active"].astype(bool), args.tolerance
+    )
+    our_end, our_outcome = episode_ends(ours)
+    their_end, their_outcome = episode_ends(theirs)
+    table = np.zeros((3, 3), int)
+    np.add.at(table, (our_outcome, their_outcome), 1)
+    print(f"{path.name}: {len(actions)} paired episodes; rows kforge, columns Kinetix")
+    print(f"{'':10s}" + "".join(f"{name:>10s}" for name in OUTCOMES))
+    for row, name in enumerate(OUTCOMES):
+        print(f"{name:10s}" + "".join(f"{count:10d}" for count in table[row]))
+    for episode in np.flatnonzero((our_outcome != their_outcome) | (our_end != their_end)):
+        print(
+            f"episode {episode}: kforge {OUTCOMES[our_outcome[episode]]} at step {our_end[episode]}, Kinetix "
+            f"{OUTCOMES[their_outcome[episode]]} at step {their_end[episode]}; apart by {args.tolerance} m "
+            f"from step {apart[episode]}"
+        )
+
+
+if __name__ == "__main__":
+    main()

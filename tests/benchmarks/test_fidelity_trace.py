@@ -1,0 +1,52 @@
+"""The paired trace of benchmarks/fidelity_trace.py: episode ends, the first step two traces part, kforge's side."""
+
+import numpy as np
+
+from benchmarks.fidelity_trace import EPISODE_STEPS, episode_ends, first_divergence, random_actions, trace_ours
+from env import MULTI_DISCRETE_SIZES, bundled_level_path
+
+
+def _trace(done_at: dict, reward_at: dict, episodes: int = 3) -> dict:
+    done = np.zeros((episodes, EPISODE_STEPS), bool)
+    reward = np.zeros((episodes, EPISODE_STEPS), np.float32)
+    for episode, step in done_at.items():
+        done[episode, step:] = True  # a trace runs on without reset
+    for episode, value in reward_at.items():
+        reward[episode, done_at[episode]] = value
+    return {"done": done, "reward": reward}
+
+
+def test_episode_ends_give_the_first_end_and_its_outcome():
+    trace = _trace({0: 10, 1: 40, 2: EPISODE_STEPS - 1}, {0: 1.0, 1: -1.0})
+    step, outcome = episode_ends(trace)
+    np.testing.assert_array_equal(step, [10, 40, EPISODE_STEPS - 1])
+    np.testing.assert_array_equal(outcome, [1, 2, 0])  # success, failure, timeout
+
+
+def test_first_divergence_is_the_first_step_a_shape_is_further_apart_than_the_tolerance():
+    shape = (2, EPISODE_STEPS, 3, 2)
+    ours = {"polygon_position": np.zeros(shape), "circle_position": np.zeros((2, EPISODE_STEPS, 1, 2))}
+    theirs = {"polygon_position": np.zeros(shape), "circle_position": np.zeros((2, EPISODE_STEPS, 1, 2))}
+    theirs["polygon_position"][0, 7:, 1, 0] = 0.02  # episode 0: polygon 1 is 2 cm off from step 7
+    theirs["polygon_position"][1, 3:, 2, 1] = 0.5  # episode 1: only an inactive polygon differs...
+    theirs["circle_position"][1, 9:, 0, 1] = 0.005  # ...and a circle by less than the tolerance
+    active_polygons, active_circles = np.array([True, True, False]), np.array([True])
+    np.testing.assert_array_equal(first_divergence(ours, theirs, active_polygons, active_circles, 0.01), [7, -1])
+
+
+def test_random_actions_are_valid_multi_discrete_actions_and_repeat_with_the_seed():
+    actions = random_actions(4, seed=3)
+    assert actions.shape == (4, EPISODE_STEPS, len(MULTI_DISCRETE_SIZES))
+    assert np.all((actions >= 0) & (actions < np.array(MULTI_DISCRETE_SIZES)))
+    np.testing.assert_array_equal(actions, random_actions(4, seed=3))
+
+
+def test_kforge_side_of_a_no_op_trace_keeps_static_shapes_still_and_ends_at_the_time_limit():
+    """s/h1_thrust_over_ball's no-op: nothing is driven, the episode times out; the floor never moves."""
+    path = bundled_level_path("s/h1_thrust_over_ball")
+    trace = trace_ours(path, np.zeros((1, EPISODE_STEPS, 6), np.int32), {})
+    step, outcome = episode_ends(trace)
+    assert outcome[0] == 0 and step[0] == EPISODE_STEPS - 1
+    floor = trace["polygon_position"][0, :, 0]
+    np.testing.assert_array_equal(floor, np.broadcast_to(floor[0], floor.shape))
+    np.testing.assert_allclose(floor[0], [2.5, -4.8], atol=1e-6)
