@@ -232,13 +232,24 @@ def warm_start_joints(velocity: Motion, rows: JointRows, frames: JointFrames, im
 
 
 def _angular_row(
-    axial_mass, relative_speed, error, old, softness: Softness, use_bias, inverse_substep, one_sided: bool
+    axial_mass,
+    relative_speed,
+    error,
+    old,
+    softness: Softness,
+    use_bias,
+    inverse_substep,
+    one_sided: bool,
+    return_rate=jnp.inf,
 ):
     """New impulse of an angular row driving `relative_speed` and the position `error` to zero.
 
-    One-sided rows (limits) are speculative while `error` > 0: they only stop the motion that would cross it.
+    One-sided rows (limits) are speculative while `error` > 0: they only stop the motion that would cross it; past it
+    (`error` < 0) they turn back at most `return_rate` [1/s] x the excess.
     """
     bias = jnp.where(use_bias, softness.bias_rate * error, 0.0)
+    if one_sided:
+        bias = jnp.where(error < 0, jnp.maximum(bias, return_rate * error), bias)
     mass_scale = jnp.where(use_bias, softness.mass_scale, 1.0)
     impulse_scale = jnp.where(use_bias, softness.impulse_scale, 0.0)
     if one_sided:
@@ -259,12 +270,14 @@ def solve_joints(
     use_bias,
     kinetix_limits,
     limit_recovery_rate,
+    limit_return_rate,
 ):
     """One sweep over the joints in index order: motor, limits, fixed angle, then the point constraint.
 
     `use_bias` (bool, may be traced) selects the soft position-correcting solve, otherwise the relaxing solve.
     `kinetix_limits` (bool, may be traced) selects Kinetix's limit law (`engine.params.LimitLaw.KINETIX`): the
     lower limit slot then holds the signed sum of this substep's limit impulses, and the upper slot 0.
+    `limit_return_rate` [1/s] bounds how fast the speculative law turns a joint back from beyond a limit, per radian.
     Returns the velocities and the new impulses.
     """
 
@@ -281,7 +294,15 @@ def solve_joints(
         # Limits: one-sided rows (speculative law), or Kinetix's turning back from beyond a limit.
         lower_old, upper_old = impulse.limit[0], impulse.limit[1]
         lower = _angular_row(
-            mass, wb - wa, frame.angle - row.lower_angle, lower_old, softness, use_bias, inverse_substep, True
+            mass,
+            wb - wa,
+            frame.angle - row.lower_angle,
+            lower_old,
+            softness,
+            use_bias,
+            inverse_substep,
+            True,
+            limit_return_rate,
         )
         lower = jnp.where(row.solve_limits, jnp.maximum(lower, 0.0), 0.0)
         lower_change = lower - lower_old
@@ -294,6 +315,7 @@ def solve_joints(
             use_bias,
             inverse_substep,
             True,
+            limit_return_rate,
         )
         upper = jnp.where(row.solve_limits, jnp.maximum(upper, 0.0), 0.0)
         excess = row.start_excess

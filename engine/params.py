@@ -50,6 +50,10 @@ class LimitLaw(enum.IntEnum):
     """Kinetix's (Jax2D's): in every solve, a joint beyond a limit and turning further out gets its relative angular
     velocity set to -limit_recovery_rate x its excess angle; nothing is accumulated, so a load that pushes out again
     after the joints' solve (contacts, the servo) bends it past the limit."""
+    BOUNDED_RETURN = 2
+    """SPECULATIVE's rows, turning a joint back from beyond a limit at most as fast as Kinetix does
+    (limit_recovery_rate x its excess angle): a level that starts with a joint past its limit unfolds as slowly as in
+    Kinetix, and no joint passes a limit it approaches."""
 
 
 @struct.dataclass
@@ -86,7 +90,7 @@ class SimParams:
     motor_decay: float = 0.1  # [s/rad] servo: the impulse is tanh(motor_decay x speed error) of its bound
     motor_limit_fade: float = 0.1  # [rad] servo: the impulse fades to 0 over this angle before a joint limit
     limit_law: int = LimitLaw.SPECULATIVE  # `LimitLaw`: how joint angle limits hold
-    limit_recovery_rate: float = 5.0  # [1/s] Kinetix limit law: turning speed back per unit of excess angle
+    limit_recovery_rate: float = 5.0  # [1/s] KINETIX, BOUNDED_RETURN: speed of return per unit of excess angle
 
     force_timing: int = ForceTiming.SPREAD  # `ForceTiming`: gravity and thrust spread over substeps or at step start
 

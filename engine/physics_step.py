@@ -88,6 +88,7 @@ class SolverScalars:
     joint_softness: Softness
     kinetix_limits: jnp.ndarray  # bool: joint limits follow `LimitLaw.KINETIX`
     limit_recovery_rate: jnp.ndarray  # [1/s]
+    limit_return_rate: jnp.ndarray  # [1/s] fastest return from beyond a limit per radian (inf: the joint's softness)
 
 
 @struct.dataclass
@@ -156,6 +157,7 @@ def substep_solver(static: StaticSimParams, batch_last: bool = True):
                 use_bias,
                 scalars.kinetix_limits,
                 scalars.limit_recovery_rate,
+                scalars.limit_return_rate,
             )
             velocity, contact_impulses = solve_contacts(
                 velocity,
@@ -303,6 +305,7 @@ def prepare_step(
         joint_softness=make_softness(params.joint_hertz, params.joint_damping_ratio, substep),
         kinetix_limits=params.limit_law == LimitLaw.KINETIX,
         limit_recovery_rate=params.limit_recovery_rate,
+        limit_return_rate=jnp.where(params.limit_law == LimitLaw.BOUNDED_RETURN, params.limit_recovery_rate, jnp.inf),
     )
     solver_input = SolverInput(
         velocity=velocity,

@@ -240,10 +240,10 @@ def test_revolute_limits_under_gravity_and_release():
     assert abs(drive_right[-1] - 0.5) < 0.05 and abs(drive_left[-1] + 0.5) < 0.05  # now held at the other limits
 
 
-@pytest.mark.parametrize("law", [LimitLaw.SPECULATIVE, LimitLaw.KINETIX])
+@pytest.mark.parametrize("law", [LimitLaw.SPECULATIVE, LimitLaw.BOUNDED_RETURN, LimitLaw.KINETIX])
 def test_a_spinning_wheel_meets_its_angle_limit(law):
     """A wheel pinned at its centre (no gravity torque), limits +-0.5 rad, spinning at 2.7 rad/s (0.045 rad a step)
-    towards the upper limit. The speculative law stops it at the limit. Kinetix's law sees the limit only at a step's
+    towards the upper limit. The speculative laws stop it at the limit. Kinetix's law sees the limit only at a step's
     start: the wheel reaches 0.54 rad (the first step start beyond 0.5), and that step turns it back at
     limit_recovery_rate x 0.04 rad = 0.2 rad/s, which nothing changes after (it no longer turns outward)."""
     builder = _builder_with_pivot()
@@ -257,7 +257,7 @@ def test_a_spinning_wheel_meets_its_angle_limit(law):
     _, traj = run(state, STATIC, 30, params=params)
     angle, omega = _joint_angle(traj, state, 0), traj.angular_velocity[:, wheel]
     measured(f"wheel at its limit ({law.name})", max_angle_rad=angle.max(), final_omega=omega[-1])
-    if law == LimitLaw.SPECULATIVE:
+    if law != LimitLaw.KINETIX:  # BOUNDED_RETURN approaches a limit as SPECULATIVE does
         assert angle.max() < 0.5 + 1e-3
         assert abs(omega[-1]) < 1e-3  # held at the limit
     else:
@@ -265,6 +265,34 @@ def test_a_spinning_wheel_meets_its_angle_limit(law):
         assert peak == 12 and abs(angle[peak] - 0.54) < 1e-4
         np.testing.assert_allclose(omega[: peak + 1], 2.7, rtol=1e-5)
         np.testing.assert_allclose(omega[peak + 1 :], -params.limit_recovery_rate * 0.04, rtol=1e-3)
+
+
+def test_a_wheel_started_past_its_limit_returns_as_each_law_says():
+    """A wheel at rest 1 rad past its upper limit (+-0.5 rad), no gravity torque. SPECULATIVE snaps it back within a
+    step or two (the joint's softness); BOUNDED_RETURN returns it no faster than limit_recovery_rate x the excess, an
+    exponential of 5 /s (0.92 of the excess left after each step at best), inside the limit within 1.5 s; KINETIX
+    leaves it where it is, as Jax2D does: it only turns back a joint that turns further out."""
+    builder = _builder_with_pivot()
+    wheel = builder.add_circle(PIVOT, 0.2)
+    builder.add_revolute_joint(0, wheel, PIVOT, limits=(-0.5, 0.5))
+    state = builder.build()
+    state = state.replace(bodies=state.bodies.replace(rotation=state.bodies.rotation.at[wheel].set(1.5)))
+    excess = {}
+    for law in (LimitLaw.SPECULATIVE, LimitLaw.BOUNDED_RETURN, LimitLaw.KINETIX):
+        _, traj = run(state, STATIC, 90, params=SimParams(limit_law=law))
+        excess[law] = _joint_angle(traj, state, 0) - 0.5
+    fastest_step = math.exp(-PARAMS.limit_recovery_rate * DT)
+    bounded = excess[LimitLaw.BOUNDED_RETURN]
+    measured(
+        "wheel started past its limit",
+        speculative_after_2_steps=excess[LimitLaw.SPECULATIVE][2],
+        bounded_after_1_10_90_steps=bounded[[1, 10, 90]].round(4).tolist(),
+        kinetix_after_90_steps=excess[LimitLaw.KINETIX][90],
+    )
+    assert excess[LimitLaw.SPECULATIVE][2] < 0.1
+    assert np.all(bounded[1:] >= bounded[:-1] * fastest_step - 1e-5)
+    assert bounded[10] < 0.5 and 0.0 <= bounded[90] < 0.005
+    np.testing.assert_allclose(excess[LimitLaw.KINETIX], 1.0, atol=1e-6)
 
 
 def _motor_wheel(motor_speed: float = 1.0, motor_power: float = 1.0):
