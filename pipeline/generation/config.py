@@ -15,6 +15,7 @@ import hashlib
 import inspect
 import io
 import json
+import math
 import textwrap
 import tokenize
 import typing
@@ -26,7 +27,7 @@ from omegaconf.errors import ConfigKeyError, MissingMandatoryValue, OmegaConfBas
 
 import configs
 from agents import PPOConfig, check_segmented
-from engine import KINETIX_SIZES
+from engine import KINETIX_SIZES, LimitLaw
 from env import EnvParams, StaticEnvParams
 from pipeline.generation.compile_cache import DEFAULT_COMPILE_CACHE_DIR
 from pipeline.storage import (
@@ -433,12 +434,30 @@ def environment(job: JobConfig) -> tuple[EnvParams, StaticEnvParams]:
     return EnvParams(dense_reward_scale=job.env.dense_reward_scale), StaticEnvParams.for_size(job.split.size)
 
 
+PHYSICS_ADDED_LATER = {
+    "limit_law": LimitLaw.SPECULATIVE,
+    "limit_recovery_rate": 5.0,
+    "speculative_reach": 1.0,
+    "push_touch_distance": math.inf,
+}
+"""Physics parameters added after datasets were first made, each with the value at which the engine plays as it did
+before the parameter existed: at that value a parameter is left out of the data definition, so those datasets keep
+their fingerprint (and a definition holds no infinite number)."""
+
+
 def data_definition(job: JobConfig) -> dict:
     """What defines the dataset's content: the config's data sections, and the engine's physics parameters (set by
     the code, not the config, so that data made by code with other physics is told apart)."""
     sections = [name for name in DATA_SECTIONS if name != "experts" or job.experts.budget_mode != FIXED_BUDGET_MODE]
     data = {section: dataclasses.asdict(getattr(job, section)) for section in sections}
-    return data | {"physics": dataclasses.asdict(environment(job)[0].sim)}
+    return data | {"physics": physics_definition(environment(job)[0].sim)}
+
+
+def physics_definition(sim) -> dict:
+    """The physics parameters `sim` (`engine.SimParams`) as they enter the data definition: every field, but those of
+    PHYSICS_ADDED_LATER at their earlier-physics value."""
+    fields = dataclasses.asdict(sim)
+    return {k: v for k, v in fields.items() if k not in PHYSICS_ADDED_LATER or v != PHYSICS_ADDED_LATER[k]}
 
 
 GROWABLE_KEY = ("split", "num_levels")
