@@ -9,6 +9,8 @@ velocity after each env step, in Kinetix's slot order) for a closer look.
 
     python benchmarks/fidelity_trace.py l/mjc_half_cheetah --episodes 64
     python benchmarks/fidelity_trace.py levels/s/k0-00002.json --noop --sim speculative_reach=0
+
+(the second a random level that `benchmarks/fidelity.py --random-levels 64 --level-dir levels` sampled.)
 """
 
 from __future__ import annotations
