@@ -70,9 +70,9 @@ def random_actions(episodes: int, seed: int) -> np.ndarray:
     return np.stack(columns, -1).astype(np.int32)
 
 
-def trace_ours(path: Path, actions: np.ndarray, sim_overrides: dict) -> dict:
-    """kforge's trace of `actions` on the level file: TRACED fields, reward sign and done per env step."""
-    loaded = load_level(path)
+def trace_ours(loaded, actions: np.ndarray, sim_overrides: dict) -> dict:
+    """kforge's trace of `actions` on a loaded level (`env.LoadedLevel`): TRACED fields, reward sign and done per env
+    step."""
     params = EnvParams(dense_reward_scale=0.0)
     if sim_overrides:
         params = params.replace(sim=dataclasses.replace(params.sim, **sim_overrides))
@@ -140,7 +140,8 @@ def main(argv=None) -> None:
     python = kinetix_python(args.kinetix_venv, print)
     with tempfile.TemporaryDirectory(prefix="kforge-trace-") as folder:
         theirs = trace_kinetix(python, path, actions, Path(folder))
-    ours = trace_ours(path, actions, dict(args.sim))
+    loaded = load_level(path)
+    ours = trace_ours(loaded, actions, dict(args.sim))
     if args.save is not None:
         np.savez(
             args.save,
@@ -149,7 +150,7 @@ def main(argv=None) -> None:
             **{f"kinetix_{k}": v for k, v in theirs.items()},
         )
 
-    start = state_to_kinetix(reset(load_level(path).level), load_level(path).static)
+    start = state_to_kinetix(reset(loaded.level), loaded.static)
     apart = first_divergence(
         ours, theirs, start["polygon/active"].astype(bool), start["circle/active"].astype(bool), args.tolerance
     )

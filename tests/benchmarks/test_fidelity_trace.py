@@ -3,7 +3,7 @@
 import numpy as np
 
 from benchmarks.fidelity_trace import EPISODE_STEPS, episode_ends, first_divergence, random_actions, trace_ours
-from env import MULTI_DISCRETE_SIZES, bundled_level_path
+from env import MULTI_DISCRETE_SIZES, bundled_level_path, load_level
 
 
 def _trace(done_at: dict, reward_at: dict, episodes: int = 3) -> dict:
@@ -43,8 +43,8 @@ def test_random_actions_are_valid_multi_discrete_actions_and_repeat_with_the_see
 
 def test_kforge_side_of_a_no_op_trace_keeps_static_shapes_still_and_ends_at_the_time_limit():
     """s/h1_thrust_over_ball's no-op: nothing is driven, the episode times out; the floor never moves."""
-    path = bundled_level_path("s/h1_thrust_over_ball")
-    trace = trace_ours(path, np.zeros((1, EPISODE_STEPS, 6), np.int32), {})
+    loaded = load_level(bundled_level_path("s/h1_thrust_over_ball"))
+    trace = trace_ours(loaded, np.zeros((1, EPISODE_STEPS, 6), np.int32), {})
     step, outcome = episode_ends(trace)
     assert outcome[0] == 0 and step[0] == EPISODE_STEPS - 1
     floor = trace["polygon_position"][0, :, 0]
