@@ -250,17 +250,40 @@ def _velocity_changes(rows: ContactRows, deltas) -> tuple[Motion, Motion]:
     return change_a, change_b
 
 
+def received_changes(layout: PairLayout) -> tuple[np.ndarray, np.ndarray]:
+    """Which velocity changes each real body receives when every slot's pair acts at once: (N, D) indices into the
+    flat list [changes of every slot's body a; changes of every slot's body b], in that list's order, and (N, D)
+    whether each index is a real entry (D: the most any body receives; padding slots go to the dummy body N)."""
+    owners = np.concatenate([layout.colour_body_a.reshape(-1), layout.colour_body_b.reshape(-1)])
+    entries = [np.flatnonzero(owners == body) for body in range(layout.num_bodies)]
+    width = max((len(e) for e in entries), default=0)
+    indices = np.zeros((layout.num_bodies, width), np.int32)
+    real = np.zeros((layout.num_bodies, width), bool)
+    for body, found in enumerate(entries):
+        indices[body, : len(found)], real[body, : len(found)] = found, True
+    return indices, real
+
+
 def warm_start_contacts(velocity: Motion, rows: ContactRows, impulses: ContactImpulses, layout: PairLayout) -> Motion:
-    """Apply the accumulated impulses of every row to the velocities at once."""
+    """Apply the accumulated impulses of every row to the velocities at once.
+
+    Each body sums the changes it receives one by one in a fixed order (`received_changes`), so the result is the
+    same bits on every backend; a scatter-add, where several slots change one body, is lowered to atomic additions
+    of varying order on a GPU.
+    """
     change_a, change_b = _velocity_changes(rows, impulses.impulse)
-    a, b = layout.colour_body_a.reshape(-1), layout.colour_body_b.reshape(-1)
+    indices, real = received_changes(layout)
+    n = layout.num_bodies
 
-    def flat(x):
-        return x.reshape((-1,) + x.shape[2:])
+    def received(v, da, db):
+        changes = jnp.concatenate([da.reshape((-1,) + da.shape[2:]), db.reshape((-1,) + db.shape[2:])])
+        bodies = v[:n]
+        for k in range(indices.shape[1]):
+            takes = real[:, k].reshape((n,) + (1,) * (v.ndim - 1))
+            bodies = jnp.where(takes, bodies + changes[indices[:, k]], bodies)
+        return jnp.concatenate([bodies, v[n:]])
 
-    return tuple(
-        v.at[a].add(flat(da)).at[b].add(flat(db)) for v, da, db in zip(velocity, change_a, change_b, strict=True)
-    )
+    return tuple(received(v, da, db) for v, da, db in zip(velocity, change_a, change_b, strict=True))
 
 
 def _sweep(velocity: Motion, rows: ContactRows, impulse, layout: PairLayout, solve_colour, per_colour=None):

@@ -126,8 +126,15 @@ def servo_motor_kick(
         & bodies_active[b]
     )
     impulse = jnp.where(applies, bound * direction * fading, 0.0)
+    # Each body sums its joints' impulses in a fixed order (bodies a, then bodies b), the same bits on every
+    # backend: a scatter-add onto a body with several joints becomes atomic additions of varying order on a GPU.
+    owners = jnp.concatenate([a, b])
+    changes = jnp.concatenate([impulse * inverse_inertia_a, -impulse * inverse_inertia_b])
+    body = jnp.arange(velocity.shape[0])
     kick = jnp.zeros(velocity.shape[0], velocity.dtype)
-    return kick.at[a].add(impulse * inverse_inertia_a).at[b].add(-impulse * inverse_inertia_b)
+    for k in range(owners.shape[0]):
+        kick = jnp.where(body == owners[k], kick + changes[k], kick)
+    return kick
 
 
 def _select(component, mask):

@@ -560,3 +560,76 @@ def test_collision_modes(mode_static, mode_falling):
         assert speed(traj, box)[-1] < 1e-3
     else:
         assert final_y < 0.0
+
+
+# --------------------------------------------------------------------------- warm start: a fixed order per body
+@pytest.mark.parametrize("static", [SIZE_S, SIZE_M, SIZE_L], ids=["s", "m", "l"])
+def test_each_body_receives_its_slots_changes_in_slot_order(static):
+    """The warm start sums, per real body, the changes of exactly the slots it belongs to (as body a, then as body
+    b, each in slot order) and nothing of padding: the same order on every backend."""
+    from engine.contact_solver import received_changes
+    from engine.pairs import pair_layout
+
+    layout = pair_layout(static)
+    indices, real = received_changes(layout)
+    slots_a, slots_b = layout.colour_body_a.reshape(-1), layout.colour_body_b.reshape(-1)
+    for body in range(layout.num_bodies):
+        as_a = [slot for slot, owner in enumerate(slots_a) if owner == body]
+        as_b = [len(slots_a) + slot for slot, owner in enumerate(slots_b) if owner == body]
+        assert indices[body][real[body]].tolist() == as_a + as_b
+    assert real.sum() == np.count_nonzero(slots_a < layout.num_bodies) + np.count_nonzero(slots_b < layout.num_bodies)
+
+
+def test_warm_start_equals_every_slots_impulse_added_to_its_bodies():
+    """Random rows and impulses in size m's colour layout: the warm-started velocities equal a sequential
+    scatter-add (numpy's add.at) of each slot's change onto its bodies a and b; the dummy body N is left alone."""
+    import jax.numpy as jnp
+
+    from engine.contact_solver import ContactImpulses, ContactRows, _velocity_changes, warm_start_contacts
+    from engine.pairs import pair_layout
+    from engine.softness import Softness
+
+    layout = pair_layout(SIZE_M)
+    rng = np.random.default_rng(3)
+    shape = layout.colour_slots.shape
+
+    def random(*leading):
+        return jnp.asarray(rng.normal(size=leading + shape).astype(np.float32))
+
+    angle = rng.uniform(-np.pi, np.pi, shape)
+    zeros = jnp.zeros(shape)
+    rows = ContactRows(
+        normal_x=jnp.asarray(np.cos(angle), jnp.float32),
+        normal_y=jnp.asarray(np.sin(angle), jnp.float32),
+        arm_a=tuple(random() for _ in range(4)),
+        arm_b=tuple(random() for _ in range(4)),
+        inverse_mass_a=jnp.abs(random()),
+        inverse_inertia_a=jnp.abs(random()),
+        inverse_mass_b=jnp.abs(random()),
+        inverse_inertia_b=jnp.abs(random()),
+        mass=(zeros,) * 4,
+        coupling=(zeros,) * 6,
+        separation=(zeros,) * 2,
+        approach_velocity=(zeros,) * 2,
+        enabled=(zeros > 0,) * 2,
+        friction=zeros,
+        restitution=zeros,
+        softness=Softness(bias_rate=zeros, mass_scale=zeros, impulse_scale=zeros),
+    )
+    impulses = ContactImpulses(impulse=tuple(random() for _ in range(4)), max_normal=(zeros,) * 2)
+    velocity = tuple(jnp.asarray(rng.normal(size=layout.num_bodies + 1).astype(np.float32)) for _ in range(3))
+
+    warmed = warm_start_contacts(velocity, rows, impulses, layout)
+    change_a, change_b = _velocity_changes(rows, impulses.impulse)
+    real_a = layout.colour_body_a.reshape(-1) < layout.num_bodies
+    real_b = layout.colour_body_b.reshape(-1) < layout.num_bodies
+    for component, v in enumerate(velocity):
+        expected = np.asarray(v).copy()
+        np.add.at(
+            expected, layout.colour_body_a.reshape(-1)[real_a], np.asarray(change_a[component]).reshape(-1)[real_a]
+        )
+        np.add.at(
+            expected, layout.colour_body_b.reshape(-1)[real_b], np.asarray(change_b[component]).reshape(-1)[real_b]
+        )
+        np.testing.assert_allclose(np.asarray(warmed[component]), expected, rtol=1e-6, atol=1e-6)
+        assert np.asarray(warmed[component])[-1] == np.asarray(v)[-1]

@@ -11,7 +11,7 @@ import math
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from engine_test_helpers import SIZE_L, G, crossings, elliptic_k, joint_anchor_error, rotate, run
+from engine_test_helpers import SIZE_L, G, crossings, elliptic_k, joint_anchor_error, masses, rotate, run
 
 from engine import LimitLaw, MotorLaw, SceneBuilder, SimParams
 
@@ -412,3 +412,28 @@ def test_constraint_motor_under_heavy_load_respects_and_saturates_torque_bound()
     )
     assert np.all(impulse <= bound * (1 + 1e-5))
     assert saturated.mean() > 0.9
+
+
+def test_servo_motors_on_a_shared_hub_conserve_angular_momentum():
+    """Zero gravity, at rest: a free hub driven by two motorised wheels, the hub being body a of one joint and body
+    b of the other. Joint and motor impulses are internal, so the total angular momentum stays 0 while the wheels
+    spin up; a hub that missed one joint's servo impulse (an accumulation that drops or repeats an entry) would not."""
+    builder = SceneBuilder(STATIC, boundaries=False)
+    hub = builder.add_box(PIVOT, (1.0, 0.3))
+    left = builder.add_circle(PIVOT - (0.4, 0.0), 0.15)
+    right = builder.add_circle(PIVOT + (0.4, 0.0), 0.25)
+    builder.add_revolute_joint(hub, left, PIVOT - (0.4, 0.0), motor_speed=1.0, motor_power=1.0, motor_on=True)
+    builder.add_revolute_joint(right, hub, PIVOT + (0.4, 0.0), motor_speed=2.0, motor_power=1.0, motor_on=True)
+    state = builder.build().replace(gravity=jnp.zeros(2))
+    actions = np.zeros(STATIC.num_joints, np.float32)
+    actions[:2] = 1.0
+    _, traj = run(state, STATIC, 20, motor=actions)
+    mass, inertia = masses(state.bodies)
+    bodies = [hub, left, right]
+    spin = inertia[bodies] * traj.angular_velocity[:, bodies]
+    orbit = mass[bodies] * np.cross(traj.position[:, bodies], traj.velocity[:, bodies])
+    total = np.sum(spin + orbit, axis=1)
+    scale = np.max(np.abs(spin), axis=1)
+    measured("shared hub", wheel_speeds=traj.angular_velocity[-1, [left, right]].round(3).tolist(), total=total[-1])
+    assert np.all(np.abs(traj.angular_velocity[-1, [left, right]]) > 0.5)  # the motors did work
+    np.testing.assert_array_less(np.abs(total), 1e-4 * scale.max() + 1e-7)
