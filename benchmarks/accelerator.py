@@ -11,9 +11,9 @@ Measures, on the default JAX backend (a GPU or TPU when one is installed, else t
   benchmarks/env.py; it is not built here, so that the run stays unattended and offline);
 - pipeline: a tiny `kforge run` end to end (Ray, one worker with the accelerator, zarr output), its wall time and
   level outcomes;
-- determinism: an engine rollout with random actions run twice on the accelerator (bitwise equal?) and once on the
-  CPU (largest difference), with XLA's deterministic GPU ops off and on (engine/determinism.py), and the tiny job
-  run twice (byte-identical data? its workers turn the deterministic ops on).
+- determinism: an engine rollout with random actions run twice on the accelerator (bitwise equal?), timed there, and
+  once on the CPU (largest difference), with XLA's deterministic GPU ops off and on (engine/determinism.py), and the
+  tiny job run twice with its workers' deterministic ops off (byte-identical data without paying for them?).
 
 It prints one JSON document with every figure and, under "targets", each target of the accelerator issue checked
 (null where a figure is missing): engine >= 2x Jax2D in the same run and >= Jax2D's published peaks, PPO >= 5x
@@ -141,12 +141,14 @@ class Budget:
         return section in self._deadlines and time.monotonic() - self._start < self._deadlines[section]
 
 
-def _attempt(report: dict, section: str, key: str, budget: Budget, measure, log):
-    """Run `measure()` into report[section][key] unless the section's time is up; errors are recorded, not raised."""
-    if not budget.enabled(section):
+def _attempt(report: dict, section: str, key: str, budget: Budget, measure, log, budget_section: str | None = None):
+    """Run `measure()` into report[section][key] unless the time of its budget section (`section` unless named) is
+    up; errors are recorded, not raised."""
+    budget_section = budget_section or section
+    if not budget.enabled(budget_section):
         return None
     entries = report.setdefault(section, {})
-    if not budget.allows(section):
+    if not budget.allows(budget_section):
         entries[key] = {"skipped": "time budget"}
         log(f"{section} {key}: skipped (time budget)")
         return None
@@ -219,7 +221,7 @@ def measure_kinetix_ppo(python: Path, size: str, plan: Plan) -> dict:
     return measure_kinetix(python, size, _ppo_config(plan), options)
 
 
-def measure_pipeline(size: str, plan: Plan, scratch: Path) -> dict:
+def measure_pipeline(size: str, plan: Plan, scratch: Path, extra_overrides: tuple[str, ...] = ()) -> dict:
     """A tiny job end to end through Ray: one worker, on the accelerator when there is one."""
     from pipeline.generation import load_config, run_job
 
@@ -232,15 +234,18 @@ def measure_pipeline(size: str, plan: Plan, scratch: Path) -> dict:
         f"ray.gpus_per_worker={gpus}",
         "tracking.wandb=disabled",
         *plan.pipeline_overrides,
+        *extra_overrides,
     ]
     summary = run_job(load_config(None, overrides), show_progress=False)
     return {"wall_seconds": summary["seconds"], "levels": summary["levels"], "outcomes": summary["outcomes"]}
 
 
 def engine_determinism(size: str, batch: int, steps: int) -> dict:
-    """A rollout of `steps` with random motor and thruster actions: run twice on the default backend, and on the CPU."""
+    """A rollout of `steps` with random motor and thruster actions: run twice on the default backend (and timed
+    there), and once on the CPU."""
     from benchmarks.engine import _batched_states
     from benchmarks.scenes import build_scene
+    from benchmarks.timing import best_time
     from engine import SimParams, step
 
     static = build_scene(size, 0)[1]
@@ -258,8 +263,9 @@ def engine_determinism(size: str, batch: int, steps: int) -> dict:
 
     key = jax.random.key(0)
     states = _batched_states(size, batch)
-    compiled = jax.jit(rollout)
+    compiled = jax.jit(rollout).lower(states, key).compile()
     first, second = compiled(states, key), compiled(states, key)
+    seconds, _ = best_time(lambda: compiled(states, key), repeats=3)
     cpu = jax.devices("cpu")[0]
     on_cpu = jax.jit(rollout)(jax.device_put(states, cpu), jax.device_put(key, cpu))
     leaves = zip(jax.tree.leaves(first), jax.tree.leaves(second), jax.tree.leaves(on_cpu), strict=True)
@@ -276,6 +282,7 @@ def engine_determinism(size: str, batch: int, steps: int) -> dict:
         "repeat_bitwise_equal": bool(bitwise),
         "max_abs_difference_vs_cpu": cpu_difference,
         "finite": finite,
+        "steps_per_second": batch * steps / seconds,  # the price of the deterministic ops, beside their absence
     }
 
 
@@ -302,17 +309,28 @@ def _data_digests(root: Path) -> dict[tuple[int, str], str]:
     return {(r.global_batch, name): e.data_sha256 for r in iter_records(root) for name, e in r.arrays.items()}
 
 
+WORKERS_WITHOUT_DETERMINISTIC_OPS = ("ray.deterministic_gpu_ops=false",)
+"""The tiny job's repeat runs without XLA's deterministic GPU ops: the engine repeats bit for bit without them
+(docs/performance-accelerators.md), and this tells whether the whole pipeline does, so that workers can stop paying
+for them."""
+
+
 def measure_pipeline_determinism(size: str, plan: Plan, scratch: Path) -> dict:
-    """The tiny job twice into fresh folders: are its stored arrays byte-identical?"""
+    """The tiny job twice into fresh folders, its workers without XLA's deterministic GPU ops: are its stored arrays
+    byte-identical?"""
     digests = []
     for run in ("first", "second"):
-        measure_pipeline(size, plan, scratch / run)
+        measure_pipeline(size, plan, scratch / run, WORKERS_WITHOUT_DETERMINISTIC_OPS)
         digests.append(_data_digests(scratch / run / f"pipeline-{size}"))
     differing = sorted(
         f"{batch}/{name}" for batch, name in digests[0] if digests[0][batch, name] != digests[1].get((batch, name))
     )
-    return {"data_arrays": len(digests[0]), "byte_identical": not differing and digests[0] == digests[1],
-            "differing_arrays": differing[:20]}  # fmt: skip
+    return {
+        "data_arrays": len(digests[0]),
+        "byte_identical": not differing and digests[0] == digests[1],
+        "differing_arrays": differing[:20],
+        "worker_overrides": list(WORKERS_WITHOUT_DETERMINISTIC_OPS),
+    }
 
 
 def check_targets(report: dict) -> dict:
@@ -371,6 +389,7 @@ def run(plan: Plan, budget_seconds: float, kinetix_venv: Path | None, log, secti
                 budget,
                 functools.partial(measure_kinetix_ppo, kinetix_python, size, plan),
                 log,
+                budget_section="ppo",
             )
     with tempfile.TemporaryDirectory(prefix="kforge-accelerator-") as scratch:
         _attempt(
@@ -420,6 +439,7 @@ def main(argv=None) -> None:
     parser.add_argument("--engine-batches", nargs="+", type=int, help="override the plan's engine batches")
     parser.add_argument("--env-batches", nargs="+", type=int, help="override the plan's env batches")
     parser.add_argument("--ppo-levels", nargs="+", type=int, help="override the plan's PPO level batches")
+    parser.add_argument("--determinism-batch", type=int, help="override the scenes of the repeated engine rollout")
     parser.add_argument("--engine-determinism", nargs=3, metavar=("SIZE", "BATCH", "STEPS"), help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args.engine_determinism:  # the child process of `measure_engine_determinism`
@@ -430,6 +450,8 @@ def main(argv=None) -> None:
     for field in ("sizes", "engine_batches", "env_batches", "ppo_levels"):
         if getattr(args, field):
             plan = dataclasses.replace(plan, **{field: tuple(getattr(args, field))})
+    if args.determinism_batch:
+        plan = dataclasses.replace(plan, determinism_batch=args.determinism_batch)
     if args.dry_run:
         print(
             json.dumps(

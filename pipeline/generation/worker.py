@@ -37,7 +37,8 @@ class Worker:
     """Generates level batches for the shards the coordinator leases to it (one writer per shard)."""
 
     def __init__(self, job: JobConfig, name: str):
-        use_deterministic_ops()  # before the worker's first computation: the same data on a GPU, run after run
+        if job.ray.deterministic_gpu_ops:
+            use_deterministic_ops()  # before the worker's first computation: the same data on a GPU, run after run
         enable_compile_cache(job.compile_cache.dir)
         self._job = job
         self._name = name

@@ -59,3 +59,14 @@ def test_a_worker_turns_on_deterministic_gpu_ops_before_it_computes(tmp_path, mo
         "--xla_force_host_platform_device_count=1",
         "--xla_gpu_deterministic_ops=true",
     ]
+
+
+def test_a_worker_leaves_xla_flags_alone_when_told_to(tmp_path, monkeypatch):
+    import dataclasses
+
+    from pipeline.generation import Worker
+
+    monkeypatch.setenv("XLA_FLAGS", "--xla_force_host_platform_device_count=1")
+    job = tiny_job(tmp_path / "out")
+    Worker(dataclasses.replace(job, ray=dataclasses.replace(job.ray, deterministic_gpu_ops=False)), "local")
+    assert os.environ["XLA_FLAGS"] == "--xla_force_host_platform_device_count=1"
