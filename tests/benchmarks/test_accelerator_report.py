@@ -66,3 +66,22 @@ def test_quick_report_runs_every_section_on_the_cpu():
         assert report["determinism"]["engine/s"][ops]["max_abs_difference_vs_cpu"] == 0.0
     assert report["determinism"]["pipeline/s"]["byte_identical"] is True
     assert report["determinism"]["pipeline/s"]["data_arrays"] > 0
+
+
+def test_kinetix_ppo_runs_within_the_ppo_sections_budget():
+    from benchmarks.accelerator import _attempt
+
+    report, budget, logged = {}, Budget(100.0, ("ppo",)), []
+    _attempt(report, "kinetix_ppo", "s", budget, lambda: {"steps_per_second": 1.0}, logged.append, budget_section="ppo")
+    _attempt(report, "env", "s/8", budget, lambda: {"steps_per_second": 1.0}, logged.append)
+    assert report == {"kinetix_ppo": {"s": {"steps_per_second": 1.0}}}
+
+
+def test_dry_run_takes_the_determinism_batch():
+    output = subprocess.run(
+        [sys.executable, str(SCRIPT), "--dry-run", "--determinism-batch", "4096"],
+        capture_output=True,
+        text=True,
+        check=True,
+    )
+    assert json.loads(output.stdout)["plan"]["determinism_batch"] == 4096
