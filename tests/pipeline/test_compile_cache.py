@@ -10,6 +10,7 @@ from pipeline_test_helpers import tiny_job
 from pipeline.generation.compile_cache import cache_folder
 from pipeline.generation.config import load_config, to_yaml
 from pipeline.storage import iter_records
+from tests.conftest import COMPILATION_CACHE_VARIABLES
 
 JOB_TIMEOUT_SECONDS = 1800  # [s] a busy 2-core machine compiles slowly
 CACHE_ENTRY_SUFFIX = "-cache"
@@ -23,7 +24,8 @@ def run_job_in_subprocess(tmp_path, name: str, *overrides) -> list:
     job = tiny_job(output, "split.num_levels=2", "work.levels_per_shard=2", *overrides)
     config_file.write_text(to_yaml(job))
     command = [sys.executable, "-m", "pipeline", "run", str(config_file), "--no-progress"]
-    environment = {**os.environ, "RAY_AUTH_MODE": "disabled"}
+    environment = {k: v for k, v in os.environ.items() if k not in COMPILATION_CACHE_VARIABLES}  # the job's own cache
+    environment["RAY_AUTH_MODE"] = "disabled"
     subprocess.run(command, check=True, capture_output=True, timeout=JOB_TIMEOUT_SECONDS, env=environment)
     return sorted((r.global_batch, n, e.data_sha256) for r in iter_records(output) for n, e in r.arrays.items())
 
