@@ -1,9 +1,9 @@
 """RL agents that train on env tasks: PPO specialists, one parameter set per level, many levels per program.
 
-Public surface: the config, training of a level batch, evaluation, expert windows for the dataset, training in
-segments for adaptive budgets, the pieces they are made of (GAE, loss, policy), and progress reports from a training
-program while it runs; for behaviour cloning, its policy networks and objective, and episodes of any policy given as
-an actor function.
+Public surface: the config, training of a level batch, evaluation, expert windows for the dataset, training in segments
+for adaptive budgets, the pieces they are made of (GAE, loss, the learner and its optimiser, policy), and progress
+reports from a training program while it runs; for behaviour cloning, its policy networks and objective, and episodes of
+any policy given as an actor function.
 """
 
 from agents.bc_networks import Architecture, EntityTransformerPolicy, MLPPolicy, NetworkConfig, make_bc_network
@@ -20,6 +20,8 @@ from agents.ppo import (
     UpdateMetrics,
     gae,
     initial_params,
+    learn,
+    make_optimizer,
     ppo_loss,
     train_from,
     train_level,
@@ -55,9 +57,11 @@ __all__ = [
     "gae",
     "imitation_terms",
     "initial_params",
+    "learn",
     "level_episodes",
     "make_bc_network",
     "make_network",
+    "make_optimizer",
     "network_actor",
     "ppo_loss",
     "put_slot",

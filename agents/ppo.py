@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import functools
 from collections.abc import Callable
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -227,6 +227,33 @@ def _mean_where(values: jnp.ndarray, where: jnp.ndarray) -> jnp.ndarray:
     return jnp.where(count > 0, jnp.sum(jnp.where(where, values, 0.0)) / jnp.maximum(count, 1), jnp.nan)
 
 
+def learn(
+    params, opt_state, batch: Batch, key: jax.Array, mask: jnp.ndarray, config: PPOConfig
+) -> tuple[Any, Any, LossTerms]:
+    """The learner's part of one PPO update: `config.update_epochs` passes over `batch` (one update's samples,
+    leading axis `config.steps_per_update`), each in `config.num_minibatches` shuffled minibatches with one Adam
+    step per minibatch; `mask` (6,) is the level's action mask. Returns the new parameters and optimiser state and
+    the loss terms of every minibatch step, shaped (epochs, minibatches)."""
+    network = make_network(config)
+    optimizer = make_optimizer(config)
+
+    def sgd_step(params_and_opt, minibatch: Batch):
+        params, opt_state = params_and_opt
+        grads, terms = jax.grad(ppo_loss, has_aux=True)(params, network.apply, minibatch, mask, config)
+        updates, opt_state = optimizer.update(grads, opt_state, params)
+        return (optax.apply_updates(params, updates), opt_state), terms
+
+    def epoch(params_and_opt, epoch_key):
+        order = jax.random.permutation(epoch_key, config.steps_per_update)
+        minibatches = jax.tree.map(
+            lambda x: x[order].reshape((config.num_minibatches, config.minibatch_size) + x.shape[1:]), batch
+        )
+        return jax.lax.scan(sgd_step, params_and_opt, minibatches)
+
+    (params, opt_state), terms = jax.lax.scan(epoch, (params, opt_state), jax.random.split(key, config.update_epochs))
+    return params, opt_state, terms
+
+
 # --------------------------------------------------------------------------- training of one level
 def initial_params(key: jax.Array, config: PPOConfig, static: StaticEnvParams):
     """Fresh network parameters for the observations of `static`'s size."""
@@ -313,7 +340,6 @@ def _segment_program(level: Level, config: PPOConfig, env_params: EnvParams, sta
     `num_updates` PPO updates, then evaluation `index` of the policy, kept as best unless a better one was;
     returns (carry, best, per-update metrics, (success rate, mean return) of the evaluation)."""
     network = make_network(config)
-    optimizer = make_optimizer(config)
     mask = action_mask(level)
     start = reset(level)
     start_obs = observe(start, static, config.observation_type)
@@ -346,19 +372,6 @@ def _segment_program(level: Level, config: PPOConfig, env_params: EnvParams, sta
         )
         return carry, transition
 
-    def sgd_step(params_and_opt, minibatch: Batch):
-        params, opt_state = params_and_opt
-        grads, terms = jax.grad(ppo_loss, has_aux=True)(params, network.apply, minibatch, mask, config)
-        updates, opt_state = optimizer.update(grads, opt_state, params)
-        return (optax.apply_updates(params, updates), opt_state), terms
-
-    def epoch(params_and_opt, epoch_key, batch: Batch):
-        order = jax.random.permutation(epoch_key, config.steps_per_update)
-        minibatches = jax.tree.map(
-            lambda x: x[order].reshape((config.num_minibatches, config.minibatch_size) + x.shape[1:]), batch
-        )
-        return jax.lax.scan(sgd_step, params_and_opt, minibatches)
-
     def update(carry: _TrainCarry, _):
         key, rollout_key, epochs_key = jax.random.split(carry.key, 3)
         carry, rollout = jax.lax.scan(
@@ -372,11 +385,7 @@ def _segment_program(level: Level, config: PPOConfig, env_params: EnvParams, sta
         )
         flat = functools.partial(jax.tree.map, lambda x: x.reshape((config.steps_per_update,) + x.shape[2:]))
         batch = flat(Batch(rollout.obs, rollout.action, rollout.log_prob, values, advantages, targets))
-        (params, opt_state), terms = jax.lax.scan(
-            lambda state, k: epoch(state, k, batch),
-            (carry.params, carry.opt_state),
-            jax.random.split(epochs_key, config.update_epochs),
-        )
+        params, opt_state, terms = learn(carry.params, carry.opt_state, batch, epochs_key, mask, config)
         metrics = UpdateMetrics(
             episodes=jnp.sum(rollout.done).astype(jnp.int32),
             mean_return=_mean_where(rollout.episode_return, rollout.done),

@@ -1,17 +1,20 @@
 """PPO training throughput of our specialists, and with `--vs kinetix` of Kinetix's own PPO in the same run.
 
-For each size, L random levels are trained together by `agents.train_levels` (one parameter set per level), N envs
-each, with configs/ppo_specialist.yaml's settings unless overridden (`--set key=value`). The rate counts every env
-step of every level over whole PPO updates (rollout, GAE, epochs of minibatch SGD), timed on an already compiled
-program; compile time is printed on its own. Measuring several level counts (`--levels 1 16`) shows what training
-levels together (vmapped) gains over training one. `--vs kinetix` runs benchmarks/kinetix_ppo_baseline.py (Kinetix's
-PPO loop with its 5 x 128 network, one of its random levels) in the kinetix-env virtualenv that benchmarks/env.py
-builds, with our envs, rollout length, epochs and minibatches, so both sides collect and learn from the same number
-of samples per update; it prints the ratios. Wall time is the figure; process CPU seconds are printed beside it
+For each size, L random levels are trained together by `agents.train_levels` (one parameter set per level), N envs each,
+with configs/ppo_specialist.yaml's settings unless overridden (`--set key=value`). The rate counts every env step of
+every level over whole PPO updates (rollout, GAE, epochs of minibatch SGD), timed on an already compiled program;
+compile time is printed on its own. Measuring several level counts (`--levels 1 16`) shows what training levels together
+(vmapped) gains over training one. `--vs kinetix` runs benchmarks/kinetix_ppo_baseline.py (Kinetix's PPO loop with its
+5 x 128 network, one of its random levels) in the kinetix-env virtualenv that benchmarks/env.py builds, with our envs,
+rollout length, epochs and minibatches, so both sides collect and learn from the same number of samples per update; it
+prints the ratios. `--learner` also times the learner alone (`agents.learn`: one update's epochs of minibatch SGD, on a
+batch of one update's samples per level) alternately with the training call, and prints its share of the training time
+(the training call also plays its final evaluation). Wall time is the figure; process CPU seconds are printed beside it
 because a shared machine makes wall times noisy. `--json` prints one JSON document instead.
 
     python benchmarks/ppo.py --vs kinetix
     python benchmarks/ppo.py --sizes s --levels 1 8 --updates 2 --json
+    python benchmarks/ppo.py --sizes s m --levels 4 --learner --repeats 3
 """
 
 from __future__ import annotations
@@ -30,11 +33,11 @@ import yaml
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
-from agents import PPOConfig, initial_params, train_levels  # noqa: E402
+from agents import Batch, PPOConfig, initial_params, learn, make_optimizer, train_levels  # noqa: E402
 from benchmarks.env import DEFAULT_KINETIX_VENV, REPO_ROOT, kinetix_python  # noqa: E402
 from benchmarks.machine import describe_machine  # noqa: E402
-from benchmarks.timing import best_time  # noqa: E402
-from env import EnvParams, StaticEnvParams, sample_levels  # noqa: E402
+from benchmarks.timing import best_time, best_times_interleaved  # noqa: E402
+from env import MULTI_DISCRETE_SIZES, EnvParams, StaticEnvParams, observation_shape, sample_levels  # noqa: E402
 
 DEFAULT_CONFIG = REPO_ROOT / "configs" / "ppo_specialist.yaml"
 LEVEL_SEED = 0
@@ -43,6 +46,9 @@ side samples its level from `jax.random.key(LEVEL_SEED)` with its own sampler.""
 
 TRAIN_SEED = 1
 """Seed of the per-level training keys."""
+
+LEARNER_ROUNDS = 3
+"""Alternating rounds of the training call and the learner alone; the fastest of each is kept."""
 
 TARGET_RATIO = 5.0
 """Issue #4: our training throughput should be at least this many times Kinetix's."""
@@ -60,8 +66,9 @@ def load_ppo_config(path: Path, overrides: list[str], updates: int) -> PPOConfig
     return PPOConfig.from_mapping(values)
 
 
-def measure_ours(size: str, num_levels: int, config: PPOConfig, repeats: int) -> dict:
-    """Env steps per second of `train_levels` on `num_levels` random levels of `size` (compile excluded)."""
+def measure_ours(size: str, num_levels: int, config: PPOConfig, repeats: int, learner: bool = False) -> dict:
+    """Env steps per second of `train_levels` on `num_levels` random levels of `size` (compile excluded); with
+    `learner`, also the learner's seconds per update and its share of the training call's time."""
     static, env_params = StaticEnvParams.for_size(size), EnvParams()
     level_keys = jax.random.split(jax.random.key(LEVEL_SEED), num_levels)
     levels = jax.jit(lambda keys: sample_levels(keys, static))(level_keys)
@@ -71,7 +78,7 @@ def measure_ours(size: str, num_levels: int, config: PPOConfig, repeats: int) ->
     compile_seconds = time.perf_counter() - start
     seconds, cpu_seconds = best_time(lambda: compiled(levels, keys, env_params), repeats)
     env_steps = num_levels * config.env_steps_per_level
-    return {
+    result = {
         "levels": num_levels,
         "env_steps_per_call": env_steps,
         "compile_seconds": compile_seconds,
@@ -79,6 +86,45 @@ def measure_ours(size: str, num_levels: int, config: PPOConfig, repeats: int) ->
         "cpu_seconds": cpu_seconds,
         "steps_per_second": env_steps / seconds,
         "steps_per_cpu_second": env_steps / cpu_seconds,
+    }
+    if learner:
+        result["learner"] = measure_learner(lambda: compiled(levels, keys, env_params), num_levels, config, static)
+    return result
+
+
+def learner_program(num_levels: int, config: PPOConfig, static: StaticEnvParams):
+    """`agents.learn` on `num_levels` levels at once (vmap, as in training) and its arguments: fresh parameters and
+    a batch of one update's samples per level (random observations and actions; the learner's work does not depend
+    on the values)."""
+    keys = jax.random.split(jax.random.key(TRAIN_SEED), 4)
+    samples = (num_levels, config.steps_per_update)
+    params = jax.vmap(lambda key: initial_params(key, config, static))(jax.random.split(keys[0], num_levels))
+    opt_state = jax.vmap(make_optimizer(config).init)(params)
+    obs = observation_shape(static, config.observation_type)
+    slot_choices = jax.numpy.asarray(MULTI_DISCRETE_SIZES)
+    batch = Batch(
+        obs=jax.random.normal(keys[1], samples + obs.shape, obs.dtype),
+        action=jax.random.randint(keys[2], samples + slot_choices.shape, 0, slot_choices),
+        log_prob=jax.numpy.full(samples, -3.0),
+        value=jax.numpy.zeros(samples),
+        advantage=jax.random.normal(keys[3], samples),
+        target=jax.numpy.ones(samples),
+    )
+    mask = jax.numpy.ones((num_levels, len(MULTI_DISCRETE_SIZES)), bool)
+    epoch_keys = jax.random.split(jax.random.key(LEVEL_SEED), num_levels)
+    program = jax.jit(jax.vmap(lambda *args: learn(*args, config)))
+    return program, (params, opt_state, batch, epoch_keys, mask)
+
+
+def measure_learner(train_call, num_levels: int, config: PPOConfig, static: StaticEnvParams) -> dict:
+    """The learner alone against `train_call` (the compiled training of `num_levels` levels), timed alternately."""
+    program, arguments = learner_program(num_levels, config, static)
+    updates = config.num_updates
+    train_seconds, learner_seconds = best_times_interleaved([train_call, lambda: program(*arguments)], LEARNER_ROUNDS)
+    return {
+        "seconds_per_update": learner_seconds,
+        "training_seconds_per_update": train_seconds / updates,
+        "share_of_training": learner_seconds * updates / train_seconds,
     }
 
 
@@ -123,6 +169,7 @@ def main(argv=None) -> None:
         default="kinetix",
         help="Kinetix's side: its default 5 x 128 network, or its network at our width and depth",
     )
+    parser.add_argument("--learner", action="store_true", help="also time the learner alone and print its share")
     parser.add_argument("--json", action="store_true", help="print one JSON document with every figure")
     args = parser.parse_args(argv)
     config = load_ppo_config(args.config, args.set, args.updates)
@@ -145,12 +192,20 @@ def main(argv=None) -> None:
     for size in args.sizes:
         entry = {"network_parameters": network_parameters(config, StaticEnvParams.for_size(size)), "ours": []}
         for num_levels in args.levels:
-            ours = measure_ours(size, num_levels, config, args.repeats)
+            ours = measure_ours(size, num_levels, config, args.repeats, args.learner)
             entry["ours"].append(ours)
             log(
                 f"ours    size={size} L={num_levels:>3} x N={config.num_envs}: {ours['steps_per_second']:>9,.0f} env "
                 f"steps/s ({ours['steps_per_cpu_second']:,.0f} per CPU-s); compile {ours['compile_seconds']:.0f} s"
             )
+            if "learner" in ours:
+                learner = ours["learner"]
+                log(
+                    f"learner size={size} L={num_levels:>3}: {learner['seconds_per_update'] * 1e3:.1f} ms per update "
+                    f"of {config.update_epochs} epochs x {config.num_minibatches} minibatches, of "
+                    f"{learner['training_seconds_per_update'] * 1e3:.1f} ms per training update: "
+                    f"{learner['share_of_training']:.0%} of training"
+                )
         single = next((ours for ours in entry["ours"] if ours["levels"] == 1), None)
         if single is not None:
             entry["speedup_over_one_level"] = {

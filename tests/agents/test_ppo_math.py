@@ -5,16 +5,22 @@ import math
 import jax
 import jax.numpy as jnp
 import numpy as np
+import optax
 import pytest
 
-from agents import policy
+from agents import initial_params, policy
 from agents.config import PPOConfig
-from agents.ppo import Batch, gae, ppo_loss
+from agents.networks import make_network
+from agents.ppo import Batch, gae, learn, make_optimizer, ppo_loss
+from env import StaticEnvParams, observation_shape
 
 pytestmark = pytest.mark.smoke
 
 THRUSTER_ONLY = jnp.asarray([False, False, False, False, True, False])
 """Action mask of a level whose only actuator is a thruster bound to slot 4."""
+
+ALL_SLOTS = jnp.ones((6,), bool)
+"""Action mask of a level that uses every slot."""
 
 
 # --------------------------------------------------------------------------- GAE
@@ -158,3 +164,52 @@ def test_two_choice_slots_never_sample_a_third_choice():
     draw = jax.vmap(lambda key: policy.sample(key, jnp.zeros(16), jnp.ones(6, bool)))
     actions = np.asarray(draw(jax.random.split(jax.random.PRNGKey(1), 500)))
     assert actions[:, :4].max() == 2 and actions[:, 4:].max() == 1 and actions.min() == 0
+
+
+# ------------------------------------------------------------------------------------------------- the learner
+def _learn_inputs(config: PPOConfig):
+    """Fresh parameters for size-s observations and one update's batch of random samples."""
+    static = StaticEnvParams.for_size("s")
+    params = initial_params(jax.random.key(0), config, static)
+    samples = config.steps_per_update
+    keys = jax.random.split(jax.random.key(1), 3)
+    batch = Batch(
+        obs=jax.random.normal(keys[0], (samples,) + observation_shape(static, config.observation_type).shape),
+        action=jax.random.randint(keys[1], (samples, 6), 0, 2),
+        log_prob=jnp.full((samples,), -2.0),
+        value=jnp.zeros((samples,)),
+        advantage=jax.random.normal(keys[2], (samples,)),
+        target=jnp.ones((samples,)),
+    )
+    return params, batch
+
+
+def test_one_epoch_of_one_minibatch_is_one_adam_step_on_the_whole_batch():
+    """The minibatch is the batch shuffled, and the loss does not depend on the order of samples."""
+    config = PPOConfig(num_envs=4, num_steps=8, num_minibatches=1, update_epochs=1, env_steps_per_level=32)
+    params, batch = _learn_inputs(config)
+    optimizer = optax.chain(
+        optax.clip_by_global_norm(config.max_grad_norm), optax.adam(config.learning_rate, eps=config.adam_eps)
+    )
+    grads, _ = jax.grad(ppo_loss, has_aux=True)(params, make_network(config).apply, batch, ALL_SLOTS, config)
+    updates, expected_opt_state = optimizer.update(grads, optimizer.init(params), params)
+    expected = optax.apply_updates(params, updates)
+
+    learnt, opt_state, terms = learn(params, optimizer.init(params), batch, jax.random.key(2), ALL_SLOTS, config)
+
+    assert terms.total.shape == (1, 1)
+    for got, want in zip(
+        jax.tree.leaves((learnt, opt_state)), jax.tree.leaves((expected, expected_opt_state)), strict=True
+    ):
+        np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-7)
+    assert not all(np.array_equal(a, b) for a, b in zip(jax.tree.leaves(learnt), jax.tree.leaves(params), strict=True))
+
+
+def test_the_learner_takes_one_step_per_minibatch_of_every_epoch():
+    config = PPOConfig(num_envs=4, num_steps=8, num_minibatches=4, update_epochs=3, env_steps_per_level=32)
+    params, batch = _learn_inputs(config)
+    optimizer = make_optimizer(config)
+    _, opt_state, terms = learn(params, optimizer.init(params), batch, jax.random.key(2), ALL_SLOTS, config)
+    assert terms.total.shape == (3, 4)
+    adam_state = opt_state[1][0]
+    assert int(adam_state.count) == 12
