@@ -197,6 +197,15 @@ def run_in_process(job, max_batches=None):
             coordinator.release(shard)
 
 
+@pytest.fixture(scope="session")
+def uninterrupted(tmp_path_factory):
+    """The tiny job run once without interruption, in-process: the dataset that interrupted, resumed, repaired, grown
+    or raced runs must equal (shared read-only by the tests: copy it before changing anything)."""
+    root = tmp_path_factory.mktemp("uninterrupted")
+    run_in_process(tiny_job(root))
+    return root
+
+
 def batch_file(dataset, name: str, global_batch: int) -> Path:
     """The local file of a level batch's shard object in field `name`'s array (tests that damage files)."""
     return Path(dataset.root) / dataset.batch_key(name, global_batch)

@@ -92,13 +92,6 @@ def test_processes_racing_for_the_lease_get_it_once(tmp_path):
     assert not (tmp_path / LEASE_KEY).exists()
 
 
-@pytest.fixture(scope="module")
-def uninterrupted(tmp_path_factory):
-    root = tmp_path_factory.mktemp("uninterrupted")
-    run_in_process(tiny_job(root))
-    return root
-
-
 def test_two_runs_at_once_one_refuses_and_the_dataset_equals_an_uninterrupted_run(uninterrupted, tmp_path):
     job = tiny_job(tmp_path)
     first = threading.Thread(target=run_in_process, args=(job,))

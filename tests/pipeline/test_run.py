@@ -45,13 +45,6 @@ from pipeline.storage.verify import verify_dataset
 from pipeline.storage.writer import stage_level_batch
 
 
-@pytest.fixture(scope="module")
-def uninterrupted(tmp_path_factory):
-    root = tmp_path_factory.mktemp("uninterrupted")
-    run_in_process(tiny_job(root))
-    return root
-
-
 def test_uninterrupted_run_commits_every_batch_and_verifies(uninterrupted):
     assert [committed_batches(uninterrupted, shard) for shard in range(2)] == [[0, 1], [0, 1]]
     assert all(report.ok for report in verify_dataset(uninterrupted))
