@@ -7,15 +7,15 @@ import os
 
 import pytest
 
-from pipeline.generation.compile_cache import enable_compile_cache
+from pipeline.generation.compile_cache import MIN_COMPILE_SECONDS, NO_MIN_ENTRY_SIZE, enable_compile_cache
 
 WANDB_DIR_VARIABLES = ("WANDB_DIR", "WANDB_CONFIG_DIR", "WANDB_CACHE_DIR", "WANDB_DATA_DIR")
 """wandb's environment variables for where it writes runs, settings, caches and artifacts."""
 
 COMPILATION_CACHE_VARIABLES = {
     "JAX_COMPILATION_CACHE_DIR": None,  # set to the run's folder
-    "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS": "0",
-    "JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES": "-1",
+    "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS": str(MIN_COMPILE_SECONDS),
+    "JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES": str(NO_MIN_ENTRY_SIZE),
 }
 """JAX's environment variables for its persistent compilation cache, as `enable_compile_cache` sets them in-process:
 the processes the tests start read them at import."""
