@@ -174,3 +174,65 @@ def manifolds(geometry: WorldGeometry, layout: PairLayout, margin: jnp.ndarray) 
         parts.append(jax.vmap(function)(a, b, margin[pair]))
     normal, point, separation, valid, feature = (jnp.concatenate(x) for x in zip(*parts, strict=True))
     return Manifolds(normal, point, separation, valid, feature.astype(jnp.int32))
+
+
+def circle_contact_clearance(
+    manifold: Manifolds, geometry: WorldGeometry, layout: PairLayout, velocity, acceleration, times
+) -> jnp.ndarray:
+    """(K,) bool: the pair has a circle, is apart at the start of the step, and free motion keeps the circle apart from
+    the feature it faces (an edge, a corner, the other circle) at every time of `times` [s] and, for a point, at its
+    closest approach.
+
+    The contact normal of the step's start overstates how fast a circle closes on what it passes sideways: the
+    corner it falls past, or an edge whose end it moves beyond. A circle beyond an edge's end and behind its line
+    may meet the next edge, so is not counted as apart. `velocity` and `acceleration` (N, 3) are the bodies' at the
+    start of the step; the feature moves with its body's velocity at the contact point (rotation to first order).
+    """
+    a, b = layout.body_a, layout.body_b
+    first_circle_pair = layout.num_polygon_polygon
+    first_circle_circle = first_circle_pair + layout.num_polygon_circle
+    pair = jnp.arange(a.shape[0])
+    has_circle = pair >= first_circle_pair
+    is_circle_circle = pair >= first_circle_circle
+    region = manifold.feature[:, 0] % 3  # polygon_circle's feature ids: edge * 3 + region (0: the edge's face)
+    edge = manifold.feature[:, 0] // 3
+    vertices, edge_valid = geometry.vertices[a], geometry.edge_valid[a]
+    count = vertices.shape[1]
+    # The faced edge's ends by selection over the edges (no gather with a per-scene index).
+    after = [jnp.where(edge_valid[:, i + 1, None], vertices[:, i + 1], vertices[:, 0]) for i in range(count - 1)]
+    after.append(vertices[:, 0])
+    start = sum(jnp.where((edge == i)[:, None], vertices[:, i], 0.0) for i in range(count))
+    end = sum(jnp.where((edge == i)[:, None], after[i], 0.0) for i in range(count))
+    corner = jnp.where((region == 1)[:, None], start, end)
+    point_like = is_circle_circle | (region != 0)
+    centre_a = geometry.centre[a]
+    start = jnp.where(is_circle_circle[:, None], centre_a, jnp.where(point_like[:, None], corner, start))
+    end = jnp.where(point_like[:, None], start, end)
+    reach = geometry.radius[a] + geometry.radius[b]  # a polygon's radius is 0
+    separation = manifold.separation[:, 0]
+    lever = manifold.point[:, 0] - centre_a
+
+    def relative(per_body):
+        at_a = per_body[a, :2] + per_body[a, 2:] * jnp.stack([-lever[:, 1], lever[:, 0]], -1)
+        return per_body[b, :2] - at_a
+
+    velocity, acceleration = relative(velocity), relative(acceleration)
+    offset = geometry.centre[b] - start
+    edge_vector = end - start
+    length_squared = dot2(edge_vector, edge_vector)
+    normal = manifold.normal
+
+    def gap(moved_offset):
+        along = dot2(moved_offset, edge_vector) / jnp.maximum(length_squared, DIRECTION_EPSILON**2)
+        beside = (along > 0.0) & (along < 1.0)
+        from_nearest = moved_offset - jnp.clip(along, 0.0, 1.0)[:, None] * edge_vector
+        height = dot2(normal, from_nearest)
+        behind_a_face = (length_squared > 0) & ~beside & (height <= 0)
+        distance = jnp.where(beside, height, norm2(from_nearest)) - reach
+        return jnp.where(behind_a_face, -1.0, distance)
+
+    gaps = [gap(offset + velocity * t + 0.5 * acceleration * t**2) for t in times]
+    speed_squared = jnp.maximum(dot2(velocity, velocity), DIRECTION_EPSILON)
+    closest_time = jnp.clip(-dot2(offset, velocity) / speed_squared, 0.0, times[-1])
+    gaps.append(jnp.where(point_like, gap(offset + velocity * closest_time[:, None]), jnp.inf))
+    return has_circle & (separation > 0) & (functools.reduce(jnp.minimum, gaps) > 0)

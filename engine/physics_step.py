@@ -9,7 +9,7 @@ import jax.numpy as jnp
 from flax import struct
 
 from engine.batch_last import Batching, current_batching, vmap_batch_last, vmap_in_chunks
-from engine.collision import manifolds, world_geometry
+from engine.collision import circle_contact_clearance, manifolds, world_geometry
 from engine.collision_filter import modes_collide
 from engine.contact_solver import (
     NUM_POINTS,
@@ -247,7 +247,8 @@ def prepare_step(
     reach = norm2(velocity[:n, :2]) + jnp.abs(velocity[:n, 2]) * _bounding_radius(bodies)
     reach = reach + params.dt * norm2(acceleration[:n, :2])
     margin = params.speculative_distance + params.speculative_reach * params.dt * (reach[a] + reach[b])
-    manifold = manifolds(world_geometry(bodies), layout, margin)
+    geometry = world_geometry(bodies)
+    manifold = manifolds(geometry, layout, margin)
     both_active = bodies.active[a] & bodies.active[b]
     modes = modes_collide(bodies.collision_mode[a], bodies.collision_mode[b])
     present = manifold.valid & both_active[:, None]
@@ -260,6 +261,11 @@ def prepare_step(
 
     # Contact rows, warm-started from last step's impulses of the same features.
     pair_enabled = both_active & modes & state.collision_matrix[a, b] & ~(static_body[a] & static_body[b])
+    # A circle's speculative contact is dropped when free motion carries it past what it faces (a near miss).
+    substep_ends = [k * substep for k in range(1, static.num_substeps + 1)]
+    clears = circle_contact_clearance(manifold, geometry, layout, velocity[:n], acceleration[:n], substep_ends)
+    misses = jnp.asarray(params.swept_speculative_contacts).astype(bool) & clears
+    manifold = manifold.replace(valid=manifold.valid & ~misses[:, None])
     point_enabled = manifold.valid & pair_enabled[:, None]
     contact_geometry = prepare_contacts(
         manifold,

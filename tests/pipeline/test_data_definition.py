@@ -4,20 +4,34 @@ as the engine did before them, leave the fingerprint of existing datasets unchan
 import math
 
 from engine import LimitLaw, SimParams
-from pipeline.generation.config import data_definition, data_fingerprint, load_config, physics_definition
+from pipeline.generation.config import (
+    data_definition,
+    data_fingerprint,
+    definition_fingerprint,
+    environment,
+    load_config,
+    physics_definition,
+)
 
 FINGERPRINTS_BEFORE_THE_SWITCHES = {"1M/s": "91cabbbb5c0c5e7a", "10M/l": "6b388df577c00203"}
 """`data_fingerprint` of each split's default job, as the code before the limit-law and speculative-margin switches
-computed it (commit a0538b2)."""
+computed it (commit a0538b2). Its physics is today's engine with `swept_speculative_contacts=False`."""
 
 
-def test_default_jobs_keep_the_fingerprints_they_had_before_the_physics_switches(tmp_path):
+def test_the_physics_from_before_the_switches_keeps_its_fingerprint(tmp_path):
+    """Datasets made before the switches keep their fingerprint under the physics they were made with; today's
+    default (circles' contacts followed through the step) plays differently, so its datasets are told apart."""
     for split, fingerprint in FINGERPRINTS_BEFORE_THE_SWITCHES.items():
         job = load_config(None, [f"split.name={split}", f"output_dir={tmp_path}"])
-        assert data_fingerprint(job) == fingerprint
-        physics = data_definition(job)["physics"]
-        assert not {"limit_law", "limit_recovery_rate", "speculative_reach", "push_touch_distance"} & set(physics)
-        assert physics["joint_hertz"] == 75.0  # the older parameters are all there
+        earlier_sim = environment(job)[0].sim.replace(swept_speculative_contacts=False)
+        earlier_physics = physics_definition(earlier_sim)
+        assert definition_fingerprint(data_definition(job) | {"physics": earlier_physics}) == fingerprint
+        later = {"limit_law", "limit_recovery_rate", "speculative_reach", "push_touch_distance"}
+        later.add("swept_speculative_contacts")
+        assert not later & set(earlier_physics)
+        assert earlier_physics["joint_hertz"] == 75.0  # the older parameters are all there
+        assert data_definition(job)["physics"]["swept_speculative_contacts"] is True
+        assert data_fingerprint(job) != fingerprint
 
 
 def test_a_later_parameter_at_another_value_enters_the_definition():
@@ -25,3 +39,4 @@ def test_a_later_parameter_at_another_value_enters_the_definition():
     assert physics_definition(SimParams(speculative_reach=0.0))["speculative_reach"] == 0.0
     assert physics_definition(SimParams(push_touch_distance=0.02))["push_touch_distance"] == 0.02
     assert "push_touch_distance" not in physics_definition(SimParams(push_touch_distance=math.inf))
+    assert physics_definition(SimParams())["swept_speculative_contacts"] is True
