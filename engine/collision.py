@@ -188,17 +188,16 @@ def circle_contact_clearance(
     may meet the next edge, so is not counted as apart. `velocity` and `acceleration` (N, 3) are the bodies' at the
     start of the step; the feature moves with its body's velocity at the contact point (rotation to first order).
     """
-    a, b = layout.body_a, layout.body_b
-    first_circle_pair = layout.num_polygon_polygon
-    first_circle_circle = first_circle_pair + layout.num_polygon_circle
-    pair = jnp.arange(a.shape[0])
-    has_circle = pair >= first_circle_pair
-    is_circle_circle = pair >= first_circle_circle
-    region = manifold.feature[:, 0] % 3  # polygon_circle's feature ids: edge * 3 + region (0: the edge's face)
-    edge = manifold.feature[:, 0] // 3
+    first = layout.num_polygon_polygon  # pairs from here on have a circle (polygon-circle, then circle-circle)
+    if first == layout.body_a.shape[0]:
+        return jnp.zeros(layout.body_a.shape[0], bool)
+    a, b = layout.body_a[first:], layout.body_b[first:]
+    is_circle_circle = jnp.arange(a.shape[0]) >= layout.num_polygon_circle
+    feature = manifold.feature[first:, 0]
+    region, edge = feature % 3, feature // 3  # polygon_circle's feature ids: edge * 3 + region (0: the edge's face)
     vertices, edge_valid = geometry.vertices[a], geometry.edge_valid[a]
     count = vertices.shape[1]
-    # The faced edge's ends by selection over the edges (no gather with a per-scene index).
+    # The faced edge's ends by selection over the edges (a gather with a per-scene index costs far more on CPU).
     after = [jnp.where(edge_valid[:, i + 1, None], vertices[:, i + 1], vertices[:, 0]) for i in range(count - 1)]
     after.append(vertices[:, 0])
     start = sum(jnp.where((edge == i)[:, None], vertices[:, i], 0.0) for i in range(count))
@@ -209,30 +208,31 @@ def circle_contact_clearance(
     start = jnp.where(is_circle_circle[:, None], centre_a, jnp.where(point_like[:, None], corner, start))
     end = jnp.where(point_like[:, None], start, end)
     reach = geometry.radius[a] + geometry.radius[b]  # a polygon's radius is 0
-    separation = manifold.separation[:, 0]
-    lever = manifold.point[:, 0] - centre_a
+    lever = manifold.point[first:, 0] - centre_a
 
     def relative(per_body):
         at_a = per_body[a, :2] + per_body[a, 2:] * jnp.stack([-lever[:, 1], lever[:, 0]], -1)
-        return per_body[b, :2] - at_a
+        return tuple((per_body[b, :2] - at_a)[:, i] for i in range(2))
 
-    velocity, acceleration = relative(velocity), relative(acceleration)
-    offset = geometry.centre[b] - start
-    edge_vector = end - start
-    length_squared = dot2(edge_vector, edge_vector)
-    normal = manifold.normal
+    # Component by component, as separate (K,) arrays.
+    (vx, vy), (ax, ay) = relative(velocity), relative(acceleration)
+    ox, oy = (geometry.centre[b, i] - start[:, i] for i in range(2))
+    ex, ey = (end[:, i] - start[:, i] for i in range(2))
+    nx, ny = manifold.normal[first:, 0], manifold.normal[first:, 1]
+    inverse_length_squared = 1.0 / jnp.maximum(ex * ex + ey * ey, DIRECTION_EPSILON**2)
 
-    def gap(moved_offset):
-        along = dot2(moved_offset, edge_vector) / jnp.maximum(length_squared, DIRECTION_EPSILON**2)
+    def apart(px, py):
+        along = (px * ex + py * ey) * inverse_length_squared
         beside = (along > 0.0) & (along < 1.0)
-        from_nearest = moved_offset - jnp.clip(along, 0.0, 1.0)[:, None] * edge_vector
-        height = dot2(normal, from_nearest)
-        behind_a_face = (length_squared > 0) & ~beside & (height <= 0)
-        distance = jnp.where(beside, height, norm2(from_nearest)) - reach
-        return jnp.where(behind_a_face, -1.0, distance)
+        nearest = jnp.clip(along, 0.0, 1.0)
+        fx, fy = px - nearest * ex, py - nearest * ey
+        height = nx * fx + ny * fy
+        behind_a_face = ~point_like & (height <= 0)
+        return jnp.where(beside, height > reach, (fx * fx + fy * fy > reach * reach) & ~behind_a_face)
 
-    gaps = [gap(offset + velocity * t + 0.5 * acceleration * t**2) for t in times]
-    speed_squared = jnp.maximum(dot2(velocity, velocity), DIRECTION_EPSILON)
-    closest_time = jnp.clip(-dot2(offset, velocity) / speed_squared, 0.0, times[-1])
-    gaps.append(jnp.where(point_like, gap(offset + velocity * closest_time[:, None]), jnp.inf))
-    return has_circle & (separation > 0) & (functools.reduce(jnp.minimum, gaps) > 0)
+    clear = manifold.separation[first:, 0] > 0
+    for t in times:
+        clear &= apart(ox + vx * t + 0.5 * ax * t**2, oy + vy * t + 0.5 * ay * t**2)
+    closest_time = jnp.clip(-(ox * vx + oy * vy) / jnp.maximum(vx * vx + vy * vy, DIRECTION_EPSILON), 0.0, times[-1])
+    clear &= ~point_like | apart(ox + vx * closest_time, oy + vy * closest_time)
+    return jnp.concatenate([jnp.zeros(first, bool), clear])

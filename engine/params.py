@@ -72,9 +72,7 @@ class SimParams:
     speculative_reach: float = 1.0  # [-] share of a step's motion added to the speculative distance
     touch_distance: float = 0.005  # [m] shapes closer than this count as touching
     push_touch_distance: float = float("inf")  # [m] a contact that pushed counts as touching if this close at start
-    swept_speculative_contacts: bool = (
-        True  # a circle's speculative contact acts only if free motion meets within the step
-    )
+    swept_speculative_contacts: bool = True  # a circle's speculative contact acts only if its free motion meets
     base_friction: float = 0.4  # [-] friction of a pair = base_friction * sqrt(f_a^2 + f_b^2) (Kinetix's mixing)
 
     # Joints. A soft joint stretches under load by about load / (effective mass x (2 pi joint_hertz)^2), and the

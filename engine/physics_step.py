@@ -262,8 +262,8 @@ def prepare_step(
     # Contact rows, warm-started from last step's impulses of the same features.
     pair_enabled = both_active & modes & state.collision_matrix[a, b] & ~(static_body[a] & static_body[b])
     # A circle's speculative contact is dropped when free motion carries it past what it faces (a near miss).
-    substep_ends = [k * substep for k in range(1, static.num_substeps + 1)]
-    clears = circle_contact_clearance(manifold, geometry, layout, velocity[:n], acceleration[:n], substep_ends)
+    check_times = [0.5 * params.dt, params.dt]
+    clears = circle_contact_clearance(manifold, geometry, layout, velocity[:n], acceleration[:n], check_times)
     misses = jnp.asarray(params.swept_speculative_contacts).astype(bool) & clears
     manifold = manifold.replace(valid=manifold.valid & ~misses[:, None])
     point_enabled = manifold.valid & pair_enabled[:, None]
