@@ -310,11 +310,10 @@ def _sweep(velocity: Motion, rows: ContactRows, impulse, layout: PairLayout, sol
         # The gathers are not recomputed per output; passing the velocity whole avoids copying their slices.
         return velocity
 
-    def solve(velocity, c):
+    def solve(velocity, c, current):
         vel_a, vel_b = split(velocity, c)
-        old = tuple(i[c] for i in impulse)
         extra = colour_slice(per_colour, c)
-        return solve_colour(colour_slice(rows, c), old, vel_a, vel_b, lambda motion: split(motion, c), extra)
+        return solve_colour(colour_slice(rows, c), current, vel_a, vel_b, lambda motion: split(motion, c), extra)
 
     def apply(velocity, c, change):
         change_a, change_b = _velocity_changes(colour_slice(rows, c), change)

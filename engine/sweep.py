@@ -2,11 +2,15 @@
 
 A sweep visits items in order; each item's new impulses depend on the velocities left by the items before it.
 Written naively, XLA fuses the computation of an item's new impulses into every consumer (each velocity
-component it updates) and computes it several times over; on CPU, `optimization_barrier` does not prevent this.
-Values carried across a loop iteration are always materialised, so the sweep is pipelined: step i applies item
-i-1's impulse changes to the velocities, then solves item i and carries its new impulses to step i+1; the last
-item's change is applied after the loop. The body is compiled once whatever the number of items. XLA inlines a
-loop of one step, so a single item runs as two steps, the second only applying (under a `cond`).
+component it updates, or the write into the sweep's result) and computes it several times over; on CPU,
+`optimization_barrier` does not prevent this (the CPU pipeline removes barriers before fusion). Values carried
+across a loop iteration are always materialised, so the sweep is pipelined: step i writes item i-1's new impulses
+into the carried result and applies their change to the velocities, then solves item i and carries its new
+impulses to step i+1; the last item is written and applied after the loop. Item i's solve reads its impulses at
+the sweep's start from the carried result (where they are still unchanged), so the write of step i comes before
+the carried value is replaced and XLA keeps both in place, with no copy per step. The body is compiled once
+whatever the number of items. A single item is solved in a loop of two steps, the second doing nothing (under a
+`cond`), and applied after it.
 """
 
 from __future__ import annotations
@@ -23,33 +27,48 @@ def pipelined_sweep(velocity, count: int, old, gather, solve, apply):
 
     `old` holds every item's impulses at the start of the sweep (pytree, leading item axis).
     `gather(velocity, i) -> inputs` reads what item i needs from the current velocities, and
-    `solve(inputs, i) -> new` gives its new impulses (pytree of one item); the inputs are materialised between
-    the two, so that each output of `solve` does not read them again from the velocities.
+    `solve(inputs, i, start) -> new` gives its new impulses from its impulses `start` at the sweep's start
+    (pytrees of one item); the inputs are materialised between the two, so that each output of `solve` does not
+    read them again from the velocities.
     `apply(velocity, i, change) -> velocity` applies a change `change` of item i's impulses.
     """
     if count == 0:
         return velocity, old
+    leaves, treedef = jax.tree_util.tree_flatten(old)
 
-    def take(tree, i):
-        return jax.tree_util.tree_map(lambda x: x[i], tree)
+    def take(buffer, i):
+        return jax.tree_util.tree_unflatten(treedef, [x[i] for x in buffer])
 
-    steps = max(count, 2)
+    def change_from(new, i):
+        return jax.tree_util.tree_map(lambda n, o: n - o, new, take(leaves, i))
+
+    if count == 1:
+        return _single_item_sweep(velocity, take(leaves, 0), gather, solve, apply)
+
+    def put(buffer, i, values):
+        values = jax.tree_util.tree_leaves(values)
+        return tuple(jax.lax.dynamic_update_index_in_dim(x, y, i, 0) for x, y in zip(buffer, values, strict=True))
 
     def step(carry, i):
-        velocity, previous = carry
+        velocity, impulses, previous = carry
         before = jnp.maximum(i - 1, 0)
-        change = jax.tree_util.tree_map(lambda n, o: n - o, previous, take(old, before))
-        velocity = apply(velocity, before, change)  # step 0 applies a zero change (item 0's start impulses)
-        inputs = gather(velocity, jnp.minimum(i, count - 1))
-        if steps == count:
-            new = solve(inputs, i)
-        else:
-            new = jax.lax.cond(i < count, lambda: solve(inputs, i), lambda: previous)
-        return (velocity, new), previous
+        impulses = put(impulses, before, previous)
+        velocity = apply(velocity, before, change_from(previous, before))  # step 0: a zero change
+        return (velocity, impulses, solve(gather(velocity, i), i, take(impulses, i))), None
 
-    (velocity, last), emitted = jax.lax.scan(step, (velocity, take(old, 0)), jnp.arange(steps))
-    if steps > count:
-        return velocity, jax.tree_util.tree_map(lambda x: x[1:], emitted)
-    change = jax.tree_util.tree_map(lambda n, o: n - o, last, take(old, count - 1))
-    new = jax.tree_util.tree_map(lambda x, y: jnp.concatenate([x[1:], y[None]]), emitted, last)
-    return apply(velocity, count - 1, change), new
+    (velocity, impulses, last), _ = jax.lax.scan(step, (velocity, tuple(leaves), take(leaves, 0)), jnp.arange(count))
+    impulses = put(impulses, count - 1, last)
+    velocity = apply(velocity, count - 1, change_from(last, count - 1))
+    return velocity, jax.tree_util.tree_unflatten(treedef, list(impulses))
+
+
+def _single_item_sweep(velocity, start, gather, solve, apply):
+    """One item as a loop of two steps, the second doing nothing, so that XLA keeps the loop (it inlines a loop of
+    one step) and its new impulses are materialised before they are applied."""
+
+    def step(new, i):
+        return jax.lax.cond(i == 0, lambda: solve(gather(velocity, 0), 0, start), lambda: new), None
+
+    new, _ = jax.lax.scan(step, start, jnp.arange(2))
+    change = jax.tree_util.tree_map(lambda n, o: n - o, new, start)
+    return apply(velocity, 0, change), jax.tree_util.tree_map(lambda x: x[None], new)
