@@ -310,10 +310,10 @@ def _sweep(velocity: Motion, rows: ContactRows, impulse, layout: PairLayout, sol
         # The gathers are not recomputed per output; passing the velocity whole avoids copying their slices.
         return velocity
 
-    def solve(velocity, c, current):
+    def solve(velocity, c, start):
         vel_a, vel_b = split(velocity, c)
         extra = colour_slice(per_colour, c)
-        return solve_colour(colour_slice(rows, c), current, vel_a, vel_b, lambda motion: split(motion, c), extra)
+        return solve_colour(colour_slice(rows, c), start, vel_a, vel_b, lambda motion: split(motion, c), extra)
 
     def apply(velocity, c, change):
         change_a, change_b = _velocity_changes(colour_slice(rows, c), change)

@@ -361,8 +361,8 @@ def solve_joints(
         frame = _take(frames, j)
         return _select_motion(velocity, frame.mask_a), _select_motion(velocity, frame.mask_b)
 
-    def solve(velocities, j, current: JointImpulses):
-        return solve_joint(_take(rows, j), _take(frames, j), current, *velocities)
+    def solve(velocities, j, start: JointImpulses):
+        return solve_joint(_take(rows, j), _take(frames, j), start, *velocities)
 
     def apply(velocity, j, change: JointImpulses):
         return _apply_impulse(velocity, _take(rows, j), _take(frames, j), change.linear, _axial(change))
