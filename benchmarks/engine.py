@@ -16,6 +16,10 @@ operations) in the entry computation, with `while` bodies multiplied by XLA's `k
     python benchmarks/engine.py --vs jax2d
     python benchmarks/engine.py --sizes s --batches 256 --json
     python benchmarks/engine.py --kernels --batches 1 256
+    python benchmarks/engine.py --sizes s --batches 256 --repeats 7 --vs-sim swept_speculative_contacts=0
+
+`--vs-sim KEY=VALUE` also times ours with those `SimParams`, compiled in as constants and called alternately with the
+defaults, and prints the ratio: what a physics option costs.
 """
 
 from __future__ import annotations
@@ -34,6 +38,7 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 from benchmarks.kernels import count_kernels  # noqa: E402
 from benchmarks.machine import describe_machine  # noqa: E402
 from benchmarks.scenes import build_scene  # noqa: E402
+from benchmarks.sim_overrides import sim_override  # noqa: E402
 from benchmarks.timing import best_time, best_times_interleaved  # noqa: E402
 from engine import SimParams, current_batching, set_batching, step  # noqa: E402
 
@@ -52,11 +57,12 @@ def _batched_states(size: str, batch: int):
     return jax.tree_util.tree_map(lambda x: jnp.concatenate([x] * repeat)[:batch], stacked)
 
 
-def compile_rollout_ours(size: str, batch: int, n_steps: int):
-    """`call()` running `n_steps` vmapped steps inside one compiled scan (motors at +1, thrusters on)."""
+def compile_rollout_ours(size: str, batch: int, n_steps: int, params: SimParams | None = None):
+    """`call()` running `n_steps` vmapped steps inside one compiled scan (motors at +1, thrusters on), with `params`
+    (default `SimParams()`) compiled in as constants, so that a switched-off option costs nothing."""
     static = build_scene(size, 0)[1]
     states = _batched_states(size, batch)
-    params = SimParams()
+    params = SimParams() if params is None else params
     motors, thrusters = jnp.ones(static.num_joints), jnp.ones(static.num_thrusters)
     batched = jax.vmap(lambda s: step(s, params, motors, thrusters, static=static)[0])
 
@@ -98,16 +104,22 @@ def compile_jax2d(size: str) -> float:
     return time.perf_counter() - start
 
 
-def run(sizes, batches, n_steps: int, repeats: int, versus_jax2d: bool, log=print) -> dict:
-    """Measure every (size, batch); `log` receives one human-readable line per figure."""
+def run(sizes, batches, n_steps: int, repeats: int, versus_jax2d: bool, log=print, sim_overrides=()) -> dict:
+    """Measure every (size, batch); `log` receives one human-readable line per figure. With `sim_overrides`, ours
+    is also timed with those `SimParams` (`ours_sim`), alternating call by call with the defaults."""
     on_gpu = jax.default_backend() == "gpu"
-    engines = ["ours", "jax2d"] if versus_jax2d else ["ours"]
+    sim_overrides = list(sim_overrides)
+    engines = ["ours"] + (["ours_sim"] if sim_overrides else []) + (["jax2d"] if versus_jax2d else [])
     report = {
         "machine": describe_machine(),
         "steps_per_timed_call": n_steps,
         "steps_per_second": {engine: {} for engine in engines},
-        "compile_seconds": {engine: {} for engine in engines},
+        "compile_seconds": {engine: {} for engine in engines if engine != "ours_sim"},
     }
+    switched = SimParams().replace(**dict(sim_overrides)) if sim_overrides else None
+    if switched is not None:
+        report["sim_overrides"] = dict(sim_overrides)
+        report["sim_vs_default"] = {}
     if versus_jax2d:
         from benchmarks import jax2d_baseline
 
@@ -120,24 +132,31 @@ def run(sizes, batches, n_steps: int, repeats: int, versus_jax2d: bool, log=prin
             line += f", jax2d {report['compile_seconds']['jax2d'][size]:.1f} s"
         log(line)
         for batch in list(batches) + (list(GPU_BATCHES) if on_gpu else []):
+            calls = [compile_rollout_ours(size, batch, n_steps)]
+            if switched is not None:
+                calls.append(compile_rollout_ours(size, batch, n_steps, switched))
             if versus_jax2d:
-                calls = [
-                    compile_rollout_ours(size, batch, n_steps),
-                    jax2d_baseline.compile_rollout(size, batch, n_steps)[0],
-                ]
-                ours, theirs = (batch * n_steps / seconds for seconds in best_times_interleaved(calls, repeats))
-            else:
-                ours = measure_ours(size, batch, n_steps, repeats)["steps_per_second"]
-            report["steps_per_second"]["ours"].setdefault(size, {})[str(batch)] = ours
-            line = f"size={size} batch={batch:>6} ours={ours:>12,.0f} steps/s"
+                calls.append(jax2d_baseline.compile_rollout(size, batch, n_steps)[0])
+            seconds = best_times_interleaved(calls, repeats) if len(calls) > 1 else [best_time(calls[0], repeats)[0]]
+            rates = dict(zip(engines, (batch * n_steps / s for s in seconds), strict=True))
+            for engine, rate in rates.items():
+                report["steps_per_second"][engine].setdefault(size, {})[str(batch)] = rate
+            line = f"size={size} batch={batch:>6} ours={rates['ours']:>12,.0f} steps/s"
+            if switched is not None:
+                report["sim_vs_default"].setdefault(size, {})[str(batch)] = rates["ours_sim"] / rates["ours"]
+                line += f"  with {_overrides_text(sim_overrides)}={rates['ours_sim']:>12,.0f} steps/s"
+                line += f" ({rates['ours_sim'] / rates['ours']:.2f}x)"
             if versus_jax2d:
-                report["steps_per_second"]["jax2d"].setdefault(size, {})[str(batch)] = theirs
-                report["speedup_vs_jax2d"].setdefault(size, {})[str(batch)] = ours / theirs
-                line += f"  jax2d={theirs:>12,.0f} steps/s  speedup={ours / theirs:6.2f}x"
+                report["speedup_vs_jax2d"].setdefault(size, {})[str(batch)] = rates["ours"] / rates["jax2d"]
+                line += f"  jax2d={rates['jax2d']:>12,.0f} steps/s  speedup={rates['ours'] / rates['jax2d']:6.2f}x"
             if on_gpu and batch in GPU_BATCHES:
                 line += f"  (jax2d published peak {JAX2D_PUBLISHED_PEAK_STEPS_PER_SECOND[size]:,.0f})"
             log(line)
     return report
+
+
+def _overrides_text(overrides) -> str:
+    return ",".join(f"{key}={value:g}" for key, value in overrides)
 
 
 def physics_step_kernels(size: str, batch: int) -> int:
@@ -217,6 +236,14 @@ def main(argv=None) -> None:
     parser.add_argument("--vs", choices=["jax2d"], help="also measure the reference engine in the same run")
     parser.add_argument("--json", action="store_true", help="print one JSON document with every figure")
     parser.add_argument("--kernels", action="store_true", help="count kernels per step instead of timing steps")
+    parser.add_argument(
+        "--vs-sim",
+        type=sim_override,
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="also time ours with these SimParams overrides, alternating with the defaults (repeatable)",
+    )
     args = parser.parse_args(argv)
     log = (
         (lambda line: print(line, file=sys.stderr, flush=True)) if args.json else (lambda line: print(line, flush=True))
@@ -226,7 +253,7 @@ def main(argv=None) -> None:
         if args.json:
             print(json.dumps(report, indent=2))
         return
-    report = run(args.sizes, args.batches, args.steps, args.repeats, args.vs == "jax2d", log)
+    report = run(args.sizes, args.batches, args.steps, args.repeats, args.vs == "jax2d", log, args.vs_sim)
     if args.json:
         print(json.dumps(report, indent=2))
 

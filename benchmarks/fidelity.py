@@ -37,6 +37,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from benchmarks.env import DEFAULT_KINETIX_VENV, kinetix_python  # noqa: E402
 from benchmarks.machine import describe_machine  # noqa: E402
+from benchmarks.sim_overrides import sim_override  # noqa: E402
 from env import (  # noqa: E402
     EnvParams,
     Outcome,
@@ -195,13 +196,6 @@ def format_table(levels: dict) -> str:
     return "\n".join(lines)
 
 
-def _sim_override(text: str) -> tuple[str, float]:
-    key, _, value = text.partition("=")
-    if not value:
-        raise argparse.ArgumentTypeError(f"expected KEY=VALUE, got {text!r}")
-    return key, float(value)
-
-
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--sizes", nargs="+", default=["s", "m", "l"], choices=["s", "m", "l"])
@@ -209,7 +203,7 @@ def main(argv=None) -> None:
     parser.add_argument("--random-levels", type=int, default=0, help="Kinetix-sampled random levels per size")
     parser.add_argument("--episodes", type=int, default=280, help="random-policy episodes per level")
     parser.add_argument("--seed", type=int, default=0, help="seed of Kinetix's level sampler and of the actions")
-    parser.add_argument("--sim", type=_sim_override, action="append", default=[], help="SimParams KEY=VALUE of ours")
+    parser.add_argument("--sim", type=sim_override, action="append", default=[], help="SimParams KEY=VALUE of ours")
     parser.add_argument("--kinetix-venv", type=Path, default=DEFAULT_KINETIX_VENV)
     parser.add_argument("--level-dir", type=Path, help="keep the sampled level files here (default: a temp folder)")
     parser.add_argument(

@@ -28,7 +28,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from benchmarks.env import DEFAULT_KINETIX_VENV, kinetix_python  # noqa: E402
-from benchmarks.fidelity import _sim_override  # noqa: E402
+from benchmarks.sim_overrides import sim_override  # noqa: E402
 from env import (  # noqa: E402
     MULTI_DISCRETE_SIZES,
     ActionType,
@@ -129,7 +129,7 @@ def main(argv=None) -> None:
     parser.add_argument("--episodes", type=int, default=64, help="paired random-action episodes")
     parser.add_argument("--noop", action="store_true", help="play the no-op policy (one episode) instead")
     parser.add_argument("--seed", type=int, default=0, help="seed of the random actions")
-    parser.add_argument("--sim", type=_sim_override, action="append", default=[], help="SimParams KEY=VALUE of ours")
+    parser.add_argument("--sim", type=sim_override, action="append", default=[], help="SimParams KEY=VALUE of ours")
     parser.add_argument("--tolerance", type=float, default=0.01, help="[m] positions closer than this agree")
     parser.add_argument("--kinetix-venv", type=Path, default=DEFAULT_KINETIX_VENV)
     parser.add_argument("--save", type=Path, help=".npz that keeps both traces and the actions")

@@ -1,0 +1,49 @@
+"""`KEY=VALUE` physics switches of the benchmarks: parsed against SimParams with one-line errors, and timed side by
+side with the defaults by `benchmarks/engine.py --vs-sim`."""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+import pytest
+
+from benchmarks import engine as engine_benchmark
+from benchmarks.sim_overrides import sim_override
+
+
+def test_a_field_and_a_number_parse():
+    assert sim_override("swept_speculative_contacts=0") == ("swept_speculative_contacts", 0.0)
+    assert sim_override("contact_hertz=30.5") == ("contact_hertz", 30.5)
+
+
+@pytest.mark.parametrize(
+    ("text", "message"),
+    [
+        ("contact_hertz", r"expected KEY=VALUE, got 'contact_hertz'"),
+        ("no_such_field=1", r"'no_such_field' is not a SimParams field \(fields: .*contact_hertz.*\)"),
+        ("contact_hertz=fast", r"contact_hertz='fast': the value is not a number"),
+    ],
+)
+def test_a_bad_switch_is_refused_naming_the_problem(text, message):
+    with pytest.raises(argparse.ArgumentTypeError, match=message):
+        sim_override(text)
+
+
+def test_the_engine_benchmark_refuses_an_unknown_field_on_its_command_line(capsys):
+    with pytest.raises(SystemExit):
+        engine_benchmark.main(["--vs-sim", "no_such_field=1"])
+    assert "'no_such_field' is not a SimParams field" in capsys.readouterr().err
+
+
+@pytest.mark.slow  # compiles the s step twice: about 40 s on 2 cores
+def test_the_engine_benchmark_times_a_switched_option_beside_the_default(capsys):
+    engine_benchmark.main(
+        ["--sizes", "s", "--batches", "2", "--steps", "2", "--repeats", "1"]
+        + ["--vs-sim", "swept_speculative_contacts=0", "--json"]
+    )
+    report = json.loads(capsys.readouterr().out)
+    assert report["sim_overrides"] == {"swept_speculative_contacts": 0.0}
+    default, switched = report["steps_per_second"]["ours"]["s"]["2"], report["steps_per_second"]["ours_sim"]["s"]["2"]
+    assert default > 0 and switched > 0
+    assert report["sim_vs_default"]["s"]["2"] == pytest.approx(switched / default)
