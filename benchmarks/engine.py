@@ -73,12 +73,6 @@ def compile_rollout_ours(size: str, batch: int, n_steps: int, params: SimParams 
     return lambda: compiled(states)
 
 
-def measure_ours(size: str, batch: int, n_steps: int, repeats: int) -> dict:
-    """Steps per second of `n_steps` vmapped steps inside one jitted scan (motors at +1, thrusters on)."""
-    seconds = best_time(compile_rollout_ours(size, batch, n_steps), repeats)[0]
-    return {"engine": "ours", "size": size, "batch": batch, "steps_per_second": batch * n_steps / seconds}
-
-
 def compile_ours(size: str) -> float:
     """Seconds to trace and compile one (unbatched) step."""
     state, static = build_scene(size, 0)
