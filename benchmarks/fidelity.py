@@ -23,8 +23,10 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import hashlib
 import json
 import math
+import os
 import subprocess
 import sys
 import tempfile
@@ -105,36 +107,78 @@ def _outcomes(levels, params, static, episodes: int, key) -> np.ndarray:
     return np.concatenate(codes).reshape(num_levels, episodes)
 
 
-def run_kinetix(python: Path, arguments: list[str], log) -> dict:
+def run_kinetix(python: Path, arguments: list[str], log, receive=lambda document: None) -> None:
+    """Run Kinetix's side with `arguments`; each JSON document it prints goes to `receive` as it arrives."""
     command = [str(python), str(KINETIX_SCRIPT), *arguments]
-    result = subprocess.run(command, capture_output=True, text=True, cwd=KINETIX_SCRIPT.parent)
-    for line in result.stderr.splitlines():
+    with tempfile.TemporaryFile("w+") as errors:
+        process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=errors, text=True, cwd=KINETIX_SCRIPT.parent)
+        for line in process.stdout:
+            receive(json.loads(line))
+        process.wait()
+        errors.seek(0)
+        stderr = errors.read()
+    for line in stderr.splitlines():
         if line.startswith("kinetix"):
             log(line)
-    if result.returncode != 0:
-        raise RuntimeError(f"Kinetix's side failed:\n{result.stderr[-3000:]}")
-    return json.loads(result.stdout)
+    if process.returncode != 0:
+        raise RuntimeError(f"Kinetix's side failed:\n{stderr[-3000:]}")
+
+
+class KinetixStore:
+    """Kinetix's outcomes per level, kept in a JSON file (`--kinetix-results`) under the level file's bytes, the
+    episodes and the seed: a level played once is never played again (Kinetix's side does not change between
+    measurements of ours), a run that stops keeps every chunk played before, and a longer run plays only new
+    levels. Without a file, the outcomes live for one run."""
+
+    FORMAT = "kforge-fidelity-kinetix-outcomes/2"
+
+    def __init__(self, file: Path | None, episodes: int, seed: int):
+        self.file, self.episodes, self.seed = file, episodes, seed
+        self.outcomes: dict[str, dict] = {}
+        if file is not None and file.is_file():
+            stored = json.loads(file.read_text())
+            if not isinstance(stored, dict) or stored.get("format") != self.FORMAT:
+                raise SystemExit(
+                    f"{file}: not a file of Kinetix's outcomes in format {self.FORMAT} (an earlier version's? "
+                    "delete it or name another --kinetix-results)"
+                )
+            self.outcomes = stored["outcomes"]
+
+    def key(self, path: str) -> str:
+        digest = hashlib.sha256(Path(path).read_bytes()).hexdigest()
+        return f"{digest}/{self.episodes}/{self.seed}"
+
+    def missing(self, paths: dict[str, str]) -> dict[str, str]:
+        return {name: path for name, path in paths.items() if self.key(path) not in self.outcomes}
+
+    def add(self, played: dict[str, dict]) -> None:
+        for path, outcome in played.items():
+            self.outcomes[self.key(path)] = {"noop": outcome["noop"], "random": outcome["random"]}
+        if self.file is not None:
+            partial = self.file.with_name(self.file.name + ".partial")
+            partial.write_text(json.dumps({"format": self.FORMAT, "outcomes": self.outcomes}))
+            os.replace(partial, self.file)
+
+    def of(self, paths: dict[str, str]) -> dict[str, dict]:
+        return {name: self.outcomes[self.key(path)] for name, path in paths.items()}
 
 
 def kinetix_outcomes(python: Path, paths: dict[str, str], listing: Path, args, log) -> dict:
-    """Kinetix's outcomes per level name, played now or read from `--kinetix-results` when it holds the same levels,
-    episodes and seed (Kinetix's side does not change between measurements of ours)."""
-    key = {"levels": sorted(paths), "episodes": args.episodes, "seed": args.seed}
-    cache = args.kinetix_results
-    if cache is not None and cache.is_file():
-        stored = json.loads(cache.read_text())
-        if stored["key"] == key:
-            log(f"Kinetix's outcomes read from {cache}")
-            return stored["outcomes"]
-    by_path = run_kinetix(
-        python,
-        ["--levels-from", str(listing), "--episodes", str(args.episodes), "--seed", str(args.seed)],
-        log,
-    )["played"]
-    outcomes = {name: by_path[path] for name, path in paths.items()}
-    if cache is not None:
-        cache.write_text(json.dumps({"key": key, "outcomes": outcomes}))
-    return outcomes
+    """Kinetix's outcomes per level name: those `--kinetix-results` holds, and the other levels played now."""
+    store = KinetixStore(args.kinetix_results, args.episodes, args.seed)
+    missing = store.missing(paths)
+    if len(missing) < len(paths):
+        log(f"Kinetix's outcomes of {len(paths) - len(missing)} of {len(paths)} levels read from {store.file}")
+    if missing:
+        listing.write_text("\n".join(missing.values()) + "\n")
+        arguments = ["--levels-from", str(listing), "--episodes", str(args.episodes), "--seed", str(args.seed)]
+        run_kinetix(
+            python,
+            [*arguments, "--chunk-levels", str(args.chunk_levels)],
+            log,
+            lambda document: store.add(document.get("played", {})),
+        )
+    return store.of(paths)
 
 
 def _rate_difference(ours: dict, theirs: dict, outcome: str) -> dict:
@@ -207,7 +251,13 @@ def main(argv=None) -> None:
     parser.add_argument("--kinetix-venv", type=Path, default=DEFAULT_KINETIX_VENV)
     parser.add_argument("--level-dir", type=Path, help="keep the sampled level files here (default: a temp folder)")
     parser.add_argument(
-        "--kinetix-results", type=Path, help="JSON file that keeps Kinetix's outcomes for later runs with other --sim"
+        "--kinetix-results",
+        type=Path,
+        help="JSON file that keeps Kinetix's outcomes per level, for later runs (other --sim, more levels) and if "
+        "this one stops",
+    )
+    parser.add_argument(
+        "--chunk-levels", type=int, default=64, help="levels Kinetix plays per call; each call's outcomes are kept"
     )
     parser.add_argument("--json", action="store_true", help="print the report as one JSON document")
     args = parser.parse_args(argv)
@@ -226,11 +276,11 @@ def main(argv=None) -> None:
         files = [level_dir / size / f"k{args.seed}-{index:05d}.json" for index in range(args.random_levels)]
         if not all(file.is_file() for file in files):  # sampled by an earlier run into the same --level-dir
             spec = f"{size}:{args.random_levels}:{args.seed}"
+            log(f"sampling {args.random_levels} {size} levels with Kinetix's sampler into {level_dir / size}")
             run_kinetix(python, ["--sample", spec, "--sample-dir", str(level_dir)], log)
         paths.update({f"random/{size}/{file.stem}": str(file) for file in files})
     listing = level_dir / "levels.txt"
     listing.parent.mkdir(parents=True, exist_ok=True)
-    listing.write_text("\n".join(paths.values()) + "\n")
 
     started = time.perf_counter()
     theirs = kinetix_outcomes(python, paths, listing, args, log)

@@ -1,15 +1,18 @@
 """Kinetix's own outcomes of simple policies on level files, run inside a separate virtualenv holding kinetix-env
 (see benchmarks/fidelity.py, which starts it and compares with ours).
 
-Two jobs, one JSON document on stdout:
+Jobs, each printing JSON documents on stdout, one a line:
 - `--sample SIZE:COUNT:SEED ...`: sample COUNT levels of SIZE with Kinetix's own level sampler (key SEED) and write
   each as a Kinetix level JSON file `<--sample-dir>/<SIZE>/k<SEED>-<index>.json`, so both engines play the very same
-  levels;
+  levels (level i is the same whatever COUNT: the sampler's keys are a prefix-stable split of SEED);
 - `--levels FILE ...`: play each level file under the no-op policy (one episode: it is deterministic) and the uniform
   random multi-discrete policy (`--episodes` episodes), up to one episode's length from the level's start, and count
   how the first episode ends: success (green touches blue), failure (green touches red), timeout, unstable (NaN).
-  Every level of a size and both policies run in one compiled program from a work queue, so finished episodes
-  cost no steps (random hand-designed s levels: 61 % of the steps of full-length episodes);
+  Levels of a size run `--chunk-levels` at a time, both policies in one compiled program from a work queue, so
+  finished episodes cost no steps (random hand-designed s levels: 61 % of the steps of full-length episodes); each
+  chunk's outcomes are printed as soon as it is played, so a caller keeps them if the run stops later. A level's
+  random actions derive from the seed and the level file's bytes alone (`level_id`), so its outcomes do not depend
+  on which other levels are played with it;
 - `--trace LEVEL --actions FILE --trace-out FILE`: play fixed multi-discrete action sequences (episodes, steps, 6)
   from the level's start without reset and write every shape's pose and velocity and the reward and done flag after
   each env step to an .npz file (benchmarks/fidelity_trace.py pairs them with kforge's).
@@ -20,6 +23,7 @@ Not importable from the project's environment.
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import sys
 import time
@@ -45,6 +49,8 @@ QUEUE_SLOTS = 512
 """Episodes stepped together; Kinetix's env steps per second stop growing from about 256 on a CPU."""
 CALL_ROUNDING = 64
 """Fewer episodes than slots take a multiple of this many slots."""
+CHUNK_LEVELS = 64
+"""Levels played per compiled call, and between two printed results, by default."""
 
 
 def log(line: str) -> None:
@@ -78,45 +84,59 @@ def _size_of(static) -> str:
     raise ValueError(f"level sizes {static} match no Kinetix size")
 
 
-def play(paths: list[str], episodes: int, seed: int) -> dict:
-    """Per level file: outcome counts of the first episode under the no-op and the uniform random policy."""
+def level_id(path: str) -> int:
+    """A level's 31-bit identity from its file's bytes: the key of its random actions (benchmarks/fidelity.py keys
+    its stored outcomes by the same bytes)."""
+    return int.from_bytes(hashlib.sha256(Path(path).read_bytes()).digest()[:4], "little") >> 1
+
+
+def play(paths: list[str], episodes: int, seed: int, chunk_levels: int, emit) -> None:
+    """Per level file, outcome counts of the first episode under the no-op and the uniform random policy; `emit`
+    receives them `chunk_levels` levels at a time, as each chunk is played."""
     groups: dict[str, list[tuple[str, object]]] = {}
     for path in paths:
         state, static, _ = load_from_json_file(str(Path(path).resolve()))
         size = _size_of(static)
         groups.setdefault(size, []).append((path, expand_env_state(state, static_env_params_from_size(size))))
-    report = {}
     for size, members in groups.items():
         static, params = static_env_params_from_size(size), EnvParams(dense_reward_scale=0.0)
         env = make_kinetix_env(
             ActionType.MULTI_DISCRETE, ObservationType.SYMBOLIC_FLAT, None, params, static, auto_reset=False
         )
-        levels = jax.tree.map(lambda *xs: jnp.stack(xs), *(state for _, state in members))
-        started = time.perf_counter()
-        codes, steps = _queue_outcomes(env, params, levels, episodes, jax.random.key(seed))
-        log(
-            f"kinetix {size}: {len(members)} levels x {episodes} episodes in {time.perf_counter() - started:.0f} s "
-            f"({steps} env steps, {steps / (len(members) * (episodes + 1) * int(params.max_timesteps)):.0%} of "
-            f"full-length episodes)"
-        )
-        for index, (path, _) in enumerate(members):
-            report[path] = {
-                "size": size,
-                "noop": OUTCOMES[int(codes[index, 0])],
-                "random": {name: int((codes[index, 1:] == code).sum()) for code, name in enumerate(OUTCOMES)},
-            }
-    return report
+        chunk = min(chunk_levels, len(members))
+        for first in range(0, len(members), chunk):
+            played = members[first : first + chunk]
+            padded = played + [played[-1]] * (chunk - len(played))  # one program for every chunk of the size
+            levels = jax.tree.map(lambda *xs: jnp.stack(xs), *(state for _, state in padded))
+            ids = jnp.asarray([level_id(path) for path, _ in padded], jnp.uint32)
+            started = time.perf_counter()
+            codes, steps = _queue_outcomes(env, params, levels, ids, episodes, jax.random.key(seed))
+            log(
+                f"kinetix {size}: levels {first + 1}-{first + len(played)} of {len(members)} x {episodes} episodes "
+                f"in {time.perf_counter() - started:.0f} s ({steps} env steps, "
+                f"{steps / (chunk * (episodes + 1) * int(params.max_timesteps)):.0%} of full-length episodes)"
+            )
+            emit(
+                {
+                    path: {
+                        "size": size,
+                        "noop": OUTCOMES[int(codes[index, 0])],
+                        "random": {name: int((codes[index, 1:] == code).sum()) for code, name in enumerate(OUTCOMES)},
+                    }
+                    for index, (path, _) in enumerate(played)
+                }
+            )
 
 
-def _queue_outcomes(env, params, levels, episodes: int, key) -> tuple[np.ndarray, int]:
+def _queue_outcomes(env, params, levels, ids, episodes: int, key) -> tuple[np.ndarray, int]:
     """(levels, 1 + episodes) first-episode outcome codes (column 0: the no-op; then random actions) and the env
     steps taken. Episodes run from a work queue in QUEUE_SLOTS slots: a slot whose episode ended takes the next
-    episode, so no step is spent on finished episodes and one compiled program plays every level of a size."""
+    episode, so no step is spent on finished episodes and one compiled program plays every level of a chunk."""
     num_levels = jax.tree.leaves(levels)[0].shape[0]
     per_level = episodes + 1
     total = num_levels * per_level
     slots = min(QUEUE_SLOTS, -(-total // CALL_ROUNDING) * CALL_ROUNDING)
-    codes, steps = _compiled_queue(env, params, per_level, total, slots)(levels, key)
+    codes, steps = _compiled_queue(env, params, per_level, total, slots)(levels, ids, key)
     return np.asarray(codes).reshape(num_levels, per_level), int(steps)
 
 
@@ -124,8 +144,9 @@ _COMPILED = {}
 
 
 def _compiled_queue(env, params, per_level: int, total: int, slots: int):
-    """jit(levels, key) -> (outcome code per episode, env steps taken); episode e plays level e // per_level, with
-    the no-op when e % per_level == 0, else uniform random actions from key (e, timestep)."""
+    """jit(levels, level ids, key) -> (outcome code per episode, env steps taken); episode e plays level
+    l = e // per_level, with the no-op when e % per_level == 0, else uniform random actions from key (id of l,
+    e % per_level, timestep)."""
     cache_key = (id(env), per_level, total, slots)
     if cache_key not in _COMPILED:
         sizes = jnp.asarray(MULTI_DISCRETE_SIZES)
@@ -134,15 +155,16 @@ def _compiled_queue(env, params, per_level: int, total: int, slots: int):
             level = jnp.clip(episode, 0, total - 1) // per_level
             return jax.tree.map(lambda x: x[level], levels)
 
-        def actions_of(key, episode, timestep):
-            action_key = jax.random.fold_in(jax.random.fold_in(key, episode), timestep)
+        def actions_of(key, ids, episode, timestep):
+            level_key = jax.random.fold_in(key, ids[jnp.clip(episode, 0, total - 1) // per_level])
+            action_key = jax.random.fold_in(jax.random.fold_in(level_key, episode % per_level), timestep)
             random = jax.random.randint(action_key, (len(MULTI_DISCRETE_SIZES),), 0, sizes)
             return jnp.where(episode % per_level == 0, 0, random)
 
-        def run(levels, key):
+        def run(levels, ids, key):
             def body(carry):
                 states, episode, next_episode, codes, steps = carry
-                actions = jax.vmap(actions_of, (None, 0, 0))(key, episode, states.timestep)
+                actions = jax.vmap(actions_of, (None, None, 0, 0))(key, ids, episode, states.timestep)
                 keys = jax.random.split(jax.random.fold_in(key, steps), slots)
                 _, stepped, reward, done, _ = jax.vmap(env.step, (0, 0, 0, None))(keys, states, actions, params)
                 unstable = jax.vmap(_has_nan)(stepped)
@@ -222,19 +244,22 @@ def main(argv=None) -> None:
     parser.add_argument("--trace", help="a level JSON file to play with --actions, recorded to --trace-out")
     parser.add_argument("--actions", type=Path, help=".npy of multi-discrete actions (episodes, steps, 6)")
     parser.add_argument("--trace-out", type=Path, help=".npz that receives the trace")
+    parser.add_argument("--chunk-levels", type=int, default=CHUNK_LEVELS, help="levels played per printed result")
     args = parser.parse_args(argv)
+
+    def emit(document: dict) -> None:
+        print(json.dumps(document), flush=True)
+
     if args.trace:
         trace(args.trace, np.load(args.actions), args.trace_out)
-    report = {"sampled": {}, "played": {}}
     for spec in args.sample:
         size, count, seed = spec.split(":")
-        report["sampled"][spec] = sample_levels(size, int(count), int(seed), args.sample_dir)
+        emit({"sampled": {spec: sample_levels(size, int(count), int(seed), args.sample_dir)}})
     paths = list(args.levels)
     if args.levels_from is not None:
         paths += [line for line in args.levels_from.read_text().splitlines() if line]
     if paths:
-        report["played"] = play(paths, args.episodes, args.seed)
-    json.dump(report, sys.stdout)
+        play(paths, args.episodes, args.seed, args.chunk_levels, lambda played: emit({"played": played}))
 
 
 if __name__ == "__main__":

@@ -1,7 +1,15 @@
 """benchmarks/fidelity.py's agreement rule: rates agree within two standard errors of their difference plus 0.02,
-and the no-op outcome must be the same; per set and size, the share of levels that agree."""
+and the no-op outcome must be the same; per set and size, the share of levels that agree. Kinetix's outcomes kept
+per level file, so that a long measurement resumes and grows."""
 
-from benchmarks.fidelity import compare, summarize
+import json
+
+import pytest
+
+from benchmarks import fidelity
+from benchmarks.env import DEFAULT_KINETIX_VENV, kinetix_python
+from benchmarks.fidelity import KinetixStore, compare, summarize
+from env import bundled_level_path
 
 
 def counts(success: int, failure: int, episodes: int = 100) -> dict:
@@ -40,3 +48,67 @@ def test_a_different_noop_outcome_disagrees_and_shares_are_per_set_and_size():
     summary = summarize(compare(ours, theirs))
     assert summary["hand/s"] == {"levels": 2, "agree": 1, "disagree": ["hand/s/a"], "share": 0.5}
     assert summary["hand/m"]["share"] == 1.0
+
+
+def _outcome(noop: str, success: int) -> dict:
+    return {"size": "s", "noop": noop, "random": counts(success, 0, episodes=10)}
+
+
+def test_kinetix_outcomes_are_kept_per_level_file_and_survive_a_new_store(tmp_path):
+    a, b = tmp_path / "a.json", tmp_path / "b.json"
+    a.write_text('{"level": "a"}')
+    b.write_text('{"level": "b"}')
+    file = tmp_path / "kinetix.json"
+    store = KinetixStore(file, episodes=10, seed=0)
+    names = {"random/s/a": str(a), "random/s/b": str(b)}
+    assert store.missing(names) == names
+    store.add({str(a): _outcome("success", 7)})  # a chunk played: kept on disk at once
+    again = KinetixStore(file, episodes=10, seed=0)
+    assert again.missing(names) == {"random/s/b": str(b)}
+    assert again.of({"random/s/a": str(a)}) == {"random/s/a": {"noop": "success", "random": counts(7, 0, 10)}}
+    assert not file.with_name(file.name + ".partial").exists()
+
+
+def test_stored_outcomes_are_keyed_by_the_level_bytes_the_episodes_and_the_seed(tmp_path):
+    level = tmp_path / "a.json"
+    level.write_text('{"level": "a"}')
+    file = tmp_path / "kinetix.json"
+    KinetixStore(file, episodes=10, seed=0).add({str(level): _outcome("timeout", 3)})
+    names = {"random/s/a": str(level)}
+    assert KinetixStore(file, episodes=10, seed=0).missing(names) == {}
+    assert KinetixStore(file, episodes=20, seed=0).missing(names) == names
+    assert KinetixStore(file, episodes=10, seed=1).missing(names) == names
+    level.write_text('{"level": "a, edited"}')
+    assert KinetixStore(file, episodes=10, seed=0).missing(names) == names
+
+
+def test_a_store_file_of_another_format_is_refused_in_one_line(tmp_path):
+    file = tmp_path / "kinetix.json"
+    file.write_text(json.dumps({"key": {"levels": [], "episodes": 280, "seed": 0}, "outcomes": {}}))
+    with pytest.raises(SystemExit, match="not a file of Kinetix's outcomes") as refused:
+        KinetixStore(file, episodes=280, seed=0)
+    assert "\n" not in str(refused.value)
+
+
+@pytest.mark.slow  # builds Kinetix's virtualenv on first use (minutes), then plays 10 levels: about 2 minutes
+def test_a_level_plays_the_same_in_kinetix_alone_or_in_a_chunk_and_a_second_run_plays_nothing(tmp_path, capsys):
+    file = tmp_path / "kinetix.json"
+    arguments = ["--sizes", "s", "--episodes", "12", "--chunk-levels", "4", "--kinetix-results", str(file), "--json"]
+    fidelity.main([*arguments, "--level-dir", str(tmp_path / "levels")])
+    first = json.loads(capsys.readouterr().out)
+    assert first["summary"]["hand/s"]["levels"] == 10
+
+    store = KinetixStore(file, episodes=12, seed=0)
+    level = str(bundled_level_path("s/h5_rotate_fall"))
+    alone = []
+    python = kinetix_python(DEFAULT_KINETIX_VENV, print)
+    fidelity.run_kinetix(python, ["--levels", level, "--episodes", "12"], print, alone.append)
+    played = alone[0]["played"][level]
+    assert store.of({"x": level})["x"] == {"noop": played["noop"], "random": played["random"]}
+    assert played["random"]["success"] not in (0, 12)  # a level whose outcomes depend on the actions drawn
+
+    capsys.readouterr()
+    fidelity.main([*arguments, "--level-dir", str(tmp_path / "levels")])
+    second = capsys.readouterr()
+    assert "Kinetix's outcomes of 10 of 10 levels read from" in second.err
+    assert json.loads(second.out)["levels"] == first["levels"]
