@@ -48,8 +48,10 @@ def test_a_window_with_a_failed_episode_is_not_successful():
     green = scene.add_circle((2.5, 1.5), 0.2)
     blue = scene.add_box((4.5, 0.6), (0.4, 0.4), static=True)
     level = build_level(scene, roles={green: Role.GREEN, red: Role.RED, blue: Role.BLUE})
-    params = jax.vmap(lambda k: initial_params(k, TRAIN_CONFIG, STATIC))(keys(0))
-    window = collect_windows(params, stack(level), keys(1), TRAIN_CONFIG, ENV_PARAMS, STATIC, 48)
-    assert int(window.episodes_ended[0]) >= 2 and int(window.successes[0]) == 0
-    assert not bool(window.successful[0])
-    np.testing.assert_array_equal(np.asarray(window.actions[0]), 0)  # no valid slot: the policy cannot act
+    # Two seeds, and the batch shape and window of the test above, so both run one compiled program.
+    params = jax.vmap(lambda k: initial_params(k, TRAIN_CONFIG, STATIC))(keys(0, 2))
+    window = collect_windows(params, stack(level, level), keys(1, 3), TRAIN_CONFIG, ENV_PARAMS, STATIC, WINDOW)
+    for i in range(2):
+        assert int(window.episodes_ended[i]) >= 2 and int(window.successes[i]) == 0
+        assert not bool(window.successful[i])
+        np.testing.assert_array_equal(np.asarray(window.actions[i]), 0)  # no valid slot: the policy cannot act

@@ -193,28 +193,6 @@ def test_vmap_in_chunks_equals_one_vmap():
         jax.tree_util.tree_map(np.testing.assert_array_equal, got, expected)
 
 
-def test_batches_larger_than_a_chunk_equal_single_steps(batch):
-    """A vmapped step over more than `BATCH_CHUNK` scenes (run in chunks) equals each scene stepped alone."""
-    count = BATCH_CHUNK + len(batch["names"]) + 1  # two chunks, the last one padded
-    picks = [k % len(batch["states"]) for k in range(count)]
-    states = stack_states([batch["states"][k] for k in picks])
-    motors, thrusters = batch["motors"][picks, 0], batch["thrusters"][picks, 0]
-    stepped, info = jax.jit(jax.vmap(lambda s, m, t: engine.step(s, PARAMS, m, t, static=SIZE_M)))(
-        states, motors, thrusters
-    )
-    scenes = len(batch["states"])
-    for k in range(scenes):
-        alone, alone_info = engine.step(
-            batch["states"][k], PARAMS, jnp.asarray(motors[k]), jnp.asarray(thrusters[k]), static=SIZE_M
-        )
-        for index in (k, k + scenes * ((count - 1 - k) // scenes)):  # its copies in the first and the last chunk
-            for field, expected in _dynamic_fields(alone.bodies).items():
-                np.testing.assert_allclose(
-                    np.asarray(getattr(stepped.bodies, field))[index], expected, atol=VMAP_ATOL, rtol=VMAP_RTOL
-                )
-            np.testing.assert_array_equal(np.asarray(info.touching)[index], np.asarray(alone_info.touching))
-
-
 def test_batched_runs_are_bitwise_repeatable(batch):
     final, traj = run_batch(batch["states"], batch["motors"], batch["thrusters"])
     first = jax.tree_util.tree_leaves((batch["final"], batch["traj"]))
@@ -292,31 +270,75 @@ def test_no_retrace_for_new_scenes_of_the_same_size(batch):
 
 
 TEST_CHUNK_LIMIT = 4
-"""A chunk limit small enough that the test batch (9 scenes) runs as three chunks, the last one padded."""
+"""A chunk limit small enough that the mode test batch (`MODE_SCENES` scenes) runs as three chunks, the last one
+padded: a batch larger than a chunk, split as the default `BATCH_CHUNK` (256) splits a larger one, at a size that
+steps cheaply."""
+MODE_SCENES = 2 * TEST_CHUNK_LIMIT + 2
+"""Three chunks of four scenes under `TEST_CHUNK_LIMIT`, the last one padded with two copies of its last scene."""
 MODE_STEPS = 3
 
 
-def _step_batch_in_mode(mode: str, states, motors, thrusters):
-    """`MODE_STEPS` vmapped steps traced under `engine.set_batching(mode)`, and the compiled program's text."""
-    engine.set_batching(mode, chunk_limit=TEST_CHUNK_LIMIT)
-    try:
-        stepped = jax.jit(jax.vmap(lambda s, m, t: engine.step(s, PARAMS, m, t, static=SIZE_M)[0]))
-        compiled = stepped.lower(states, motors[:, 0], thrusters[:, 0]).compile()
-        for k in range(MODE_STEPS):
-            states = compiled(states, motors[:, k], thrusters[:, k])
-    finally:
-        engine.set_batching()
-    return states, compiled.as_text()
+def _mode_picks(batch) -> list[int]:
+    """The scene of each of the `MODE_SCENES` rows of the mode test batch (the batch's scenes, repeated)."""
+    return [k % len(batch["states"]) for k in range(MODE_SCENES)]
 
 
-def test_chunked_and_whole_batching_give_the_same_states(batch):
-    """Chunked with batch-last layout and one whole vmap step a batch larger than a chunk alike (on CPU "auto" is
-    "chunked": test_auto_batching_chunks_on_cpu_only)."""
-    picks = [k % len(batch["states"]) for k in range(2 * TEST_CHUNK_LIMIT + 1)]
+def _step_batch_in_mode(mode: str, batch):
+    """`MODE_STEPS` vmapped steps of the mode test batch traced under `engine.set_batching(mode)`: the first step's
+    (state, info), the state after the last step, and the compiled program's text."""
+    picks = _mode_picks(batch)
     states = stack_states([batch["states"][k] for k in picks])
     motors, thrusters = batch["motors"][picks], batch["thrusters"][picks]
-    chunked, chunked_program = _step_batch_in_mode("chunked", states, motors, thrusters)
-    whole, whole_program = _step_batch_in_mode("whole", states, motors, thrusters)
+    engine.set_batching(mode, chunk_limit=TEST_CHUNK_LIMIT)
+    try:
+        stepped = jax.jit(jax.vmap(lambda s, m, t: engine.step(s, PARAMS, m, t, static=SIZE_M)))
+        compiled = stepped.lower(states, motors[:, 0], thrusters[:, 0]).compile()
+        first = compiled(states, motors[:, 0], thrusters[:, 0])
+        states = first[0]
+        for k in range(1, MODE_STEPS):
+            states, _ = compiled(states, motors[:, k], thrusters[:, k])
+    finally:
+        engine.set_batching()
+    return first, states, compiled.as_text()
+
+
+@pytest.fixture(scope="module")
+def chunked_run(batch):
+    """The mode test batch stepped in chunks of at most `TEST_CHUNK_LIMIT` (one compile for two tests)."""
+    return _step_batch_in_mode("chunked", batch)
+
+
+def test_batches_larger_than_a_chunk_equal_single_steps(batch, request):
+    """A vmapped step over more than a chunk of scenes (run in chunks, the last one padded) equals each scene stepped
+    alone, row by row (`chunked_run`: chunks of `TEST_CHUNK_LIMIT`, the program that
+    test_chunked_and_whole_batching_give_the_same_states compares with one whole vmap)."""
+    picks = _mode_picks(batch)
+    motors, thrusters = batch["motors"][picks, 0], batch["thrusters"][picks, 0]
+    alone = {}
+    for k in sorted(set(picks)):  # each scene stepped alone, before the batching switch clears the compiled step
+        state, info = engine.step(
+            batch["states"][k], PARAMS, jnp.asarray(motors[k]), jnp.asarray(thrusters[k]), static=SIZE_M
+        )
+        alone[k] = (_dynamic_fields(state.bodies), np.asarray(info.touching))
+    (stepped, info), _, _ = request.getfixturevalue("chunked_run")
+    for index, k in enumerate(picks):
+        fields, touching = alone[k]
+        for field, expected in fields.items():
+            np.testing.assert_allclose(
+                np.asarray(getattr(stepped.bodies, field))[index],
+                expected,
+                atol=VMAP_ATOL,
+                rtol=VMAP_RTOL,
+                err_msg=f"row {index} (scene {batch['names'][k]}): {field}",
+            )
+        np.testing.assert_array_equal(np.asarray(info.touching)[index], touching, err_msg=f"row {index}")
+
+
+def test_chunked_and_whole_batching_give_the_same_states(batch, chunked_run):
+    """Chunked with batch-last layout and one whole vmap step a batch larger than a chunk alike (on CPU "auto" is
+    "chunked": test_auto_batching_chunks_on_cpu_only)."""
+    _, chunked, chunked_program = chunked_run
+    _, whole, whole_program = _step_batch_in_mode("whole", batch)
     assert chunked_program != whole_program, "set_batching did not change the compiled program"
     for field, expected in _dynamic_fields(chunked.bodies).items():
         np.testing.assert_allclose(
