@@ -70,6 +70,8 @@ class SimParams:
     restitution_threshold: float = 1.0  # [m/s] approach speeds below this never bounce
     speculative_distance: float = 0.02  # [m] contacts are created this far before shapes touch
     speculative_reach: float = 1.0  # [-] share of a step's motion added to the speculative distance
+    overlap_allowance: float = 0.0  # [-] a pair moving less in a step than this share of its thinner shape's inner
+    # radius gets no motion in its margin and may overlap for a step, as in Jax2D; faster pairs keep it (no tunnelling)
     touch_distance: float = 0.005  # [m] shapes closer than this count as touching
     push_touch_distance: float = float("inf")  # [m] a contact that pushed counts as touching if this close at start
     swept_speculative_contacts: bool = True  # a circle's speculative contact acts only if its free motion meets

@@ -64,6 +64,17 @@ def _bounding_radius(bodies):
     return jnp.where(bodies.n_vertices > 0, polygon_radius, bodies.radius)
 
 
+def _inner_radius(bodies):
+    """(N,) [m] the distance from a shape's centre of mass to its nearest edge line (a circle's radius)."""
+    vertices = bodies.vertices
+    count = vertices.shape[1]
+    following = jnp.where(jnp.arange(count) + 1 < bodies.n_vertices[:, None], jnp.arange(count) + 1, 0)
+    edge = jnp.take_along_axis(vertices, following[..., None], 1) - vertices
+    distance = jnp.abs(cross2(edge, vertices)) / jnp.maximum(norm2(edge), 1e-12)
+    distance = jnp.where(jnp.arange(count) < bodies.n_vertices[:, None], distance, jnp.inf)
+    return jnp.where(bodies.n_vertices > 0, jnp.min(distance, -1), bodies.radius)
+
+
 def _match_warm_start(cache: ContactCache, feature):
     """Last step's impulses for points whose feature id reappears (in either point slot)."""
 
@@ -246,7 +257,11 @@ def prepare_step(
     a, b = layout.body_a, layout.body_b
     reach = norm2(velocity[:n, :2]) + jnp.abs(velocity[:n, 2]) * _bounding_radius(bodies)
     reach = reach + params.dt * norm2(acceleration[:n, :2])
-    margin = params.speculative_distance + params.speculative_reach * params.dt * (reach[a] + reach[b])
+    motion = params.dt * (reach[a] + reach[b])
+    inner = _inner_radius(bodies)
+    thinner = jnp.minimum(inner[a], inner[b])
+    motion = jnp.where(motion > params.overlap_allowance * thinner, motion, 0.0)
+    margin = params.speculative_distance + params.speculative_reach * motion
     geometry = world_geometry(bodies)
     manifold = manifolds(geometry, layout, margin)
     both_active = bodies.active[a] & bodies.active[b]

@@ -441,6 +441,7 @@ PHYSICS_ADDED_LATER = {
     "speculative_reach": 1.0,
     "push_touch_distance": math.inf,
     "swept_speculative_contacts": False,
+    "overlap_allowance": 0.0,
 }
 """Physics parameters added after datasets were first made, each with the value at which the engine plays as it did
 before the parameter existed: at that value a parameter is left out of the data definition, so those datasets keep

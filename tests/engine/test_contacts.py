@@ -560,6 +560,64 @@ def test_swept_speculative_contacts_keep_fast_bodies_from_tunnelling(tunnelling_
     assert tunnelling_sweep[shape] == passes
 
 
+@pytest.mark.parametrize("shape", ["box", "circle"])
+def test_the_overlap_allowance_keeps_fast_bodies_from_tunnelling(tunnelling_sweep, shape):
+    """With `overlap_allowance=1` a pair that moves less in a step than its thinner shape's inner radius gets no motion
+    in its margin, but faster pairs keep it: the 0.1 m box (inner radius 5 cm) and the 5 cm circle shot at the 0.1 m
+    wall pass it no more often than by default, so never up to 20 m/s."""
+    allowing = SimParams(overlap_allowance=1.0)
+    passes = {v: sum(_shoot(shape, v, phase, allowing) for phase in TUNNEL_PHASES) for v in TUNNEL_SPEEDS}
+    measured(f"tunnelling {shape} with overlap allowance 1", pass_throughs_per_speed=passes)
+    assert all(passes[v] <= tunnelling_sweep[shape][v] for v in TUNNEL_SPEEDS)
+    assert not any(passes[v] for v in TUNNEL_SPEEDS if v <= 20.0)
+
+
+def _lowest_corner_above_floor(params: SimParams, steps: int = 20) -> np.ndarray:
+    """Zero gravity: a 0.58 x 0.395 m box tilted 0.5 rad moves down at 4 m/s (6.7 cm a step); its lowest corner starts
+    31 cm above the floor, so it is 4.3 cm above it after 4 steps, beyond the 2 cm speculative distance. Returns the
+    lowest corner's height above the floor after each step [m]."""
+    builder = SceneBuilder(SIZE_S, boundaries=False)
+    _own_floor(builder)
+    half_drop = 0.5 * (0.58 * math.sin(0.5) + 0.395 * math.cos(0.5))  # centre to lowest corner, vertically
+    box = builder.add_box((2.5, FLOOR_TOP + 0.31 + half_drop), (0.58, 0.395), rotation=0.5, velocity=(0.0, -4.0))
+    state = zero_gravity(builder.build())
+    _, traj = run(state, SIZE_S, steps, params=params)
+    return world_vertices(traj, state, box)[..., 1].min(-1) - FLOOR_TOP
+
+
+def test_a_tilted_box_landing_on_its_corner_turns_about_it_keeping_its_angular_momentum():
+    """An impact at one corner conserves the angular momentum about that corner; with no bounce (restitution 0) and
+    friction enough to stop the corner (0.36 of the normal impulse needed, 0.57 available), the box leaves turning
+    about the corner: w' = m (c - P) x v / (I + m |c - P|^2) (-3.89 rad/s). Zero gravity, so nothing acts after the
+    impact. Jax2D finds the contact a step late, with the box in the floor, and pushes it out with extra spin
+    (docs/fidelity.md)."""
+    width, height, tilt, speed = 0.58, 0.395, 0.5, 4.0
+    corner = rotate(tilt, np.array([-width / 2, -height / 2]))  # P - c: the lowest corner
+    inertia_per_mass = (width**2 + height**2) / 12.0
+    expected = (-corner[0] * -speed) / (inertia_per_mass + corner @ corner)  # (c - P) x v, v = (0, -speed)
+    builder = SceneBuilder(SIZE_S, boundaries=False)
+    _own_floor(builder)
+    box = builder.add_box((2.5, FLOOR_TOP - corner[1] + 0.3), (width, height), rotation=tilt, velocity=(0.0, -speed))
+    _, traj = run(zero_gravity(builder.build()), SIZE_S, 12, params=PARAMS)
+    measured("corner landing", angular_velocity_after=traj.angular_velocity[-1, box], expected=expected)
+    assert traj.angular_velocity[0, box] == 0.0
+    # The soft contact leaves the corner approaching at about 1 % of the impact speed: 3 % less spin than a rigid one.
+    assert abs(traj.angular_velocity[-1, box] / expected - 1.0) <= 0.05
+
+
+def test_a_slow_landing_overlaps_the_floor_for_a_step_only_under_the_overlap_allowance():
+    """By default the motion in the margin stops the corner at the floor; with `overlap_allowance=1` (the box moves
+    6.7 cm a step, less than its 19.75 cm inner radius) the contact is found only once the corner is in the floor, as
+    in Jax2D, 2.4 cm deep at free motion, and the box is pushed out again."""
+    default = _lowest_corner_above_floor(SimParams())
+    allowing = _lowest_corner_above_floor(SimParams(overlap_allowance=1.0))
+    measured("slow landing", deepest_default=default.min(), deepest_allowing=allowing.min(), last_allowing=allowing[-1])
+    np.testing.assert_allclose(allowing[:5], default[:5], atol=1e-5)  # the same free motion before the landing
+    assert default.min() > -0.005
+    assert allowing.min() < -0.015
+    assert allowing[-1] > -0.005
+
+
 # =========================================================================== deep overlap
 def _box_signed_distance(point_local, half):
     q = np.abs(point_local) - half

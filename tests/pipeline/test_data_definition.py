@@ -27,7 +27,7 @@ def test_the_physics_from_before_the_switches_keeps_its_fingerprint(tmp_path):
         earlier_physics = physics_definition(earlier_sim)
         assert definition_fingerprint(data_definition(job) | {"physics": earlier_physics}) == fingerprint
         later = {"limit_law", "limit_recovery_rate", "speculative_reach", "push_touch_distance"}
-        later.add("swept_speculative_contacts")
+        later |= {"swept_speculative_contacts", "overlap_allowance"}
         assert not later & set(earlier_physics)
         assert earlier_physics["joint_hertz"] == 75.0  # the older parameters are all there
         assert data_definition(job)["physics"]["swept_speculative_contacts"] is True
@@ -37,6 +37,7 @@ def test_the_physics_from_before_the_switches_keeps_its_fingerprint(tmp_path):
 def test_a_later_parameter_at_another_value_enters_the_definition():
     assert physics_definition(SimParams(limit_law=LimitLaw.BOUNDED_RETURN))["limit_law"] == LimitLaw.BOUNDED_RETURN
     assert physics_definition(SimParams(speculative_reach=0.0))["speculative_reach"] == 0.0
+    assert physics_definition(SimParams(overlap_allowance=1.0))["overlap_allowance"] == 1.0
     assert physics_definition(SimParams(push_touch_distance=0.02))["push_touch_distance"] == 0.02
     assert "push_touch_distance" not in physics_definition(SimParams(push_touch_distance=math.inf))
     assert physics_definition(SimParams())["swept_speculative_contacts"] is True
