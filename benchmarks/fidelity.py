@@ -30,6 +30,7 @@ import os
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from pathlib import Path
 
@@ -61,6 +62,8 @@ EPISODES_PER_CALL = 4096
 """Most episodes stepped together in one compiled call of ours."""
 CALL_ROUNDING = 64
 """A smaller call is padded to a multiple of this many episodes."""
+PROGRESS_SECONDS = 60.0
+"""Least time between two progress lines of our side."""
 AGREEMENT_STANDARD_ERRORS = 2.0
 AGREEMENT_SLACK = 0.02
 """Rates agree when they differ by at most AGREEMENT_STANDARD_ERRORS standard errors plus this."""
@@ -80,7 +83,7 @@ def play_ours(paths: dict[str, str], episodes: int, seed: int, sim_overrides: di
         levels = jax.tree.map(lambda *xs: np.stack(xs), *(loaded.level for _, loaded in members))
         started = time.perf_counter()
         noop = _outcomes(levels, params, static, 1, None)
-        random = _outcomes(levels, params, static, episodes, jax.random.key(seed))
+        random = _outcomes(levels, params, static, episodes, jax.random.key(seed), log)
         log(f"kforge: {len(members)} levels x {episodes} episodes in {time.perf_counter() - started:.0f} s")
         for index, (name, _) in enumerate(members):
             report[name] = {
@@ -90,14 +93,18 @@ def play_ours(paths: dict[str, str], episodes: int, seed: int, sim_overrides: di
     return report
 
 
-def _outcomes(levels, params, static, episodes: int, key) -> np.ndarray:
-    """(levels, episodes) first-episode outcome codes under the random policy (with `key`) or the no-op."""
+def _outcomes(levels, params, static, episodes: int, key, log=None) -> np.ndarray:
+    """(levels, episodes) first-episode outcome codes under the random policy (with `key`) or the no-op; `log`
+    receives a progress line about every PROGRESS_SECONDS."""
     num_levels = jax.tree.leaves(levels)[0].shape[0]
     rows = np.repeat(np.arange(num_levels), episodes)
     call = min(EPISODES_PER_CALL, -(-len(rows) // CALL_ROUNDING) * CALL_ROUNDING)
     policy = Policy.NOOP if key is None else Policy.UNIFORM_RANDOM
-    codes = []
+    codes, reported = [], time.perf_counter()
     for start in range(0, len(rows), call):
+        if log is not None and time.perf_counter() - reported > PROGRESS_SECONDS:
+            log(f"kforge: {start // episodes} of {num_levels} levels played")
+            reported = time.perf_counter()
         chunk = rows[start : start + call]
         padded = np.concatenate([chunk, np.full(call - len(chunk), chunk[-1])])
         batch = jax.tree.map(lambda x, r=padded: x[r], levels)
@@ -108,20 +115,28 @@ def _outcomes(levels, params, static, episodes: int, key) -> np.ndarray:
 
 
 def run_kinetix(python: Path, arguments: list[str], log, receive=lambda document: None) -> None:
-    """Run Kinetix's side with `arguments`; each JSON document it prints goes to `receive` as it arrives."""
+    """Run Kinetix's side with `arguments`: each JSON document it prints goes to `receive` as it arrives, and each
+    progress line it writes (`kinetix ...`) to `log`."""
     command = [str(python), str(KINETIX_SCRIPT), *arguments]
-    with tempfile.TemporaryFile("w+") as errors:
-        process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=errors, text=True, cwd=KINETIX_SCRIPT.parent)
-        for line in process.stdout:
-            receive(json.loads(line))
-        process.wait()
-        errors.seek(0)
-        stderr = errors.read()
-    for line in stderr.splitlines():
-        if line.startswith("kinetix"):
-            log(line)
+    process = subprocess.Popen(
+        command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=KINETIX_SCRIPT.parent
+    )
+    errors: list[str] = []
+
+    def read_errors() -> None:
+        for line in process.stderr:
+            errors.append(line)
+            if line.startswith("kinetix"):
+                log(line.rstrip("\n"))
+
+    reader = threading.Thread(target=read_errors, daemon=True)
+    reader.start()
+    for line in process.stdout:
+        receive(json.loads(line))
+    process.wait()
+    reader.join()
     if process.returncode != 0:
-        raise RuntimeError(f"Kinetix's side failed:\n{stderr[-3000:]}")
+        raise RuntimeError(f"Kinetix's side failed:\n{''.join(errors)[-3000:]}")
 
 
 class KinetixStore:
