@@ -150,6 +150,7 @@ class KinetixStore:
     def __init__(self, file: Path | None, episodes: int, seed: int):
         self.file, self.episodes, self.seed = file, episodes, seed
         self.outcomes: dict[str, dict] = {}
+        self._digests: dict[str, str] = {}
         if file is not None and file.is_file():
             stored = json.loads(file.read_text())
             if not isinstance(stored, dict) or stored.get("format") != self.FORMAT:
@@ -160,8 +161,9 @@ class KinetixStore:
             self.outcomes = stored["outcomes"]
 
     def key(self, path: str) -> str:
-        digest = hashlib.sha256(Path(path).read_bytes()).hexdigest()
-        return f"{digest}/{self.episodes}/{self.seed}"
+        if path not in self._digests:
+            self._digests[path] = hashlib.sha256(Path(path).read_bytes()).hexdigest()
+        return f"{self._digests[path]}/{self.episodes}/{self.seed}"
 
     def missing(self, paths: dict[str, str]) -> dict[str, str]:
         return {name: path for name, path in paths.items() if self.key(path) not in self.outcomes}
@@ -276,6 +278,8 @@ def main(argv=None) -> None:
     )
     parser.add_argument("--json", action="store_true", help="print the report as one JSON document")
     args = parser.parse_args(argv)
+    if args.chunk_levels < 1 or args.episodes < 1:
+        parser.error("--chunk-levels and --episodes must be at least 1")
 
     def log(line: str) -> None:
         print(line, file=sys.stderr if args.json else sys.stdout, flush=True)
