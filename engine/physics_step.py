@@ -9,7 +9,7 @@ import jax.numpy as jnp
 from flax import struct
 
 from engine.batch_last import Batching, current_batching, vmap_batch_last, vmap_in_chunks
-from engine.collision import circle_contact_clearance, manifolds, world_geometry
+from engine.collision import WorldGeometry, circle_contact_clearance, manifolds, world_geometry
 from engine.collision_filter import modes_collide
 from engine.contact_solver import (
     NUM_POINTS,
@@ -64,15 +64,11 @@ def _bounding_radius(bodies):
     return jnp.where(bodies.n_vertices > 0, polygon_radius, bodies.radius)
 
 
-def _inner_radius(bodies):
+def _inner_radius(geometry: WorldGeometry):
     """(N,) [m] the distance from a shape's centre of mass to its nearest edge line (a circle's radius)."""
-    vertices = bodies.vertices
-    count = vertices.shape[1]
-    following = jnp.where(jnp.arange(count) + 1 < bodies.n_vertices[:, None], jnp.arange(count) + 1, 0)
-    edge = jnp.take_along_axis(vertices, following[..., None], 1) - vertices
-    distance = jnp.abs(cross2(edge, vertices)) / jnp.maximum(norm2(edge), 1e-12)
-    distance = jnp.where(jnp.arange(count) < bodies.n_vertices[:, None], distance, jnp.inf)
-    return jnp.where(bodies.n_vertices > 0, jnp.min(distance, -1), bodies.radius)
+    depth = dot2(geometry.normals, geometry.vertices - geometry.centre[:, None, :])
+    depth = jnp.where(geometry.edge_valid, depth, jnp.inf)
+    return jnp.where(geometry.edge_valid[:, 0], jnp.min(depth, -1), geometry.radius)
 
 
 def _match_warm_start(cache: ContactCache, feature):
@@ -257,12 +253,12 @@ def prepare_step(
     a, b = layout.body_a, layout.body_b
     reach = norm2(velocity[:n, :2]) + jnp.abs(velocity[:n, 2]) * _bounding_radius(bodies)
     reach = reach + params.dt * norm2(acceleration[:n, :2])
+    geometry = world_geometry(bodies)
     motion = params.dt * (reach[a] + reach[b])
-    inner = _inner_radius(bodies)
+    inner = _inner_radius(geometry)
     thinner = jnp.minimum(inner[a], inner[b])
     motion = jnp.where(motion > params.overlap_allowance * thinner, motion, 0.0)
     margin = params.speculative_distance + params.speculative_reach * motion
-    geometry = world_geometry(bodies)
     manifold = manifolds(geometry, layout, margin)
     both_active = bodies.active[a] & bodies.active[b]
     modes = modes_collide(bodies.collision_mode[a], bodies.collision_mode[b])

@@ -572,16 +572,26 @@ def test_the_overlap_allowance_keeps_fast_bodies_from_tunnelling(tunnelling_swee
     assert not any(passes[v] for v in TUNNEL_SPEEDS if v <= 20.0)
 
 
-def _lowest_corner_above_floor(params: SimParams, steps: int = 20) -> np.ndarray:
-    """Zero gravity: a 0.58 x 0.395 m box tilted 0.5 rad moves down at 4 m/s (6.7 cm a step); its lowest corner starts
-    31 cm above the floor, so it is 4.3 cm above it after 4 steps, beyond the 2 cm speculative distance. Returns the
-    lowest corner's height above the floor after each step [m]."""
+LANDING_BOX, LANDING_TILT, LANDING_SPEED = (0.58, 0.395), 0.5, 4.0  # [m], [rad], [m/s]
+LANDING_CORNER = rotate(LANDING_TILT, -0.5 * np.array(LANDING_BOX))
+"""The landing box's lowest corner relative to its centre (P - c)."""
+
+
+def _land_tilted_box(params: SimParams, height: float, steps: int):
+    """Zero gravity: the 0.58 x 0.395 m box tilted 0.5 rad moves down at 4 m/s (6.7 cm a step) onto a floor, its
+    lowest corner starting `height` [m] above it. Returns (state, box, trajectory)."""
     builder = SceneBuilder(SIZE_S, boundaries=False)
     _own_floor(builder)
-    half_drop = 0.5 * (0.58 * math.sin(0.5) + 0.395 * math.cos(0.5))  # centre to lowest corner, vertically
-    box = builder.add_box((2.5, FLOOR_TOP + 0.31 + half_drop), (0.58, 0.395), rotation=0.5, velocity=(0.0, -4.0))
+    start = (2.5, FLOOR_TOP - LANDING_CORNER[1] + height)
+    box = builder.add_box(start, LANDING_BOX, rotation=LANDING_TILT, velocity=(0.0, -LANDING_SPEED))
     state = zero_gravity(builder.build())
-    _, traj = run(state, SIZE_S, steps, params=params)
+    return state, box, run(state, SIZE_S, steps, params=params)[1]
+
+
+def _lowest_corner_above_floor(params: SimParams, steps: int = 20) -> np.ndarray:
+    """The landing box's lowest corner starts 31 cm above the floor, so it is 4.3 cm above it after 4 steps, beyond
+    the 2 cm speculative distance. Returns its height above the floor after each step [m]."""
+    state, box, traj = _land_tilted_box(params, 0.31, steps)
     return world_vertices(traj, state, box)[..., 1].min(-1) - FLOOR_TOP
 
 
@@ -591,14 +601,11 @@ def test_a_tilted_box_landing_on_its_corner_turns_about_it_keeping_its_angular_m
     about the corner: w' = m (c - P) x v / (I + m |c - P|^2) (-3.89 rad/s). Zero gravity, so nothing acts after the
     impact. Jax2D finds the contact a step late, with the box in the floor, and pushes it out with extra spin
     (docs/fidelity.md)."""
-    width, height, tilt, speed = 0.58, 0.395, 0.5, 4.0
-    corner = rotate(tilt, np.array([-width / 2, -height / 2]))  # P - c: the lowest corner
+    width, height = LANDING_BOX
+    corner = LANDING_CORNER
     inertia_per_mass = (width**2 + height**2) / 12.0
-    expected = (-corner[0] * -speed) / (inertia_per_mass + corner @ corner)  # (c - P) x v, v = (0, -speed)
-    builder = SceneBuilder(SIZE_S, boundaries=False)
-    _own_floor(builder)
-    box = builder.add_box((2.5, FLOOR_TOP - corner[1] + 0.3), (width, height), rotation=tilt, velocity=(0.0, -speed))
-    _, traj = run(zero_gravity(builder.build()), SIZE_S, 12, params=PARAMS)
+    expected = (-corner[0] * -LANDING_SPEED) / (inertia_per_mass + corner @ corner)  # (c - P) x v, v = (0, -speed)
+    _, box, traj = _land_tilted_box(PARAMS, 0.3, 12)
     measured("corner landing", angular_velocity_after=traj.angular_velocity[-1, box], expected=expected)
     assert traj.angular_velocity[0, box] == 0.0
     # The soft contact leaves the corner approaching at about 1 % of the impact speed: 3 % less spin than a rigid one.
