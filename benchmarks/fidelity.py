@@ -13,7 +13,9 @@ rates and the difference in standard errors; per set and size, the share of leve
 
 Kinetix runs in its own virtualenv (`--kinetix-venv`, built with kinetix-env 3.0.2 on first use, as for
 benchmarks/env.py). Physics options of ours can be switched for a measurement (`--sim motor_model=0`) to see which
-difference of the engine moves which level.
+difference of the engine moves which level. `--kinetix-variant KEY=VALUE` puts Kinetix changed in one respect in
+ours' place (benchmarks/kinetix_variants.py): the agreement of Kinetix with itself under a change that any other
+engine makes too.
 
     python benchmarks/fidelity.py --sizes s --random-levels 0            # hand-designed s levels only
     python benchmarks/fidelity.py --sizes s m l --random-levels 1024 --json
@@ -39,6 +41,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from benchmarks.env import DEFAULT_KINETIX_VENV, kinetix_python  # noqa: E402
+from benchmarks.kinetix_variants import parse_variant, variant_label  # noqa: E402
 from benchmarks.machine import describe_machine  # noqa: E402
 from benchmarks.sim_overrides import sim_override  # noqa: E402
 from env import (  # noqa: E402
@@ -143,12 +146,14 @@ class KinetixStore:
     """Kinetix's outcomes per level, kept in a JSON file (`--kinetix-results`) under the level file's bytes, the
     episodes and the seed: a level played once is never played again (Kinetix's side does not change between
     measurements of ours), a run that stops keeps every chunk played before, and a longer run plays only new
-    levels. Without a file, the outcomes live for one run."""
+    levels. A variant of Kinetix (`kinetix_variants`) is kept under its own keys. Without a file, the outcomes
+    live for one run."""
 
     FORMAT = "kforge-fidelity-kinetix-outcomes/2"
 
-    def __init__(self, file: Path | None, episodes: int, seed: int):
+    def __init__(self, file: Path | None, episodes: int, seed: int, variant: dict | None = None):
         self.file, self.episodes, self.seed = file, episodes, seed
+        self.variant = variant_label(variant or {})
         self.outcomes: dict[str, dict] = {}
         self._digests: dict[str, str] = {}
         if file is not None and file.is_file():
@@ -163,7 +168,8 @@ class KinetixStore:
     def key(self, path: str) -> str:
         if path not in self._digests:
             self._digests[path] = hashlib.sha256(Path(path).read_bytes()).hexdigest()
-        return f"{self._digests[path]}/{self.episodes}/{self.seed}"
+        key = f"{self._digests[path]}/{self.episodes}/{self.seed}"
+        return f"{key}/{self.variant}" if self.variant else key
 
     def missing(self, paths: dict[str, str]) -> dict[str, str]:
         return {name: path for name, path in paths.items() if self.key(path) not in self.outcomes}
@@ -180,15 +186,19 @@ class KinetixStore:
         return {name: self.outcomes[self.key(path)] for name, path in paths.items()}
 
 
-def kinetix_outcomes(python: Path, paths: dict[str, str], listing: Path, args, log) -> dict:
-    """Kinetix's outcomes per level name: those `--kinetix-results` holds, and the other levels played now."""
-    store = KinetixStore(args.kinetix_results, args.episodes, args.seed)
+def kinetix_outcomes(
+    python: Path, paths: dict[str, str], listing: Path, args, log, variant: dict | None = None
+) -> dict:
+    """Kinetix's outcomes per level name (of Kinetix changed by `variant`, if given): those `--kinetix-results`
+    holds, and the other levels played now."""
+    store = KinetixStore(args.kinetix_results, args.episodes, args.seed, variant)
     missing = store.missing(paths)
     if len(missing) < len(paths):
         log(f"Kinetix's outcomes of {len(paths) - len(missing)} of {len(paths)} levels read from {store.file}")
     if missing:
         listing.write_text("\n".join(missing.values()) + "\n")
         arguments = ["--levels-from", str(listing), "--episodes", str(args.episodes), "--seed", str(args.seed)]
+        arguments += [f"--variant={key}={value}" for key, value in sorted((variant or {}).items())]
         run_kinetix(
             python,
             [*arguments, "--chunk-levels", str(args.chunk_levels)],
@@ -265,6 +275,13 @@ def main(argv=None) -> None:
     parser.add_argument("--episodes", type=int, default=280, help="random-policy episodes per level")
     parser.add_argument("--seed", type=int, default=0, help="seed of Kinetix's level sampler and of the actions")
     parser.add_argument("--sim", type=sim_override, action="append", default=[], help="SimParams KEY=VALUE of ours")
+    parser.add_argument(
+        "--kinetix-variant",
+        type=parse_variant,
+        action="append",
+        default=[],
+        help="KEY=VALUE: compare Kinetix changed so, in ours' place, with Kinetix (benchmarks/kinetix_variants.py)",
+    )
     parser.add_argument("--kinetix-venv", type=Path, default=DEFAULT_KINETIX_VENV)
     parser.add_argument("--level-dir", type=Path, help="keep the sampled level files here (default: a temp folder)")
     parser.add_argument(
@@ -280,6 +297,8 @@ def main(argv=None) -> None:
     args = parser.parse_args(argv)
     if args.chunk_levels < 1 or args.episodes < 1:
         parser.error("--chunk-levels and --episodes must be at least 1")
+    if args.sim and args.kinetix_variant:
+        parser.error("--sim switches our engine and --kinetix-variant replaces it: give one of them")
 
     def log(line: str) -> None:
         print(line, file=sys.stderr if args.json else sys.stdout, flush=True)
@@ -305,15 +324,21 @@ def main(argv=None) -> None:
     theirs = kinetix_outcomes(python, paths, listing, args, log)
     kinetix_seconds = time.perf_counter() - started
     started = time.perf_counter()
-    ours = play_ours(paths, args.episodes, args.seed, dict(args.sim), log)
+    variant = dict(args.kinetix_variant)
+    if variant:
+        ours = kinetix_outcomes(python, paths, listing, args, log, variant)
+    else:
+        ours = play_ours(paths, args.episodes, args.seed, dict(args.sim), log)
     ours_seconds = time.perf_counter() - started
+    compared = f"kinetix-env, {variant_label(variant)}" if variant else "kforge"
 
     levels = compare(ours, theirs)
     report = {
         "machine": describe_machine(),
         "episodes": args.episodes,
+        "compared": compared,
         "sim_overrides": dict(args.sim),
-        "seconds": {"kforge": ours_seconds, "kinetix": kinetix_seconds},
+        "seconds": {compared: ours_seconds, "kinetix": kinetix_seconds},
         "summary": summarize(levels),
         "levels": levels,
     }
@@ -321,6 +346,7 @@ def main(argv=None) -> None:
         print(json.dumps(report, indent=1))
         return
     log(format_table(levels))
+    log(f"('ours' is {compared})")
     for group, counts in report["summary"].items():
         log(f"{group}: {counts['agree']}/{counts['levels']} agree ({counts['share']:.0%})")
 

@@ -13,6 +13,9 @@ Jobs, each printing JSON documents on stdout, one a line:
   chunk's outcomes are printed as soon as it is played, so a caller keeps them if the run stops later. A level's
   random actions derive from the seed and the level file's bytes alone (`level_id`), so its outcomes do not depend
   on which other levels are played with it;
+- `--variant KEY=VALUE ...` (with `--levels`): play Kinetix changed in one respect (`kinetix_variants.VARIANTS`),
+  to measure how far Kinetix's own rates move under a change that any other engine makes too: the agreement that a
+  faithful engine other than Jax2D itself could reach;
 - `--trace LEVEL --actions FILE --trace-out FILE`: play fixed multi-discrete action sequences (episodes, steps, 6)
   from the level's start without reset and write every shape's pose and velocity and the reward and done flag after
   each env step to an .npz file (benchmarks/fidelity_trace.py pairs them with kforge's).
@@ -41,6 +44,7 @@ from kinetix.environment import (
 )
 from kinetix.environment.ued.ued import make_reset_fn_sample_kinetix_level
 from kinetix.util.saving import expand_env_state, export_env_state_to_json, load_from_json_file
+from kinetix_variants import parse_variant  # this script's folder is on its path
 
 MULTI_DISCRETE_SIZES = (3, 3, 3, 3, 2, 2)
 OUTCOMES = ("timeout", "success", "failure", "unstable")
@@ -51,6 +55,30 @@ CALL_ROUNDING = 64
 """Fewer episodes than slots take a multiple of this many slots."""
 CHUNK_LEVELS = 64
 """Levels played per compiled call, and between two printed results, by default."""
+
+
+def drop_padding_writes() -> None:
+    """Patch the installed Jax2D so that its contact solver's padding rows (index -1) write nothing: the impulses
+    they reset otherwise land on the last pair of each kind (B1). Engines built afterwards use the patched solver;
+    the arithmetic of every real pair is unchanged."""
+    import inspect
+
+    import jax2d.engine
+
+    source = inspect.getsource(jax2d.engine.make_impulse_resolver_fn)
+    kept = "jnp.where(indexes < 0, n_manifolds_to_compute, indexes)"
+    patched = source
+    for row in ("acc_impulse_normal", "acc_impulse_tangent"):
+        for target in (f"{row}.at[indexes, secondary_index]", f"{row}.at[indexes]"):
+            value = "iN" if row == "acc_impulse_normal" else "iT"
+            old = f"{target}.set({value})"
+            new = f'{target.replace("[indexes", "[" + kept)}.set({value}, mode="drop")'
+            if old not in patched:
+                raise SystemExit(f"jax2d's make_impulse_resolver_fn has no {old!r}: another jax2d version?")
+            patched = patched.replace(old, new)
+    namespace = dict(vars(jax2d.engine))
+    exec(compile(patched, jax2d.engine.__file__, "exec"), namespace)
+    jax2d.engine.make_impulse_resolver_fn = namespace["make_impulse_resolver_fn"]
 
 
 def log(line: str) -> None:
@@ -90,9 +118,13 @@ def level_id(path: str) -> int:
     return int.from_bytes(hashlib.sha256(Path(path).read_bytes()).digest()[:4], "little") >> 1
 
 
-def play(paths: list[str], episodes: int, seed: int, chunk_levels: int, emit) -> None:
+def play(paths: list[str], episodes: int, seed: int, chunk_levels: int, emit, variant: dict | None = None) -> None:
     """Per level file, outcome counts of the first episode under the no-op and the uniform random policy; `emit`
-    receives them `chunk_levels` levels at a time, as each chunk is played."""
+    receives them `chunk_levels` levels at a time, as each chunk is played; `variant` changes Kinetix
+    (`kinetix_variants`)."""
+    variant = variant or {}
+    if variant.get("padding_writes") == 0:
+        drop_padding_writes()
     groups: dict[str, list[tuple[str, object]]] = {}
     for path in paths:
         state, static, _ = load_from_json_file(str(Path(path).resolve()))
@@ -100,6 +132,8 @@ def play(paths: list[str], episodes: int, seed: int, chunk_levels: int, emit) ->
         groups.setdefault(size, []).append((path, expand_env_state(state, static_env_params_from_size(size))))
     for size, members in groups.items():
         static, params = static_env_params_from_size(size), EnvParams(dense_reward_scale=0.0)
+        if "solver_iterations" in variant:
+            static = static.replace(num_solver_iterations=variant["solver_iterations"])
         env = make_kinetix_env(
             ActionType.MULTI_DISCRETE, ObservationType.SYMBOLIC_FLAT, None, params, static, auto_reset=False
         )
@@ -245,6 +279,13 @@ def main(argv=None) -> None:
     parser.add_argument("--actions", type=Path, help=".npy of multi-discrete actions (episodes, steps, 6)")
     parser.add_argument("--trace-out", type=Path, help=".npz that receives the trace")
     parser.add_argument("--chunk-levels", type=int, default=CHUNK_LEVELS, help="levels played per printed result")
+    parser.add_argument(
+        "--variant",
+        type=parse_variant,
+        action="append",
+        default=[],
+        help="KEY=VALUE: Kinetix changed (kinetix_variants.py)",
+    )
     args = parser.parse_args(argv)
 
     def emit(document: dict) -> None:
@@ -259,7 +300,14 @@ def main(argv=None) -> None:
     if args.levels_from is not None:
         paths += [line for line in args.levels_from.read_text().splitlines() if line]
     if paths:
-        play(paths, args.episodes, args.seed, args.chunk_levels, lambda played: emit({"played": played}))
+        play(
+            paths,
+            args.episodes,
+            args.seed,
+            args.chunk_levels,
+            lambda played: emit({"played": played}),
+            dict(args.variant),
+        )
 
 
 if __name__ == "__main__":

@@ -2,13 +2,18 @@
 and the no-op outcome must be the same; per set and size, the share of levels that agree. Kinetix's outcomes kept
 per level file, so that a long measurement resumes and grows."""
 
+import argparse
 import json
+import math
+import subprocess
+from pathlib import Path
 
 import pytest
 
 from benchmarks import fidelity
 from benchmarks.env import DEFAULT_KINETIX_VENV, kinetix_python
 from benchmarks.fidelity import KinetixStore, compare, summarize
+from benchmarks.kinetix_variants import parse_variant
 from env import bundled_level_path
 
 
@@ -88,6 +93,74 @@ def test_a_store_file_of_another_format_is_refused_in_one_line(tmp_path):
     with pytest.raises(SystemExit, match="not a file of Kinetix's outcomes") as refused:
         KinetixStore(file, episodes=280, seed=0)
     assert "\n" not in str(refused.value)
+
+
+def test_a_variant_of_kinetix_is_stored_under_keys_of_its_own(tmp_path):
+    file, path = tmp_path / "kinetix.json", tmp_path / "level.json"
+    path.write_text("{}")
+    released = KinetixStore(file, episodes=8, seed=0)
+    released.add({str(path): level("success", 8, 0)})
+    changed = KinetixStore(file, episodes=8, seed=0, variant={"padding_writes": 0})
+    assert changed.missing({"x": str(path)}) == {"x": str(path)}
+    changed.add({str(path): level("timeout", 1, 0)})
+    reread = KinetixStore(file, episodes=8, seed=0)
+    assert reread.of({"x": str(path)})["x"]["noop"] == "success"
+    reread_changed = KinetixStore(file, episodes=8, seed=0, variant={"padding_writes": 0})
+    assert reread_changed.of({"x": str(path)})["x"]["noop"] == "timeout"
+
+
+@pytest.mark.parametrize(
+    "text", ["padding_writes=2", "solver_iterations=0", "solver_iterations=ten", "gravity=1", "padding_writes"]
+)
+def test_an_unknown_or_out_of_range_kinetix_variant_is_refused(text):
+    with pytest.raises(argparse.ArgumentTypeError):
+        parse_variant(text)
+
+
+def test_sim_switches_and_a_kinetix_variant_are_not_given_together(capsys):
+    with pytest.raises(SystemExit):
+        fidelity.main(["--sim", "overlap_allowance=1", "--kinetix-variant", "padding_writes=0"])
+    assert "give one of them" in capsys.readouterr().err
+
+
+STACKED_DISCS = """
+import json, sys
+import jax, jax.numpy as jnp
+import jax2d.engine
+from jax2d.engine import create_empty_sim
+from jax2d.scene import add_circle_to_scene
+from jax2d.sim_state import SimParams, StaticSimParams
+sys.path.insert(0, sys.argv[1])
+if sys.argv[2] == "0":
+    from kinetix_fidelity_baseline import drop_padding_writes
+    drop_padding_writes()
+static = StaticSimParams(num_polygons=5, num_circles=2, num_joints=1, num_thrusters=1)
+state = create_empty_sim(static)
+for height in (0.2 + 0.5, 0.2 + 1.5):  # the floor's top is at 0.2 m; discs of radius 0.5 m, one on the other
+    state, _ = add_circle_to_scene(state, static, jnp.array([2.5, height]), 0.5)
+step = jax.jit(jax2d.engine.PhysicsEngine(static).step)
+for _ in range(120):
+    state, _ = step(state, SimParams(), jnp.zeros(2))
+print(json.dumps(float(state.acc_cc_manifolds.acc_impulse_normal[0])))
+"""
+
+
+@pytest.mark.slow  # builds Kinetix's virtualenv on first use (minutes), then two short Jax2D runs: about 1 minute
+def test_kinetix_with_padding_writes_dropped_keeps_its_last_pairs_impulse():
+    """Size s has one disc-disc pair, the last of its kind, which Jax2D's padding rows reset (B1): a disc resting
+    on another carries its weight through the pair, m g dt per step (m = pi r^2 at density 1), only once the
+    padding writes are dropped."""
+    python = kinetix_python(DEFAULT_KINETIX_VENV, print)
+    benchmarks = Path(fidelity.__file__).parent
+    impulse = {}
+    for writes in ("1", "0"):
+        run = subprocess.run(
+            [str(python), "-c", STACKED_DISCS, str(benchmarks), writes], capture_output=True, text=True, check=True
+        )
+        impulse[writes] = json.loads(run.stdout.splitlines()[-1])
+    weight_per_step = math.pi * 0.5**2 * 9.81 / 60.0
+    assert impulse["1"] == 0.0
+    assert impulse["0"] == pytest.approx(weight_per_step, rel=0.02)
 
 
 @pytest.mark.slow  # builds Kinetix's virtualenv on first use (minutes), then plays 10 levels: about 2 minutes
