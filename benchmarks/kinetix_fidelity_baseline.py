@@ -134,6 +134,8 @@ def play(paths: list[str], episodes: int, seed: int, chunk_levels: int, emit, va
         static, params = static_env_params_from_size(size), EnvParams(dense_reward_scale=0.0)
         if "solver_iterations" in variant:
             static = static.replace(num_solver_iterations=variant["solver_iterations"])
+        if "solver_batch_size" in variant:
+            static = static.replace(solver_batch_size=variant["solver_batch_size"])
         env = make_kinetix_env(
             ActionType.MULTI_DISCRETE, ObservationType.SYMBOLIC_FLAT, None, params, static, auto_reset=False
         )

@@ -9,6 +9,8 @@ import argparse
 
 VARIANTS = {
     "solver_iterations": "Jax2D's sequential-impulse iterations per physics step (Kinetix: 10)",
+    "solver_batch_size": "contacts of a kind that Jax2D's solver resolves at once, each from the same velocities "
+    "(Kinetix: 16, every contact of an s or m level at once); 1 resolves them one after another",
     "padding_writes": "1: Jax2D's solver writes its padding rows' zero impulses to the last pair of each kind (its "
     "bug B1, Kinetix as released); 0: they are dropped, so that pair keeps its warm start",
 }
@@ -24,7 +26,7 @@ def parse_variant(text: str) -> tuple[str, int]:
         number = int(value)
     except ValueError:
         raise argparse.ArgumentTypeError(f"{key}={value!r}: the value is not an integer") from None
-    if (key == "padding_writes" and number not in (0, 1)) or (key == "solver_iterations" and number < 1):
+    if (key == "padding_writes" and number not in (0, 1)) or (key != "padding_writes" and number < 1):
         raise argparse.ArgumentTypeError(f"{key}={number}: out of range ({VARIANTS[key]})")
     return key, number
 

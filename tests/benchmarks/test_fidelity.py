@@ -110,7 +110,8 @@ def test_a_variant_of_kinetix_is_stored_under_keys_of_its_own(tmp_path):
 
 
 @pytest.mark.parametrize(
-    "text", ["padding_writes=2", "solver_iterations=0", "solver_iterations=ten", "gravity=1", "padding_writes"]
+    "text",
+    ["padding_writes=2", "solver_iterations=0", "solver_batch_size=0", "solver_iterations=ten", "gravity=1", "x"],
 )
 def test_an_unknown_or_out_of_range_kinetix_variant_is_refused(text):
     with pytest.raises(argparse.ArgumentTypeError):
