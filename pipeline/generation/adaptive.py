@@ -4,7 +4,8 @@ decide.
 
 The program trains `work.levels_per_batch` slots together for one evaluation period at a time
 (`agents.train_segments`). After each period a level stops when its budget is spent or, adaptive only, when its
-last `experts.solved_evaluations` evaluations all succeeded in every episode (solved) or it has trained
+last `experts.solved_evaluations` evaluations all succeeded in every episode and the window its expert would store
+succeeds (solved: a level stopped as solved is kept), or it has trained
 `experts.give_up_env_steps` without one successful episode in training or evaluation (given up); its slot then takes
 the next level of the shard, claiming the shard's next level batch when needed, so the program stays full. Levels the
 filter drops take no slot. A level batch is rolled out and handed back once all its levels are done. A level's
@@ -35,6 +36,7 @@ from pipeline.generation.level_batch import (
     batch_result,
     level_key,
     sample_and_filter,
+    windows_successful,
 )
 from pipeline.storage import BatchTrajectories
 
@@ -42,7 +44,7 @@ from pipeline.storage import BatchTrajectories
 class Verdict(enum.Enum):
     """Why a level's training stopped."""
 
-    SOLVED = "solved"  # its last evaluations succeeded in every episode
+    SOLVED = "solved"  # its last evaluations succeeded in every episode, and so does its window
     GAVE_UP = "gave_up"  # no successful episode by the give-up point
     BUDGET_SPENT = "budget_spent"  # trained the whole budget
 
@@ -52,6 +54,7 @@ class StopRule:
     """When a level stops training, in evaluations (one per segment of `select_every_updates` updates)."""
 
     solved_evaluations: int  # consecutive evaluations with every episode successful
+    solved_window: bool  # and only once the window the expert would store succeeds
     give_up_evaluations: int  # evaluations without any successful episode after which the level gives up
     num_evaluations: int  # evaluations of the whole budget
 
@@ -62,18 +65,28 @@ class StopRule:
         num_evaluations = config.num_updates // config.select_every_updates
         if job.experts.budget_mode != ADAPTIVE_BUDGET_MODE:
             never = num_evaluations + 1
-            return cls(solved_evaluations=never, give_up_evaluations=never, num_evaluations=num_evaluations)
+            return cls(
+                solved_evaluations=never, solved_window=True, give_up_evaluations=never, num_evaluations=num_evaluations
+            )
         return cls(
             solved_evaluations=job.experts.solved_evaluations,
+            solved_window=job.experts.solved_window,
             give_up_evaluations=math.ceil(job.experts.give_up_env_steps / segment_steps),
             num_evaluations=num_evaluations,
         )
 
-    def verdict(self, success_rates: list[float], succeeded_in_training: bool) -> Verdict | None:
-        """The verdict after the evaluations so far (`success_rates`), or None to train on."""
-        done = len(success_rates)
+    def evaluations_solved(self, success_rates: list[float]) -> bool:
+        """Whether the last `solved_evaluations` evaluations succeeded in every episode."""
         recent = success_rates[-self.solved_evaluations :]
-        if done >= self.solved_evaluations and all(rate >= 1.0 for rate in recent):
+        return len(success_rates) >= self.solved_evaluations and all(rate >= 1.0 for rate in recent)
+
+    def verdict(
+        self, success_rates: list[float], succeeded_in_training: bool, window_successful: bool = False
+    ) -> Verdict | None:
+        """The verdict after the evaluations so far (`success_rates`), given whether the window the level's expert
+        would store is successful (unless `solved_window` is off), or None to train on."""
+        done = len(success_rates)
+        if (window_successful or not self.solved_window) and self.evaluations_solved(success_rates):
             return Verdict.SOLVED
         if done >= self.num_evaluations:
             return Verdict.BUDGET_SPENT
@@ -235,7 +248,16 @@ def streamed_level_batches(
             run.succeeded_in_training |= bool(np.nanmax(rates, initial=0.0) > 0.0)
             run.curve_success_rate.append(rates)
             run.curve_mean_return.append(np.asarray(output.metrics.mean_return[slot]))
-            if rule.verdict(run.success_rates, run.succeeded_in_training) is not None:
+        window_successful = np.zeros(num_slots, bool)
+        if rule.solved_window and any(rule.evaluations_solved(slots[slot].success_rates) for slot in occupied):
+            started = time.perf_counter()
+            indices = [works[run.batch].indices[run.position] if run is not None else 0 for run in slots]
+            window_successful = windows_successful(job, trainings.best.params, slot_levels, np.asarray(indices))
+            for slot in occupied:
+                works[slots[slot].batch].train_seconds += (time.perf_counter() - started) / len(occupied)
+        for slot in occupied:
+            run = slots[slot]
+            if rule.verdict(run.success_rates, run.succeeded_in_training, bool(window_successful[slot])) is not None:
                 slots[slot] = None
                 ready += done(slot, run)
         if on_progress is not None:

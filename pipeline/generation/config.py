@@ -97,6 +97,7 @@ class ExpertsConfig:
 
     budget_mode: str = "fixed"  # fixed, streamed (filtered levels take no slot) or adaptive: docs/experts.md
     solved_evaluations: int = 2  # adaptive: stop after this many consecutive evaluations with every episode successful
+    solved_window: bool = True  # adaptive: ... and only once the window the expert would store succeeds
     give_up_env_steps: int = 250_000  # adaptive: give up once trained this long without any successful episode
 
 

@@ -128,12 +128,8 @@ def batch_result(
     budget_mode: str,
 ) -> BatchTrajectories:
     """Roll out every expert of the batch for its window, and each level's outcome: the batch's data."""
-    params, static = environment(job)
     config = ppo_config(job)
-    collect = _collect_program(config, static, len(indices), job.collect.window_steps, job.collect.greedy)
-    window = jax.device_get(
-        collect(experts.params, levels, level_keys(job.split.seed, indices, KeyPurpose.COLLECT), params)
-    )
+    window = jax.device_get(_windows(job, experts.params, levels, indices))
     clock.lap("collect")
     finite = _finite_per_level(experts.params) & _finite_per_level(window)
     in_split = indices < job.split.num_levels
@@ -167,6 +163,18 @@ def _train_program(config, static, num_levels: int):
         return train_levels(levels, keys, config, env_params, static, progress=progress)
 
     return over_local_devices(train, num_levels, level_args=2, shared_args=2)
+
+
+def windows_successful(job: JobConfig, params, levels: Level, indices: np.ndarray) -> np.ndarray:
+    """(L,) bool: whether each level's window, rolled out with `params` as `batch_result` rolls out a level batch
+    of L levels (the same program and keys), would count as successful."""
+    return np.asarray(jax.device_get(_windows(job, params, levels, indices).successful))
+
+
+def _windows(job: JobConfig, params, levels: Level, indices: np.ndarray):
+    env_params, static = environment(job)
+    collect = _collect_program(ppo_config(job), static, len(indices), job.collect.window_steps, job.collect.greedy)
+    return collect(params, levels, level_keys(job.split.seed, indices, KeyPurpose.COLLECT), env_params)
 
 
 @functools.cache

@@ -2,6 +2,7 @@
 its index and the config (not on its slot, the levels beside it, or the order batches are claimed in). Streamed
 budgets: the same streaming, every trained level its whole budget."""
 
+import dataclasses
 from pathlib import Path
 
 import jax
@@ -27,10 +28,14 @@ SEGMENT_STEPS = 4 * 4 * 16
 
 
 def test_a_level_stops_when_solved_reliably_gives_up_without_success_or_trains_its_budget():
-    rule = StopRule(solved_evaluations=2, give_up_evaluations=3, num_evaluations=10)
-    assert rule.verdict([1.0], False) is None  # one perfect evaluation is not enough
-    assert rule.verdict([0.5, 1.0, 1.0], True) is Verdict.SOLVED
-    assert rule.verdict([1.0, 0.5], True) is None
+    rule = StopRule(solved_evaluations=2, solved_window=True, give_up_evaluations=3, num_evaluations=10)
+    assert rule.verdict([1.0], False, window_successful=True) is None  # one perfect evaluation is not enough
+    assert rule.verdict([0.5, 1.0, 1.0], True, window_successful=True) is Verdict.SOLVED
+    assert rule.verdict([0.5, 1.0, 1.0], True, window_successful=False) is None  # the window it would keep fails
+    assert rule.verdict([1.0] * 10, True, window_successful=False) is Verdict.BUDGET_SPENT
+    assert rule.verdict([1.0, 0.5], True, window_successful=True) is None
+    without_window = dataclasses.replace(rule, solved_window=False)  # the rule before windows were checked
+    assert without_window.verdict([0.5, 1.0, 1.0], True, window_successful=False) is Verdict.SOLVED
     assert rule.verdict([0.0, 0.0], False) is None  # before the give-up point
     assert rule.verdict([0.0, 0.0, 0.0], False) is Verdict.GAVE_UP
     assert rule.verdict([0.0, 0.0, 0.0], True) is None  # a successful training episode is progress
@@ -103,6 +108,16 @@ def test_levels_trained_in_other_orders_and_slots_give_bit_identical_experts_and
         np.testing.assert_array_equal(one.curves.success_rate, other.curves.success_rate)
         assert list(one.outcome) == list(other.outcome) and one.budget_mode == "adaptive"
         assert np.all(one.expert_env_steps <= np.maximum(one.trained_env_steps, SEGMENT_STEPS))
+    # A level whose expert was perfect in evaluation stopped early only if its window succeeded (then it is kept);
+    # here such levels' windows fail, so they train on to the budget (stopping them early kept nothing).
+    perfect = [
+        (int(result.trained_env_steps[i]), bool(result.kept[i]))
+        for result in forward.values()
+        for i in range(len(result.kept))
+        if result.expert_success_rate[i] == 1.0
+    ]
+    assert perfect, "no level of the tiny job was perfect in evaluation: the solved rule went untried"
+    assert all(kept or trained == 1024 for trained, kept in perfect), perfect
 
 
 @pytest.mark.slow
