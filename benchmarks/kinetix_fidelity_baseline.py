@@ -132,6 +132,10 @@ def play(paths: list[str], episodes: int, seed: int, chunk_levels: int, emit, va
         groups.setdefault(size, []).append((path, expand_env_state(state, static_env_params_from_size(size))))
     for size, members in groups.items():
         static, params = static_env_params_from_size(size), EnvParams(dense_reward_scale=0.0)
+        if "baumgarte_collision" in variant:
+            params = params.replace(baumgarte_coefficient_collision=variant["baumgarte_collision"])
+        if "slop" in variant:
+            params = params.replace(slop=variant["slop"])
         if "solver_iterations" in variant:
             static = static.replace(num_solver_iterations=variant["solver_iterations"])
         if "solver_batch_size" in variant:

@@ -111,11 +111,16 @@ def test_a_variant_of_kinetix_is_stored_under_keys_of_its_own(tmp_path):
 
 @pytest.mark.parametrize(
     "text",
-    ["padding_writes=2", "solver_iterations=0", "solver_batch_size=0", "solver_iterations=ten", "gravity=1", "x"],
+    ["padding_writes=2", "solver_iterations=0", "solver_iterations=2.5", "slop=-0.01", "slop=wide", "gravity=1", "x"],
 )
 def test_an_unknown_or_out_of_range_kinetix_variant_is_refused(text):
     with pytest.raises(argparse.ArgumentTypeError):
         parse_variant(text)
+
+
+def test_a_kinetix_variant_reads_its_value_as_its_type():
+    assert parse_variant("solver_batch_size=1") == ("solver_batch_size", 1)
+    assert parse_variant("baumgarte_collision=0.05") == ("baumgarte_collision", 0.05)
 
 
 def test_sim_switches_and_a_kinetix_variant_are_not_given_together(capsys):
