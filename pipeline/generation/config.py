@@ -454,7 +454,20 @@ def data_definition(job: JobConfig) -> dict:
     the code, not the config, so that data made by code with other physics is told apart)."""
     sections = [name for name in DATA_SECTIONS if name != "experts" or job.experts.budget_mode != FIXED_BUDGET_MODE]
     data = {section: dataclasses.asdict(getattr(job, section)) for section in sections}
+    if "experts" in data:
+        adaptive = job.experts.budget_mode == ADAPTIVE_BUDGET_MODE
+        data["experts"] = {
+            key: value
+            for key, value in data["experts"].items()
+            if key not in EXPERTS_ADDED_LATER or (adaptive and value != EXPERTS_ADDED_LATER[key])
+        }
     return data | {"physics": physics_definition(environment(job)[0].sim)}
+
+
+EXPERTS_ADDED_LATER = {"solved_window": False}
+"""Keys of the experts section added after budget modes, with the value that plays as before them: at that value,
+and in any mode but adaptive (the only one they change), they stay out of the data definition, so datasets made
+before them keep their fingerprint."""
 
 
 def physics_definition(sim) -> dict:

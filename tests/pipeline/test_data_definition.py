@@ -1,5 +1,6 @@
 """The physics part of a dataset's data definition: parameters added to the engine later, at the value that plays
-as the engine did before them, leave the fingerprint of existing datasets unchanged."""
+as the engine did before them, leave the fingerprint of existing datasets unchanged; so do keys added later to the
+experts section."""
 
 import math
 
@@ -41,3 +42,20 @@ def test_a_later_parameter_at_another_value_enters_the_definition():
     assert physics_definition(SimParams(push_touch_distance=0.02))["push_touch_distance"] == 0.02
     assert "push_touch_distance" not in physics_definition(SimParams(push_touch_distance=math.inf))
     assert physics_definition(SimParams())["swept_speculative_contacts"] is True
+
+
+FINGERPRINTS_BEFORE_THE_WINDOW_CHECK = {"adaptive": "09ceea303481daee", "streamed": "4dbb4cb51ffac5b4"}
+"""`data_fingerprint` of split 1M/s's default job in each streaming budget mode, as the code before
+`experts.solved_window` computed it (commit 84f6cd3)."""
+
+
+def test_the_window_check_leaves_streamed_and_earlier_adaptive_datasets_their_fingerprint(tmp_path):
+    def fingerprint(*overrides):
+        return data_fingerprint(load_config(None, ["split.name=1M/s", f"output_dir={tmp_path}", *overrides]))
+
+    streamed = FINGERPRINTS_BEFORE_THE_WINDOW_CHECK["streamed"]
+    assert fingerprint("experts.budget_mode=streamed") == streamed  # the check plays no part there
+    assert fingerprint("experts.budget_mode=streamed", "experts.solved_window=false") == streamed
+    earlier_adaptive = FINGERPRINTS_BEFORE_THE_WINDOW_CHECK["adaptive"]
+    assert fingerprint("experts.budget_mode=adaptive", "experts.solved_window=false") == earlier_adaptive
+    assert fingerprint("experts.budget_mode=adaptive") != earlier_adaptive  # the check changes which levels stop
