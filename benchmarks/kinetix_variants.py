@@ -9,28 +9,32 @@ from __future__ import annotations
 import argparse
 
 VARIANTS = {
-    "solver_iterations": (int, 1, "Jax2D's sequential-impulse iterations per physics step (Kinetix: 10)"),
+    "solver_iterations": (int, 1, None, "Jax2D's sequential-impulse iterations per physics step (Kinetix: 10)"),
     "solver_batch_size": (
         int,
         1,
+        None,
         "contacts of a kind that Jax2D's solver resolves at once, each from the same velocities (Kinetix: 16, every "
         "contact of an s or m level at once); 1 resolves them one after another",
     ),
     "padding_writes": (
         int,
         0,
+        1,
         "1: Jax2D's solver writes its padding rows' zero impulses to the last pair of each kind (its bug B1, Kinetix "
         "as released); 0: they are dropped, so that pair keeps its warm start",
     ),
     "baumgarte_collision": (
         float,
         0.0,
+        None,
         "share of a contact's overlap beyond the slop that Jax2D turns into separating velocity per step (Kinetix: "
         "0.2); the velocity stays in the bodies after the overlap is gone",
     ),
-    "slop": (float, 0.0, "overlap in metres that Jax2D leaves uncorrected (Kinetix: 0.01)"),
+    "slop": (float, 0.0, None, "overlap in metres that Jax2D leaves uncorrected (Kinetix: 0.01)"),
 }
-"""What `--variant KEY=VALUE` may change of Kinetix: the value's type, its least value, and what it means."""
+"""What `--variant KEY=VALUE` may change of Kinetix: the value's type, its least and greatest value (None: no
+bound), and what it means."""
 
 
 def parse_variant(text: str) -> tuple[str, float]:
@@ -38,12 +42,12 @@ def parse_variant(text: str) -> tuple[str, float]:
     key, _, value = text.partition("=")
     if key not in VARIANTS:
         raise argparse.ArgumentTypeError(f"{key!r} is not a Kinetix variant (variants: {', '.join(sorted(VARIANTS))})")
-    kind, least, meaning = VARIANTS[key]
+    kind, least, greatest, meaning = VARIANTS[key]
     try:
         number = kind(value)
     except ValueError:
         raise argparse.ArgumentTypeError(f"{key}={value!r}: not a number of type {kind.__name__}") from None
-    if number < least or (key == "padding_writes" and number > 1):
+    if number < least or (greatest is not None and number > greatest):
         raise argparse.ArgumentTypeError(f"{key}={number}: out of range ({meaning})")
     return key, number
 
