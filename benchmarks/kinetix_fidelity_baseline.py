@@ -57,6 +57,11 @@ CHUNK_LEVELS = 64
 """Levels played per compiled call, and between two printed results, by default."""
 
 
+PARAMS_FIELDS = {"baumgarte_collision": "baumgarte_coefficient_collision", "slop": "slop"}
+STATIC_FIELDS = {"solver_iterations": "num_solver_iterations", "solver_batch_size": "solver_batch_size"}
+"""The field of Kinetix's EnvParams or StaticEnvParams that each variant sets (padding_writes patches Jax2D)."""
+
+
 def drop_padding_writes() -> None:
     """Patch the installed Jax2D so that its contact solver's padding rows (index -1) write nothing: the impulses
     they reset otherwise land on the last pair of each kind (B1). Engines built afterwards use the patched solver;
@@ -132,14 +137,8 @@ def play(paths: list[str], episodes: int, seed: int, chunk_levels: int, emit, va
         groups.setdefault(size, []).append((path, expand_env_state(state, static_env_params_from_size(size))))
     for size, members in groups.items():
         static, params = static_env_params_from_size(size), EnvParams(dense_reward_scale=0.0)
-        if "baumgarte_collision" in variant:
-            params = params.replace(baumgarte_coefficient_collision=variant["baumgarte_collision"])
-        if "slop" in variant:
-            params = params.replace(slop=variant["slop"])
-        if "solver_iterations" in variant:
-            static = static.replace(num_solver_iterations=variant["solver_iterations"])
-        if "solver_batch_size" in variant:
-            static = static.replace(solver_batch_size=variant["solver_batch_size"])
+        params = params.replace(**{PARAMS_FIELDS[k]: v for k, v in variant.items() if k in PARAMS_FIELDS})
+        static = static.replace(**{STATIC_FIELDS[k]: v for k, v in variant.items() if k in STATIC_FIELDS})
         env = make_kinetix_env(
             ActionType.MULTI_DISCRETE, ObservationType.SYMBOLIC_FLAT, None, params, static, auto_reset=False
         )
