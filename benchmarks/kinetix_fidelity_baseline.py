@@ -59,7 +59,18 @@ CHUNK_LEVELS = 64
 
 PARAMS_FIELDS = {"baumgarte_collision": "baumgarte_coefficient_collision", "slop": "slop"}
 STATIC_FIELDS = {"solver_iterations": "num_solver_iterations", "solver_batch_size": "solver_batch_size"}
-"""The field of Kinetix's EnvParams or StaticEnvParams that each variant sets (padding_writes patches Jax2D)."""
+"""The field of Kinetix's EnvParams or StaticEnvParams that each variant sets (padding_writes patches Jax2D;
+substeps divides the physics step and multiplies the frame skip)."""
+
+
+def variant_env_params(size: str, variant: dict):
+    """Kinetix's EnvParams (no dense reward) and StaticEnvParams of `size`, changed by `variant` (its padding writes
+    aside, which `drop_padding_writes` patches)."""
+    static, params = static_env_params_from_size(size), EnvParams(dense_reward_scale=0.0)
+    params = params.replace(**{PARAMS_FIELDS[k]: v for k, v in variant.items() if k in PARAMS_FIELDS})
+    static = static.replace(**{STATIC_FIELDS[k]: v for k, v in variant.items() if k in STATIC_FIELDS})
+    substeps = variant.get("substeps", 1)
+    return params.replace(dt=params.dt / substeps), static.replace(frame_skip=static.frame_skip * substeps)
 
 
 def drop_padding_writes() -> None:
@@ -136,9 +147,7 @@ def play(paths: list[str], episodes: int, seed: int, chunk_levels: int, emit, va
         size = _size_of(static)
         groups.setdefault(size, []).append((path, expand_env_state(state, static_env_params_from_size(size))))
     for size, members in groups.items():
-        static, params = static_env_params_from_size(size), EnvParams(dense_reward_scale=0.0)
-        params = params.replace(**{PARAMS_FIELDS[k]: v for k, v in variant.items() if k in PARAMS_FIELDS})
-        static = static.replace(**{STATIC_FIELDS[k]: v for k, v in variant.items() if k in STATIC_FIELDS})
+        params, static = variant_env_params(size, variant)
         env = make_kinetix_env(
             ActionType.MULTI_DISCRETE, ObservationType.SYMBOLIC_FLAT, None, params, static, auto_reset=False
         )

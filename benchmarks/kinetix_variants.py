@@ -32,6 +32,14 @@ VARIANTS = {
         "0.2); the velocity stays in the bodies after the overlap is gone",
     ),
     "slop": (float, 0.0, None, "overlap in metres that Jax2D leaves uncorrected (Kinetix: 0.01)"),
+    "substeps": (
+        int,
+        1,
+        None,
+        "Jax2D steps of 1/60 s divided by this in place of each of 1/60 s (Kinetix: 1; an env step is 2 of them): "
+        "contacts are found this much sooner after shapes meet, and motors, thrusters and Baumgarte's share act per "
+        "shorter step",
+    ),
 }
 """What `--variant KEY=VALUE` may change of Kinetix: the value's type, its least and greatest value (None: no
 bound), and what it means."""

@@ -111,7 +111,16 @@ def test_a_variant_of_kinetix_is_stored_under_keys_of_its_own(tmp_path):
 
 @pytest.mark.parametrize(
     "text",
-    ["padding_writes=2", "solver_iterations=0", "solver_iterations=2.5", "slop=-0.01", "slop=wide", "gravity=1", "x"],
+    [
+        "padding_writes=2",
+        "solver_iterations=0",
+        "solver_iterations=2.5",
+        "slop=-0.01",
+        "slop=wide",
+        "substeps=0",
+        "gravity=1",
+        "x",
+    ],
 )
 def test_an_unknown_or_out_of_range_kinetix_variant_is_refused(text):
     with pytest.raises(argparse.ArgumentTypeError):
@@ -121,6 +130,7 @@ def test_an_unknown_or_out_of_range_kinetix_variant_is_refused(text):
 def test_a_kinetix_variant_reads_its_value_as_its_type():
     assert parse_variant("solver_batch_size=1") == ("solver_batch_size", 1)
     assert parse_variant("baumgarte_collision=0.05") == ("baumgarte_collision", 0.05)
+    assert parse_variant("substeps=4") == ("substeps", 4)
 
 
 def test_sim_switches_and_a_kinetix_variant_are_not_given_together(capsys):
@@ -167,6 +177,39 @@ def test_kinetix_with_padding_writes_dropped_keeps_its_last_pairs_impulse():
     weight_per_step = math.pi * 0.5**2 * 9.81 / 60.0
     assert impulse["1"] == 0.0
     assert impulse["0"] == pytest.approx(weight_per_step, rel=0.02)
+
+
+FALLING_DISC = """
+import json, sys
+import jax.numpy as jnp
+from jax2d.scene import add_circle_to_scene
+from kinetix.environment import ActionType, ObservationType, make_kinetix_env
+from kinetix.environment.utils import create_empty_env
+sys.path.insert(0, sys.argv[1])
+from kinetix_fidelity_baseline import variant_env_params
+params, static = variant_env_params("s", {"substeps": int(sys.argv[2])})
+env = make_kinetix_env(ActionType.MULTI_DISCRETE, ObservationType.SYMBOLIC_FLAT, None, params, static, auto_reset=False)
+state, _ = add_circle_to_scene(create_empty_env(static), static, jnp.array([2.5, 3.0]), 0.1)
+after = env.engine_step(state, jnp.zeros(static.num_joints + static.num_thrusters), params)[1]  # (obs, state, reward, done, info)
+print(json.dumps([3.0 - float(after.circle.position[0, 1]), int(after.timestep)]))
+"""
+
+
+@pytest.mark.slow  # builds Kinetix's virtualenv on first use (minutes), then two one-step Kinetix runs: about 1 minute
+def test_kinetix_with_substeps_takes_that_many_shorter_physics_steps_per_env_step():
+    """An env step of Kinetix is 2 physics steps of dt = 1/60 s (its frame skip); with N substeps, 2 N semi-implicit
+    Euler steps of dt/N. A disc falling from rest falls g (dt/N)^2 (2N)(2N + 1) / 2 in it: 3 g dt^2 as released,
+    2.25 g dt^2 with 4 substeps; the env step counts once."""
+    python = kinetix_python(DEFAULT_KINETIX_VENV, print)
+    benchmarks = Path(fidelity.__file__).parent
+    dt = 1.0 / 60.0
+    for substeps, share_of_g_dt2 in ((1, 3.0), (4, 2.25)):
+        run = subprocess.run(
+            [str(python), "-c", FALLING_DISC, str(benchmarks), str(substeps)], capture_output=True, text=True, check=True
+        )
+        fall, timestep = json.loads(run.stdout.splitlines()[-1])
+        assert fall == pytest.approx(share_of_g_dt2 * 9.81 * dt**2, rel=1e-4)
+        assert timestep == 1
 
 
 @pytest.mark.slow  # builds Kinetix's virtualenv on first use (minutes), then plays 10 levels: about 2 minutes
