@@ -190,7 +190,8 @@ from kinetix_fidelity_baseline import variant_env_params
 params, static = variant_env_params("s", {"substeps": int(sys.argv[2])})
 env = make_kinetix_env(ActionType.MULTI_DISCRETE, ObservationType.SYMBOLIC_FLAT, None, params, static, auto_reset=False)
 state, _ = add_circle_to_scene(create_empty_env(static), static, jnp.array([2.5, 3.0]), 0.1)
-after = env.engine_step(state, jnp.zeros(static.num_joints + static.num_thrusters), params)[1]  # (obs, state, reward, done, info)
+no_op = jnp.zeros(static.num_joints + static.num_thrusters)
+after = env.engine_step(state, no_op, params)[1]  # (obs, state, reward, done, info)
 print(json.dumps([3.0 - float(after.circle.position[0, 1]), int(after.timestep)]))
 """
 
@@ -205,7 +206,10 @@ def test_kinetix_with_substeps_takes_that_many_shorter_physics_steps_per_env_ste
     dt = 1.0 / 60.0
     for substeps, share_of_g_dt2 in ((1, 3.0), (4, 2.25)):
         run = subprocess.run(
-            [str(python), "-c", FALLING_DISC, str(benchmarks), str(substeps)], capture_output=True, text=True, check=True
+            [str(python), "-c", FALLING_DISC, str(benchmarks), str(substeps)],
+            capture_output=True,
+            text=True,
+            check=True,
         )
         fall, timestep = json.loads(run.stdout.splitlines()[-1])
         assert fall == pytest.approx(share_of_g_dt2 * 9.81 * dt**2, rel=1e-4)
