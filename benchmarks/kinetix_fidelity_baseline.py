@@ -73,6 +73,19 @@ def variant_env_params(size: str, variant: dict):
     return params.replace(dt=params.dt / substeps), static.replace(frame_skip=static.frame_skip * substeps)
 
 
+DISC_INERTIA_OF_JAX2D = 0.25
+"""Jax2D's moment of inertia of a disc [m r^2] (its bug B2)."""
+UNIFORM_DISC_INERTIA = 0.5
+"""A uniform disc's moment of inertia [m r^2]."""
+
+
+def with_exact_disc_inertia(state):
+    """`state` with every disc's inverse moment of inertia that of a uniform disc, 1 / (m r^2 / 2), in place of
+    Jax2D's 1 / (m r^2 / 4); static discs (inverse 0) stay static."""
+    inverse_inertia = state.circle.inverse_inertia * DISC_INERTIA_OF_JAX2D / UNIFORM_DISC_INERTIA
+    return state.replace(circle=state.circle.replace(inverse_inertia=inverse_inertia))
+
+
 def drop_padding_writes() -> None:
     """Patch the installed Jax2D so that its contact solver's padding rows (index -1) write nothing: the impulses
     they reset otherwise land on the last pair of each kind (B1). Engines built afterwards use the patched solver;
@@ -145,7 +158,10 @@ def play(paths: list[str], episodes: int, seed: int, chunk_levels: int, emit, va
     for path in paths:
         state, static, _ = load_from_json_file(str(Path(path).resolve()))
         size = _size_of(static)
-        groups.setdefault(size, []).append((path, expand_env_state(state, static_env_params_from_size(size))))
+        state = expand_env_state(state, static_env_params_from_size(size))
+        if variant.get("exact_disc_inertia") == 1:
+            state = with_exact_disc_inertia(state)
+        groups.setdefault(size, []).append((path, state))
     for size, members in groups.items():
         params, static = variant_env_params(size, variant)
         env = make_kinetix_env(

@@ -31,6 +31,13 @@ VARIANTS = {
         "share of a contact's overlap beyond the slop that Jax2D turns into separating velocity per step (Kinetix: "
         "0.2); the velocity stays in the bodies after the overlap is gone",
     ),
+    "exact_disc_inertia": (
+        int,
+        0,
+        1,
+        "1: a disc turns with its moment of inertia m r^2 / 2 (Jax2D's B2 corrected, as in kforge); 0: m r^2 / 4, as "
+        "Jax2D computes it and Kinetix's level files store it",
+    ),
     "slop": (float, 0.0, None, "overlap in metres that Jax2D leaves uncorrected (Kinetix: 0.01)"),
     "substeps": (
         int,

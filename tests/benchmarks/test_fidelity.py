@@ -118,6 +118,7 @@ def test_a_variant_of_kinetix_is_stored_under_keys_of_its_own(tmp_path):
         "slop=-0.01",
         "slop=wide",
         "substeps=0",
+        "exact_disc_inertia=2",
         "gravity=1",
         "x",
     ],
@@ -152,7 +153,7 @@ if sys.argv[2] == "0":
     drop_padding_writes()
 static = StaticSimParams(num_polygons=5, num_circles=2, num_joints=1, num_thrusters=1)
 state = create_empty_sim(static)
-for height in (0.2 + 0.5, 0.2 + 1.5):  # the floor's top is at 0.2 m; discs of radius 0.5 m, one on the other
+for height in (0.4 + 0.5, 0.4 + 1.5):  # the floor's top is at 0.4 m; discs of radius 0.5 m, one on the other
     state, _ = add_circle_to_scene(state, static, jnp.array([2.5, height]), 0.5)
 step = jax.jit(jax2d.engine.PhysicsEngine(static).step)
 for _ in range(120):
@@ -177,6 +178,42 @@ def test_kinetix_with_padding_writes_dropped_keeps_its_last_pairs_impulse():
     weight_per_step = math.pi * 0.5**2 * 9.81 / 60.0
     assert impulse["1"] == 0.0
     assert impulse["0"] == pytest.approx(weight_per_step, rel=0.02)
+
+
+SLIDING_DISC = """
+import json, sys
+import jax, jax.numpy as jnp
+import jax2d.engine
+from jax2d.engine import create_empty_sim
+from jax2d.scene import add_circle_to_scene
+from jax2d.sim_state import SimParams, StaticSimParams
+sys.path.insert(0, sys.argv[1])
+from kinetix_fidelity_baseline import with_exact_disc_inertia
+static = StaticSimParams(num_polygons=5, num_circles=2, num_joints=1, num_thrusters=1)
+state, _ = add_circle_to_scene(create_empty_sim(static), static, jnp.array([1.0, 0.4 + 0.5]), 0.5)  # on the floor
+state = state.replace(circle=state.circle.replace(velocity=state.circle.velocity.at[0].set(jnp.array([3.0, 0.0]))))
+if sys.argv[2] == "1":
+    state = with_exact_disc_inertia(state)
+step = jax.jit(jax2d.engine.PhysicsEngine(static).step)
+for _ in range(60):
+    state, _ = step(state, SimParams(), jnp.zeros(2))
+print(json.dumps([float(state.circle.velocity[0, 0]), float(state.circle.angular_velocity[0])]))
+"""
+
+
+@pytest.mark.slow  # builds Kinetix's virtualenv on first use (minutes), then two one-second Jax2D runs: about 1 minute
+def test_kinetix_with_exact_disc_inertia_rolls_a_sliding_disc_on_at_two_thirds_of_its_speed():
+    """A disc sliding without spin onto a floor keeps its angular momentum about the contact point: it rolls on at
+    v0 / (1 + I / (m r^2)), 2/3 of v0 for a uniform disc (the variant) and 4/5 with Jax2D's I = m r^2 / 4."""
+    python = kinetix_python(DEFAULT_KINETIX_VENV, print)
+    benchmarks = Path(fidelity.__file__).parent
+    for exact, share_of_v0 in (("0", 4 / 5), ("1", 2 / 3)):
+        run = subprocess.run(
+            [str(python), "-c", SLIDING_DISC, str(benchmarks), exact], capture_output=True, text=True, check=True
+        )
+        speed, spin = json.loads(run.stdout.splitlines()[-1])
+        assert speed == pytest.approx(share_of_v0 * 3.0, rel=0.02)
+        assert -spin * 0.5 == pytest.approx(speed, rel=0.02)  # rolling: v = -w r
 
 
 FALLING_DISC = """
