@@ -48,6 +48,7 @@ from env import (  # noqa: E402
     EnvParams,
     Outcome,
     Policy,
+    StaticEnvParams,
     bundled_level_path,
     first_episode_outcomes,
     list_levels,
@@ -72,12 +73,20 @@ AGREEMENT_SLACK = 0.02
 """Rates agree when they differ by at most AGREEMENT_STANDARD_ERRORS standard errors plus this."""
 
 
-def play_ours(paths: dict[str, str], episodes: int, seed: int, sim_overrides: dict, log) -> dict:
-    """Per level name: the no-op outcome and the random policy's outcome counts, in kforge."""
+def with_substeps(static: StaticEnvParams, substeps: int | None) -> StaticEnvParams:
+    """`static` with `substeps` solver substeps per physics step (unchanged for None)."""
+    if substeps is None:
+        return static
+    return dataclasses.replace(static, sim=dataclasses.replace(static.sim, num_substeps=substeps))
+
+
+def play_ours(paths: dict[str, str], episodes: int, seed: int, sim_overrides: dict, log, substeps=None) -> dict:
+    """Per level name: the no-op outcome and the random policy's outcome counts, in kforge (with `substeps` solver
+    substeps per physics step, if given)."""
     groups: dict = {}
     for name, path in paths.items():
         loaded = load_level(path)
-        groups.setdefault(loaded.static, []).append((name, loaded))
+        groups.setdefault(with_substeps(loaded.static, substeps), []).append((name, loaded))
     report = {}
     for static, members in groups.items():
         params = EnvParams(dense_reward_scale=0.0)
@@ -275,6 +284,7 @@ def main(argv=None) -> None:
     parser.add_argument("--episodes", type=int, default=280, help="random-policy episodes per level")
     parser.add_argument("--seed", type=int, default=0, help="seed of Kinetix's level sampler and of the actions")
     parser.add_argument("--sim", type=sim_override, action="append", default=[], help="SimParams KEY=VALUE of ours")
+    parser.add_argument("--substeps", type=int, help="solver substeps per physics step of ours (default: the engine's)")
     parser.add_argument(
         "--kinetix-variant",
         type=parse_variant,
@@ -297,8 +307,10 @@ def main(argv=None) -> None:
     args = parser.parse_args(argv)
     if args.chunk_levels < 1 or args.episodes < 1:
         parser.error("--chunk-levels and --episodes must be at least 1")
-    if args.sim and args.kinetix_variant:
-        parser.error("--sim switches our engine and --kinetix-variant replaces it: give one of them")
+    if (args.sim or args.substeps is not None) and args.kinetix_variant:
+        parser.error("--sim and --substeps switch our engine and --kinetix-variant replaces it: give one of them")
+    if args.substeps is not None and args.substeps < 1:
+        parser.error(f"--substeps must be at least 1, got {args.substeps}")
 
     def log(line: str) -> None:
         print(line, file=sys.stderr if args.json else sys.stdout, flush=True)
@@ -328,7 +340,7 @@ def main(argv=None) -> None:
     if variant:
         ours = kinetix_outcomes(python, paths, listing, args, log, variant)
     else:
-        ours = play_ours(paths, args.episodes, args.seed, dict(args.sim), log)
+        ours = play_ours(paths, args.episodes, args.seed, dict(args.sim), log, args.substeps)
     ours_seconds = time.perf_counter() - started
     compared = f"kinetix-env, {variant_label(variant)}" if variant else "kforge"
 
@@ -338,6 +350,7 @@ def main(argv=None) -> None:
         "episodes": args.episodes,
         "compared": compared,
         "sim_overrides": dict(args.sim),
+        "substeps": args.substeps,
         "seconds": {compared: ours_seconds, "kinetix": kinetix_seconds},
         "summary": summarize(levels),
         "levels": levels,

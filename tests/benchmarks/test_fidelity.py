@@ -3,6 +3,7 @@ and the no-op outcome must be the same; per set and size, the share of levels th
 per level file, so that a long measurement resumes and grows."""
 
 import argparse
+import dataclasses
 import json
 import math
 import subprocess
@@ -14,7 +15,7 @@ from benchmarks import fidelity
 from benchmarks.env import DEFAULT_KINETIX_VENV, kinetix_python
 from benchmarks.fidelity import KinetixStore, compare, summarize
 from benchmarks.kinetix_variants import parse_variant
-from env import bundled_level_path
+from env import bundled_level_path, load_level
 
 
 def counts(success: int, failure: int, episodes: int = 100) -> dict:
@@ -138,6 +139,23 @@ def test_sim_switches_and_a_kinetix_variant_are_not_given_together(capsys):
     with pytest.raises(SystemExit):
         fidelity.main(["--sim", "overlap_allowance=1", "--kinetix-variant", "padding_writes=0"])
     assert "give one of them" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        fidelity.main(["--substeps", "8", "--kinetix-variant", "padding_writes=0"])
+    assert "give one of them" in capsys.readouterr().err
+
+
+def test_substeps_change_only_ours_solver_substeps():
+    static = load_level(bundled_level_path("s/h5_rotate_fall")).static
+    changed = fidelity.with_substeps(static, 8)
+    assert changed.sim.num_substeps == 8 and static.sim.num_substeps == 4
+    assert dataclasses.replace(changed, sim=static.sim) == static
+    assert fidelity.with_substeps(static, None) == static
+
+
+def test_fewer_than_one_substep_is_refused(capsys):
+    with pytest.raises(SystemExit):
+        fidelity.main(["--substeps", "0"])
+    assert "--substeps must be at least 1, got 0" in capsys.readouterr().err
 
 
 STACKED_DISCS = """
