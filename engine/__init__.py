@@ -21,6 +21,7 @@ from engine.pairs import PairLayout, pair_layout
 from engine.params import (
     KINETIX_SIZES,
     MAX_POLYGON_VERTICES,
+    ContactLaw,
     ForceTiming,
     LimitLaw,
     MotorLaw,
@@ -45,6 +46,7 @@ __all__ = [
     "Bodies",
     "ContactCache",
     "Joints",
+    "ContactLaw",
     "ForceTiming",
     "LimitLaw",
     "MotorLaw",

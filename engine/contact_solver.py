@@ -49,6 +49,15 @@ class ContactGeometry:
 
 
 @struct.dataclass
+class PushLaw:
+    """Per-scene choice of `engine.params.ContactLaw` and its constants."""
+
+    baumgarte: jnp.ndarray  # bool: ContactLaw.BAUMGARTE
+    rate: jnp.ndarray  # [1/s] normal speed per metre of overlap beyond the slop
+    slop: jnp.ndarray  # [m]
+
+
+@struct.dataclass
 class ContactImpulses:
     """Accumulated per-substep impulses in colour layout, one (C, W, *batch) array per row."""
 
@@ -334,11 +343,13 @@ def solve_contacts(
     inverse_substep,
     max_push_velocity,
     use_bias,
+    push_law: PushLaw,
 ):
     """One sweep of normal rows, then friction rows, of every pair; returns velocities and impulses.
 
     `moved` is each body's displacement since the start of the step; `use_bias` (bool, may be traced) selects
-    the soft position-correcting solve, otherwise the relaxing solve without position bias.
+    the soft position-correcting solve, otherwise the relaxing solve without position bias; under the Baumgarte
+    `push_law` both solve the same rigid rows with its bias.
     """
 
     def solve_colour(rows, impulse, vel_a, vel_b, bodies_of, _):
@@ -355,6 +366,10 @@ def solve_contacts(
             )
             mass_scale = jnp.where(pushing, rows.softness.mass_scale, 1.0)
             impulse_scale = jnp.where(pushing, rows.softness.impulse_scale, 0.0)
+            baumgarte_bias = push_law.rate * jnp.minimum(separation + push_law.slop, 0.0)
+            bias = jnp.where(push_law.baumgarte & ~speculative, baumgarte_bias, bias)
+            mass_scale = jnp.where(push_law.baumgarte, 1.0, mass_scale)
+            impulse_scale = jnp.where(push_law.baumgarte, 0.0, impulse_scale)
             speed = _speed_after(rows, p, _row_speed(rows, p, vel_a, vel_b), deltas)
             old = impulse[p]
             new = old - rows.mass[p] * mass_scale * (speed + bias) - impulse_scale * old

@@ -40,6 +40,18 @@ class MotorLaw(enum.IntEnum):
     within the same torque bound."""
 
 
+class ContactLaw(enum.IntEnum):
+    """How a contact pushes overlapping shapes apart."""
+
+    SOFT = 0
+    """Box2D v3's soft contact: a spring-damper (contact_hertz) pushes at most at max_push_velocity, and each
+    substep's relaxing pass takes the push out of the velocity again, so separated shapes do not fly apart."""
+    BAUMGARTE = 1
+    """Kinetix's (Jax2D's): a rigid row drives the normal speed to baumgarte_share / dt times the overlap beyond
+    contact_slop in every pass, relaxing included, so the push-out stays in the bodies' velocity (a deep overlap
+    launches them); shapes at rest sink by up to the slop."""
+
+
 class LimitLaw(enum.IntEnum):
     """How a revolute joint's angle limits hold."""
 
@@ -95,6 +107,9 @@ class SimParams:
     limit_law: int = LimitLaw.SPECULATIVE  # `LimitLaw`: how joint angle limits hold
     limit_recovery_rate: float = 5.0  # [1/s] KINETIX, BOUNDED_RETURN: speed of return per unit of excess angle
 
+    contact_law: int = ContactLaw.SOFT  # `ContactLaw`: how overlapping shapes are pushed apart
+    baumgarte_share: float = 0.2  # [-] BAUMGARTE: share of the overlap beyond contact_slop closed per step (Jax2D's)
+    contact_slop: float = 0.01  # [m] BAUMGARTE: overlap left uncorrected (Jax2D's)
     force_timing: int = ForceTiming.SPREAD  # `ForceTiming`: gravity and thrust spread over substeps or at step start
 
     # Safety clips applied after every step

@@ -15,6 +15,7 @@ from engine.contact_solver import (
     NUM_POINTS,
     ContactGeometry,
     ContactImpulses,
+    PushLaw,
     apply_restitution,
     build_rows,
     from_colour_layout,
@@ -34,7 +35,7 @@ from engine.joint_solver import (
     warm_start_joints,
 )
 from engine.pairs import pair_layout
-from engine.params import ForceTiming, LimitLaw, MotorLaw, SimParams, StaticSimParams
+from engine.params import ContactLaw, ForceTiming, LimitLaw, MotorLaw, SimParams, StaticSimParams
 from engine.softness import Softness, make_softness
 from engine.state import NO_FEATURE, ContactCache, SimState
 
@@ -96,6 +97,7 @@ class SolverScalars:
     kinetix_limits: jnp.ndarray  # bool: joint limits follow `LimitLaw.KINETIX`
     limit_recovery_rate: jnp.ndarray  # [1/s]
     limit_return_rate: jnp.ndarray  # [1/s] fastest return from beyond a limit per radian (inf: the joint's softness)
+    push_law: PushLaw
 
 
 @struct.dataclass
@@ -175,6 +177,7 @@ def substep_solver(static: StaticSimParams, batch_last: bool = True):
                 scalars.inverse_substep,
                 scalars.max_push_velocity,
                 use_bias,
+                scalars.push_law,
             )
             pose = tuple(
                 jnp.where(move & use_bias, p + scalars.substep * v, p) for p, v in zip(pose, velocity, strict=True)
@@ -323,6 +326,11 @@ def prepare_step(
         kinetix_limits=params.limit_law == LimitLaw.KINETIX,
         limit_recovery_rate=params.limit_recovery_rate,
         limit_return_rate=jnp.where(params.limit_law == LimitLaw.BOUNDED_RETURN, params.limit_recovery_rate, jnp.inf),
+        push_law=PushLaw(
+            baumgarte=params.contact_law == ContactLaw.BAUMGARTE,
+            rate=params.baumgarte_share / params.dt,
+            slop=params.contact_slop,
+        ),
     )
     solver_input = SolverInput(
         velocity=velocity,

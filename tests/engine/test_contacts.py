@@ -23,7 +23,7 @@ from engine_test_helpers import (
     zero_gravity,
 )
 
-from engine import SceneBuilder, SimParams
+from engine import ContactLaw, SceneBuilder, SimParams
 
 PARAMS = SimParams()
 DT = PARAMS.dt
@@ -780,3 +780,41 @@ def test_warm_start_equals_every_slots_impulse_added_to_its_bodies():
         )
         np.testing.assert_allclose(np.asarray(warmed[component]), expected, rtol=1e-6, atol=1e-6)
         assert np.asarray(warmed[component])[-1] == np.asarray(v)[-1]
+
+
+def _box_started_in_the_floor(law: int, depth: float, steps: int = 30):
+    """Upward speed and bottom height above the floor [m/s, m] of a 0.5 m box that starts `depth` inside the floor,
+    at rest, in zero gravity: at the start, then after each step."""
+    builder = SceneBuilder(SIZE_S)
+    size = 0.5
+    box = builder.add_box((2.5, FLOOR_TOP + size / 2 - depth), (size, size))
+    _, traj = run(zero_gravity(builder.build()), SIZE_S, steps, params=SimParams(contact_law=law))
+    return traj.velocity[:, box, 1], traj.position[:, box, 1] - size / 2 - FLOOR_TOP
+
+
+def test_the_baumgarte_contact_law_launches_a_deep_overlap_and_leaves_the_slop_alone():
+    """Under `ContactLaw.BAUMGARTE` (Jax2D's) the row drives the separating speed to baumgarte_share / dt times the
+    overlap beyond the slop, in every pass, so the speed stays once the box is out. A 0.5 m box 10 cm in the floor
+    (zero gravity) leaves the first step at a speed between that target at the step's start, 12/s x 9 cm =
+    1.08 m/s, and at its end (the overlap less the step's rise), keeps it (nothing acts once it is out) and flies off.
+    An overlap within the 1 cm slop is left as it is. The soft law's relaxing passes take most of its push away
+    again."""
+    depth, share, slop = 0.1, PARAMS.baumgarte_share, PARAMS.contact_slop
+    speed, bottom = _box_started_in_the_floor(ContactLaw.BAUMGARTE, depth)
+    slop_speed, slop_bottom = _box_started_in_the_floor(ContactLaw.BAUMGARTE, 0.5 * slop)
+    soft_speed, soft_bottom = _box_started_in_the_floor(ContactLaw.SOFT, depth)
+    measured(
+        "box 10 cm in the floor",
+        baumgarte_first_step=speed[1],
+        baumgarte_last=speed[-1],
+        baumgarte_bottom_last=bottom[-1],
+        soft_last=soft_speed[-1],
+        soft_bottom_last=soft_bottom[-1],
+        slop_speed_max=np.abs(slop_speed).max(),
+        slop_bottom_last=slop_bottom[-1],
+    )
+    rise = bottom[1] - bottom[0]
+    assert share / DT * (depth - slop - rise) <= speed[1] <= share / DT * (depth - slop)
+    assert speed[-1] == pytest.approx(speed[1], rel=1e-4) and bottom[-1] > 0.3
+    assert np.abs(slop_speed).max() == 0.0 and slop_bottom[-1] == pytest.approx(-0.5 * slop, abs=1e-6)
+    assert 0.0 < soft_speed[-1] < 0.25 * speed[-1]
