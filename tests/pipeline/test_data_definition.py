@@ -4,7 +4,7 @@ experts section."""
 
 import math
 
-from engine import LimitLaw, SimParams
+from engine import ContactLaw, LimitLaw, SimParams
 from pipeline.generation.config import (
     data_definition,
     data_fingerprint,
@@ -28,7 +28,7 @@ def test_the_physics_from_before_the_switches_keeps_its_fingerprint(tmp_path):
         earlier_physics = physics_definition(earlier_sim)
         assert definition_fingerprint(data_definition(job) | {"physics": earlier_physics}) == fingerprint
         later = {"limit_law", "limit_recovery_rate", "speculative_reach", "push_touch_distance"}
-        later |= {"swept_speculative_contacts", "overlap_allowance"}
+        later |= {"swept_speculative_contacts", "overlap_allowance", "contact_law", "baumgarte_share", "contact_slop"}
         assert not later & set(earlier_physics)
         assert earlier_physics["joint_hertz"] == 75.0  # the older parameters are all there
         assert data_definition(job)["physics"]["swept_speculative_contacts"] is True
@@ -39,6 +39,8 @@ def test_a_later_parameter_at_another_value_enters_the_definition():
     assert physics_definition(SimParams(limit_law=LimitLaw.BOUNDED_RETURN))["limit_law"] == LimitLaw.BOUNDED_RETURN
     assert physics_definition(SimParams(speculative_reach=0.0))["speculative_reach"] == 0.0
     assert physics_definition(SimParams(overlap_allowance=1.0))["overlap_allowance"] == 1.0
+    assert physics_definition(SimParams(contact_law=ContactLaw.BAUMGARTE))["contact_law"] == ContactLaw.BAUMGARTE
+    assert physics_definition(SimParams(contact_slop=0.005))["contact_slop"] == 0.005
     assert physics_definition(SimParams(push_touch_distance=0.02))["push_touch_distance"] == 0.02
     assert "push_touch_distance" not in physics_definition(SimParams(push_touch_distance=math.inf))
     assert physics_definition(SimParams())["swept_speculative_contacts"] is True
