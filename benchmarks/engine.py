@@ -17,14 +17,17 @@ operations) in the entry computation, with `while` bodies multiplied by XLA's `k
     python benchmarks/engine.py --sizes s --batches 256 --json
     python benchmarks/engine.py --kernels --batches 1 256
     python benchmarks/engine.py --sizes s --batches 256 --repeats 7 --vs-sim swept_speculative_contacts=0
+    python benchmarks/engine.py --sizes s m --batches 1 256 --repeats 15 --vs-substeps 2
 
 `--vs-sim KEY=VALUE` also times ours with those `SimParams`, compiled in as constants and called alternately with the
-defaults, and prints the ratio: what a physics option costs.
+defaults, and prints the ratio: what a physics option costs. `--vs-substeps N` does the same for N solver substeps
+per step (alone or with `--vs-sim`).
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import sys
@@ -57,10 +60,15 @@ def _batched_states(size: str, batch: int):
     return jax.tree_util.tree_map(lambda x: jnp.concatenate([x] * repeat)[:batch], stacked)
 
 
-def compile_rollout_ours(size: str, batch: int, n_steps: int, params: SimParams | None = None):
+def compile_rollout_ours(
+    size: str, batch: int, n_steps: int, params: SimParams | None = None, substeps: int | None = None
+):
     """`call()` running `n_steps` vmapped steps inside one compiled scan (motors at +1, thrusters on), with `params`
-    (default `SimParams()`) compiled in as constants, so that a switched-off option costs nothing."""
+    (default `SimParams()`) compiled in as constants, so that a switched-off option costs nothing, and `substeps`
+    solver substeps per step (default the engine's)."""
     static = build_scene(size, 0)[1]
+    if substeps is not None:
+        static = dataclasses.replace(static, num_substeps=substeps)
     states = _batched_states(size, batch)
     params = SimParams() if params is None else params
     motors, thrusters = jnp.ones(static.num_joints), jnp.ones(static.num_thrusters)
@@ -98,21 +106,29 @@ def compile_jax2d(size: str) -> float:
     return time.perf_counter() - start
 
 
-def run(sizes, batches, n_steps: int, repeats: int, versus_jax2d: bool, log=print, sim_overrides=()) -> dict:
-    """Measure every (size, batch); `log` receives one human-readable line per figure. With `sim_overrides`, ours
-    is also timed with those `SimParams` (`ours_sim`), alternating call by call with the defaults."""
+def run(
+    sizes, batches, n_steps: int, repeats: int, versus_jax2d: bool, log=print, sim_overrides=(), substeps=None
+) -> dict:
+    """Measure every (size, batch); `log` receives one human-readable line per figure. With `sim_overrides` and/or
+    `substeps`, ours is also timed with those `SimParams` and that many solver substeps per step (`ours_sim`),
+    alternating call by call with the defaults."""
     on_gpu = jax.default_backend() == "gpu"
     sim_overrides = list(sim_overrides)
-    engines = ["ours"] + (["ours_sim"] if sim_overrides else []) + (["jax2d"] if versus_jax2d else [])
+    variant = bool(sim_overrides) or substeps is not None
+    engines = ["ours"] + (["ours_sim"] if variant else []) + (["jax2d"] if versus_jax2d else [])
     report = {
         "machine": describe_machine(),
         "steps_per_timed_call": n_steps,
         "steps_per_second": {engine: {} for engine in engines},
         "compile_seconds": {engine: {} for engine in engines if engine != "ours_sim"},
     }
-    switched = SimParams().replace(**dict(sim_overrides)) if sim_overrides else None
-    if switched is not None:
+    switched = SimParams().replace(**dict(sim_overrides))
+    variant_text = ",".join(
+        ([_overrides_text(sim_overrides)] if sim_overrides else []) + ([f"substeps={substeps}"] if substeps else [])
+    )
+    if variant:
         report["sim_overrides"] = dict(sim_overrides)
+        report["substeps"] = substeps
         report["sim_vs_default"] = {}
     if versus_jax2d:
         from benchmarks import jax2d_baseline
@@ -127,8 +143,8 @@ def run(sizes, batches, n_steps: int, repeats: int, versus_jax2d: bool, log=prin
         log(line)
         for batch in list(batches) + (list(GPU_BATCHES) if on_gpu else []):
             calls = [compile_rollout_ours(size, batch, n_steps)]
-            if switched is not None:
-                calls.append(compile_rollout_ours(size, batch, n_steps, switched))
+            if variant:
+                calls.append(compile_rollout_ours(size, batch, n_steps, switched, substeps))
             if versus_jax2d:
                 calls.append(jax2d_baseline.compile_rollout(size, batch, n_steps)[0])
             seconds = best_times_interleaved(calls, repeats) if len(calls) > 1 else [best_time(calls[0], repeats)[0]]
@@ -136,9 +152,9 @@ def run(sizes, batches, n_steps: int, repeats: int, versus_jax2d: bool, log=prin
             for engine, rate in rates.items():
                 report["steps_per_second"][engine].setdefault(size, {})[str(batch)] = rate
             line = f"size={size} batch={batch:>6} ours={rates['ours']:>12,.0f} steps/s"
-            if switched is not None:
+            if variant:
                 report["sim_vs_default"].setdefault(size, {})[str(batch)] = rates["ours_sim"] / rates["ours"]
-                line += f"  with {_overrides_text(sim_overrides)}={rates['ours_sim']:>12,.0f} steps/s"
+                line += f"  with {variant_text}={rates['ours_sim']:>12,.0f} steps/s"
                 line += f" ({rates['ours_sim'] / rates['ours']:.2f}x)"
             if versus_jax2d:
                 report["speedup_vs_jax2d"].setdefault(size, {})[str(batch)] = rates["ours"] / rates["jax2d"]
@@ -147,6 +163,17 @@ def run(sizes, batches, n_steps: int, repeats: int, versus_jax2d: bool, log=prin
                 line += f"  (jax2d published peak {JAX2D_PUBLISHED_PEAK_STEPS_PER_SECOND[size]:,.0f})"
             log(line)
     return report
+
+
+def _substep_count(text: str) -> int:
+    """`--vs-substeps`'s value: a whole number of at least 1."""
+    try:
+        count = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number of substeps, got {text!r}") from None
+    if count < 1:
+        raise argparse.ArgumentTypeError(f"a step needs at least 1 substep, got {count}")
+    return count
 
 
 def _overrides_text(overrides) -> str:
@@ -238,6 +265,12 @@ def main(argv=None) -> None:
         metavar="KEY=VALUE",
         help="also time ours with these SimParams overrides, alternating with the defaults (repeatable)",
     )
+    parser.add_argument(
+        "--vs-substeps",
+        type=_substep_count,
+        metavar="N",
+        help="also time ours with N solver substeps per step (with any --vs-sim), alternating with the defaults",
+    )
     args = parser.parse_args(argv)
     log = (
         (lambda line: print(line, file=sys.stderr, flush=True)) if args.json else (lambda line: print(line, flush=True))
@@ -247,7 +280,9 @@ def main(argv=None) -> None:
         if args.json:
             print(json.dumps(report, indent=2))
         return
-    report = run(args.sizes, args.batches, args.steps, args.repeats, args.vs == "jax2d", log, args.vs_sim)
+    report = run(
+        args.sizes, args.batches, args.steps, args.repeats, args.vs == "jax2d", log, args.vs_sim, args.vs_substeps
+    )
     if args.json:
         print(json.dumps(report, indent=2))
 

@@ -1,5 +1,5 @@
 """`KEY=VALUE` physics switches of the benchmarks: parsed against SimParams with one-line errors, and timed side by
-side with the defaults by `benchmarks/engine.py --vs-sim`."""
+side with the defaults by `benchmarks/engine.py --vs-sim` (and other substep counts by `--vs-substeps`)."""
 
 from __future__ import annotations
 
@@ -34,6 +34,27 @@ def test_the_engine_benchmark_refuses_an_unknown_field_on_its_command_line(capsy
     with pytest.raises(SystemExit):
         engine_benchmark.main(["--vs-sim", "no_such_field=1"])
     assert "'no_such_field' is not a SimParams field" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(("value", "message"), [("0", "at least 1 substep, got 0"), ("two", "got 'two'")])
+def test_the_engine_benchmark_refuses_a_substep_count_below_one_or_not_a_number(capsys, value, message):
+    with pytest.raises(SystemExit):
+        engine_benchmark.main(["--vs-substeps", value])
+    assert message in capsys.readouterr().err
+
+
+@pytest.mark.slow  # compiles the s step twice: about 40 s on 2 cores
+def test_the_engine_benchmark_times_another_substep_count_beside_the_default(capsys):
+    engine_benchmark.main(
+        ["--sizes", "s", "--batches", "2", "--steps", "2", "--repeats", "1", "--vs-substeps", "1", "--json"]
+    )
+    captured = capsys.readouterr()
+    report = json.loads(captured.out)
+    assert "with substeps=1=" in captured.err
+    assert report["substeps"] == 1 and report["sim_overrides"] == {}
+    default, fewer = report["steps_per_second"]["ours"]["s"]["2"], report["steps_per_second"]["ours_sim"]["s"]["2"]
+    assert default > 0 and fewer > 0
+    assert report["sim_vs_default"]["s"]["2"] == pytest.approx(fewer / default)
 
 
 @pytest.mark.slow  # compiles the s step twice: about 40 s on 2 cores
