@@ -165,17 +165,6 @@ def run(
     return report
 
 
-def _substep_count(text: str) -> int:
-    """`--vs-substeps`'s value: a whole number of at least 1."""
-    try:
-        count = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a whole number of substeps, got {text!r}") from None
-    if count < 1:
-        raise argparse.ArgumentTypeError(f"a step needs at least 1 substep, got {count}")
-    return count
-
-
 def _overrides_text(overrides) -> str:
     return ",".join(f"{key}={value:g}" for key, value in overrides)
 
@@ -267,11 +256,13 @@ def main(argv=None) -> None:
     )
     parser.add_argument(
         "--vs-substeps",
-        type=_substep_count,
+        type=int,
         metavar="N",
         help="also time ours with N solver substeps per step (with any --vs-sim), alternating with the defaults",
     )
     args = parser.parse_args(argv)
+    if args.vs_substeps is not None and args.vs_substeps < 1:
+        parser.error(f"--vs-substeps must be at least 1, got {args.vs_substeps}")
     log = (
         (lambda line: print(line, file=sys.stderr, flush=True)) if args.json else (lambda line: print(line, flush=True))
     )

@@ -36,7 +36,9 @@ def test_the_engine_benchmark_refuses_an_unknown_field_on_its_command_line(capsy
     assert "'no_such_field' is not a SimParams field" in capsys.readouterr().err
 
 
-@pytest.mark.parametrize(("value", "message"), [("0", "at least 1 substep, got 0"), ("two", "got 'two'")])
+@pytest.mark.parametrize(
+    ("value", "message"), [("0", "--vs-substeps must be at least 1, got 0"), ("two", "invalid int value: 'two'")]
+)
 def test_the_engine_benchmark_refuses_a_substep_count_below_one_or_not_a_number(capsys, value, message):
     with pytest.raises(SystemExit):
         engine_benchmark.main(["--vs-substeps", value])
