@@ -53,6 +53,7 @@ class PushLaw:
     """Per-scene choice of `engine.params.ContactLaw` and its constants."""
 
     baumgarte: jnp.ndarray  # bool: ContactLaw.BAUMGARTE
+    depth: jnp.ndarray  # [m] under the soft law, points deeper than this at the step's start follow BAUMGARTE's
     rate: jnp.ndarray  # [1/s] normal speed per metre of overlap beyond the slop
     slop: jnp.ndarray  # [m]
 
@@ -349,7 +350,8 @@ def solve_contacts(
 
     `moved` is each body's displacement since the start of the step; `use_bias` (bool, may be traced) selects
     the soft position-correcting solve, otherwise the relaxing solve without position bias; under the Baumgarte
-    `push_law` both solve the same rigid rows with its bias.
+    `push_law` (every point, or under the soft law the points deeper than its depth at the step's start) both
+    solve the same rigid rows with its bias.
     """
 
     def solve_colour(rows, impulse, vel_a, vel_b, bodies_of, _):
@@ -366,10 +368,11 @@ def solve_contacts(
             )
             mass_scale = jnp.where(pushing, rows.softness.mass_scale, 1.0)
             impulse_scale = jnp.where(pushing, rows.softness.impulse_scale, 0.0)
+            baumgarte = push_law.baumgarte | (rows.separation[p] < -push_law.depth)
             baumgarte_bias = push_law.rate * jnp.minimum(separation + push_law.slop, 0.0)
-            bias = jnp.where(push_law.baumgarte & ~speculative, baumgarte_bias, bias)
-            mass_scale = jnp.where(push_law.baumgarte, 1.0, mass_scale)
-            impulse_scale = jnp.where(push_law.baumgarte, 0.0, impulse_scale)
+            bias = jnp.where(baumgarte & ~speculative, baumgarte_bias, bias)
+            mass_scale = jnp.where(baumgarte, 1.0, mass_scale)
+            impulse_scale = jnp.where(baumgarte, 0.0, impulse_scale)
             speed = _speed_after(rows, p, _row_speed(rows, p, vel_a, vel_b), deltas)
             old = impulse[p]
             new = old - rows.mass[p] * mass_scale * (speed + bias) - impulse_scale * old

@@ -110,6 +110,8 @@ class SimParams:
     contact_law: int = ContactLaw.SOFT  # `ContactLaw`: how overlapping shapes are pushed apart
     baumgarte_share: float = 0.2  # [-] BAUMGARTE: share of the overlap beyond contact_slop closed per step (Jax2D's)
     contact_slop: float = 0.01  # [m] BAUMGARTE: overlap left uncorrected (Jax2D's)
+    baumgarte_depth: float = float("inf")  # [m] SOFT: a contact point deeper than this at the step's start (a level
+    # that starts with shapes inside each other) is pushed out by BAUMGARTE's law, the push kept in the velocity
     force_timing: int = ForceTiming.SPREAD  # `ForceTiming`: gravity and thrust spread over substeps or at step start
 
     # Safety clips applied after every step

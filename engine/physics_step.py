@@ -328,6 +328,7 @@ def prepare_step(
         limit_return_rate=jnp.where(params.limit_law == LimitLaw.BOUNDED_RETURN, params.limit_recovery_rate, jnp.inf),
         push_law=PushLaw(
             baumgarte=params.contact_law == ContactLaw.BAUMGARTE,
+            depth=params.baumgarte_depth,
             rate=params.baumgarte_share / params.dt,
             slop=params.contact_slop,
         ),

@@ -446,6 +446,7 @@ PHYSICS_ADDED_LATER = {
     "contact_law": ContactLaw.SOFT,
     "baumgarte_share": 0.2,
     "contact_slop": 0.01,
+    "baumgarte_depth": math.inf,
 }
 """Physics parameters added after datasets were first made, each with the value at which the engine plays as it did
 before the parameter existed: at that value a parameter is left out of the data definition, so those datasets keep

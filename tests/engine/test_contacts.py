@@ -782,13 +782,14 @@ def test_warm_start_equals_every_slots_impulse_added_to_its_bodies():
         assert np.asarray(warmed[component])[-1] == np.asarray(v)[-1]
 
 
-def _box_started_in_the_floor(law: int, depth: float, steps: int = 30):
+def _box_started_in_the_floor(law: int, depth: float, steps: int = 30, baumgarte_depth: float = math.inf):
     """Upward speed and bottom height above the floor [m/s, m] of a 0.5 m box that starts `depth` inside the floor,
     at rest, in zero gravity: at the start, then after each step."""
     builder = SceneBuilder(SIZE_S)
     size = 0.5
     box = builder.add_box((2.5, FLOOR_TOP + size / 2 - depth), (size, size))
-    _, traj = run(zero_gravity(builder.build()), SIZE_S, steps, params=SimParams(contact_law=law))
+    params = SimParams(contact_law=law, baumgarte_depth=baumgarte_depth)
+    _, traj = run(zero_gravity(builder.build()), SIZE_S, steps, params=params)
     return traj.velocity[:, box, 1], traj.position[:, box, 1] - size / 2 - FLOOR_TOP
 
 
@@ -818,3 +819,28 @@ def test_the_baumgarte_contact_law_launches_a_deep_overlap_and_leaves_the_slop_a
     assert speed[-1] == pytest.approx(speed[1], rel=1e-4) and bottom[-1] > 0.3
     assert np.abs(slop_speed).max() == 0.0 and slop_bottom[-1] == pytest.approx(-0.5 * slop, abs=1e-6)
     assert 0.0 < soft_speed[-1] < 0.25 * speed[-1]
+
+
+def test_the_soft_law_pushes_only_overlaps_deeper_than_baumgarte_depth_out_as_jax2d_does():
+    """With `baumgarte_depth` 5 cm, a box that starts 10 cm in the floor leaves its first step exactly as under
+    Jax2D's law (both its points are deeper, so both rows are Baumgarte's) and keeps flying off once it is out,
+    where the soft law alone lets it go at a fifth of that speed; a box 3 cm in the floor, shallower than the
+    depth, moves exactly as under the soft law."""
+    baumgarte_speed, _ = _box_started_in_the_floor(ContactLaw.BAUMGARTE, 0.1)
+    deep_speed, deep_bottom = _box_started_in_the_floor(ContactLaw.SOFT, 0.1, baumgarte_depth=0.05)
+    soft_speed, _ = _box_started_in_the_floor(ContactLaw.SOFT, 0.1)
+    shallow_speed, shallow_bottom = _box_started_in_the_floor(ContactLaw.SOFT, 0.03, baumgarte_depth=0.05)
+    soft_shallow_speed, soft_shallow_bottom = _box_started_in_the_floor(ContactLaw.SOFT, 0.03)
+    measured(
+        "box in the floor, deep points Baumgarte's",
+        deep_first_step=deep_speed[1],
+        baumgarte_first_step=baumgarte_speed[1],
+        deep_last=deep_speed[-1],
+        deep_bottom_last=deep_bottom[-1],
+        soft_last=soft_speed[-1],
+    )
+    assert deep_speed[1] == baumgarte_speed[1]
+    assert deep_speed[-1] >= 0.9 * baumgarte_speed[-1] and deep_bottom[-1] > 0.3
+    assert soft_speed[-1] < 0.25 * deep_speed[-1]
+    np.testing.assert_array_equal(shallow_speed, soft_shallow_speed)
+    np.testing.assert_array_equal(shallow_bottom, soft_shallow_bottom)

@@ -29,6 +29,7 @@ def test_the_physics_from_before_the_switches_keeps_its_fingerprint(tmp_path):
         assert definition_fingerprint(data_definition(job) | {"physics": earlier_physics}) == fingerprint
         later = {"limit_law", "limit_recovery_rate", "speculative_reach", "push_touch_distance"}
         later |= {"swept_speculative_contacts", "overlap_allowance", "contact_law", "baumgarte_share", "contact_slop"}
+        later |= {"baumgarte_depth"}
         assert not later & set(earlier_physics)
         assert earlier_physics["joint_hertz"] == 75.0  # the older parameters are all there
         assert data_definition(job)["physics"]["swept_speculative_contacts"] is True
@@ -43,6 +44,8 @@ def test_a_later_parameter_at_another_value_enters_the_definition():
     assert physics_definition(SimParams(contact_slop=0.005))["contact_slop"] == 0.005
     assert physics_definition(SimParams(push_touch_distance=0.02))["push_touch_distance"] == 0.02
     assert "push_touch_distance" not in physics_definition(SimParams(push_touch_distance=math.inf))
+    assert physics_definition(SimParams(baumgarte_depth=0.05))["baumgarte_depth"] == 0.05
+    assert "baumgarte_depth" not in physics_definition(SimParams())
     assert physics_definition(SimParams())["swept_speculative_contacts"] is True
 
 
