@@ -18,10 +18,13 @@ operations) in the entry computation, with `while` bodies multiplied by XLA's `k
     python benchmarks/engine.py --kernels --batches 1 256
     python benchmarks/engine.py --sizes s --batches 256 --repeats 7 --vs-sim swept_speculative_contacts=0
     python benchmarks/engine.py --sizes s m --batches 1 256 --repeats 15 --vs-substeps 2
+    python benchmarks/engine.py --sizes s m l --batches 1 256 --repeats 9 --vs-substeps 1 --vs-iterations 10 \
+        --vs-relax-iterations 0 --vs-sim contact_law=1 --vs-sim force_timing=1 --vs-sim speculative_distance=0 \
+        --vs-sim overlap_allowance=1
 
 `--vs-sim KEY=VALUE` also times ours with those `SimParams`, compiled in as constants and called alternately with the
 defaults, and prints the ratio: what a physics option costs. `--vs-substeps N` does the same for N solver substeps
-per step (alone or with `--vs-sim`).
+per step (alone or with `--vs-sim`), `--vs-iterations` and `--vs-relax-iterations` for the passes per substep.
 """
 
 from __future__ import annotations
@@ -60,15 +63,16 @@ def _batched_states(size: str, batch: int):
     return jax.tree_util.tree_map(lambda x: jnp.concatenate([x] * repeat)[:batch], stacked)
 
 
-def compile_rollout_ours(
-    size: str, batch: int, n_steps: int, params: SimParams | None = None, substeps: int | None = None
-):
+SCHEME_FIELDS = {"substeps": "num_substeps", "iterations": "num_iterations", "relax_iterations": "num_relax_iterations"}
+"""`--vs-substeps`, `--vs-iterations`, `--vs-relax-iterations` -> the `StaticSimParams` count each sets."""
+
+
+def compile_rollout_ours(size: str, batch: int, n_steps: int, params: SimParams | None = None, scheme=None):
     """`call()` running `n_steps` vmapped steps inside one compiled scan (motors at +1, thrusters on), with `params`
-    (default `SimParams()`) compiled in as constants, so that a switched-off option costs nothing, and `substeps`
-    solver substeps per step (default the engine's)."""
+    (default `SimParams()`) compiled in as constants, so that a switched-off option costs nothing, and the solver
+    counts of `scheme` (keys of SCHEME_FIELDS; the engine's where absent)."""
     static = build_scene(size, 0)[1]
-    if substeps is not None:
-        static = dataclasses.replace(static, num_substeps=substeps)
+    static = dataclasses.replace(static, **{SCHEME_FIELDS[key]: count for key, count in (scheme or {}).items()})
     states = _batched_states(size, batch)
     params = SimParams() if params is None else params
     motors, thrusters = jnp.ones(static.num_joints), jnp.ones(static.num_thrusters)
@@ -107,14 +111,15 @@ def compile_jax2d(size: str) -> float:
 
 
 def run(
-    sizes, batches, n_steps: int, repeats: int, versus_jax2d: bool, log=print, sim_overrides=(), substeps=None
+    sizes, batches, n_steps: int, repeats: int, versus_jax2d: bool, log=print, sim_overrides=(), scheme=None
 ) -> dict:
     """Measure every (size, batch); `log` receives one human-readable line per figure. With `sim_overrides` and/or
-    `substeps`, ours is also timed with those `SimParams` and that many solver substeps per step (`ours_sim`),
-    alternating call by call with the defaults."""
+    solver counts in `scheme` (`compile_rollout_ours`), ours is also timed with those (`ours_sim`), alternating call
+    by call with the defaults."""
+    scheme = {key: count for key, count in (scheme or {}).items() if count is not None}
     on_gpu = jax.default_backend() == "gpu"
     sim_overrides = list(sim_overrides)
-    variant = bool(sim_overrides) or substeps is not None
+    variant = bool(sim_overrides) or bool(scheme)
     engines = ["ours"] + (["ours_sim"] if variant else []) + (["jax2d"] if versus_jax2d else [])
     report = {
         "machine": describe_machine(),
@@ -124,11 +129,11 @@ def run(
     }
     switched = SimParams().replace(**dict(sim_overrides))
     variant_text = ",".join(
-        ([_overrides_text(sim_overrides)] if sim_overrides else []) + ([f"substeps={substeps}"] if substeps else [])
+        ([_overrides_text(sim_overrides)] if sim_overrides else []) + [f"{k}={v}" for k, v in scheme.items()]
     )
     if variant:
         report["sim_overrides"] = dict(sim_overrides)
-        report["substeps"] = substeps
+        report |= {key: scheme.get(key) for key in SCHEME_FIELDS}
         report["sim_vs_default"] = {}
     if versus_jax2d:
         from benchmarks import jax2d_baseline
@@ -144,7 +149,7 @@ def run(
         for batch in list(batches) + (list(GPU_BATCHES) if on_gpu else []):
             calls = [compile_rollout_ours(size, batch, n_steps)]
             if variant:
-                calls.append(compile_rollout_ours(size, batch, n_steps, switched, substeps))
+                calls.append(compile_rollout_ours(size, batch, n_steps, switched, scheme))
             if versus_jax2d:
                 calls.append(jax2d_baseline.compile_rollout(size, batch, n_steps)[0])
             seconds = best_times_interleaved(calls, repeats) if len(calls) > 1 else [best_time(calls[0], repeats)[0]]
@@ -260,9 +265,17 @@ def main(argv=None) -> None:
         metavar="N",
         help="also time ours with N solver substeps per step (with any --vs-sim), alternating with the defaults",
     )
+    parser.add_argument(
+        "--vs-iterations", type=int, metavar="N", help="as --vs-substeps, N position-correcting passes per substep"
+    )
+    parser.add_argument(
+        "--vs-relax-iterations", type=int, metavar="N", help="as --vs-substeps, N relaxing passes per substep"
+    )
     args = parser.parse_args(argv)
-    if args.vs_substeps is not None and args.vs_substeps < 1:
-        parser.error(f"--vs-substeps must be at least 1, got {args.vs_substeps}")
+    scheme = {key: getattr(args, f"vs_{key}") for key in SCHEME_FIELDS}
+    for key, least in (("substeps", 1), ("iterations", 1), ("relax_iterations", 0)):
+        if scheme[key] is not None and scheme[key] < least:
+            parser.error(f"--vs-{key.replace('_', '-')} must be at least {least}, got {scheme[key]}")
     log = (
         (lambda line: print(line, file=sys.stderr, flush=True)) if args.json else (lambda line: print(line, flush=True))
     )
@@ -271,9 +284,7 @@ def main(argv=None) -> None:
         if args.json:
             print(json.dumps(report, indent=2))
         return
-    report = run(
-        args.sizes, args.batches, args.steps, args.repeats, args.vs == "jax2d", log, args.vs_sim, args.vs_substeps
-    )
+    report = run(args.sizes, args.batches, args.steps, args.repeats, args.vs == "jax2d", log, args.vs_sim, scheme)
     if args.json:
         print(json.dumps(report, indent=2))
 

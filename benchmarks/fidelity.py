@@ -73,20 +73,25 @@ AGREEMENT_SLACK = 0.02
 """Rates agree when they differ by at most AGREEMENT_STANDARD_ERRORS standard errors plus this."""
 
 
-def with_substeps(static: StaticEnvParams, substeps: int | None) -> StaticEnvParams:
-    """`static` with `substeps` solver substeps per physics step (unchanged for None)."""
-    if substeps is None:
+SCHEME_FIELDS = {"substeps": "num_substeps", "iterations": "num_iterations", "relax_iterations": "num_relax_iterations"}
+"""Options of our solver's scheme (`--substeps`, `--iterations`, `--relax-iterations`) -> `StaticSimParams` field."""
+
+
+def with_solver_scheme(static: StaticEnvParams, scheme: dict) -> StaticEnvParams:
+    """`static` with the solver scheme's counts in `scheme` (keys of SCHEME_FIELDS; None leaves a count unchanged)."""
+    changes = {SCHEME_FIELDS[key]: value for key, value in scheme.items() if value is not None}
+    if not changes:
         return static
-    return dataclasses.replace(static, sim=dataclasses.replace(static.sim, num_substeps=substeps))
+    return dataclasses.replace(static, sim=dataclasses.replace(static.sim, **changes))
 
 
-def play_ours(paths: dict[str, str], episodes: int, seed: int, sim_overrides: dict, log, substeps=None) -> dict:
-    """Per level name: the no-op outcome and the random policy's outcome counts, in kforge (with `substeps` solver
-    substeps per physics step, if given)."""
+def play_ours(paths: dict[str, str], episodes: int, seed: int, sim_overrides: dict, log, scheme=None) -> dict:
+    """Per level name: the no-op outcome and the random policy's outcome counts, in kforge (with the solver scheme's
+    counts in `scheme`, if given: `with_solver_scheme`)."""
     groups: dict = {}
     for name, path in paths.items():
         loaded = load_level(path)
-        groups.setdefault(with_substeps(loaded.static, substeps), []).append((name, loaded))
+        groups.setdefault(with_solver_scheme(loaded.static, scheme or {}), []).append((name, loaded))
     report = {}
     for static, members in groups.items():
         params = EnvParams(dense_reward_scale=0.0)
@@ -286,6 +291,12 @@ def main(argv=None) -> None:
     parser.add_argument("--sim", type=sim_override, action="append", default=[], help="SimParams KEY=VALUE of ours")
     parser.add_argument("--substeps", type=int, help="solver substeps per physics step of ours (default: the engine's)")
     parser.add_argument(
+        "--iterations", type=int, help="position-correcting solver passes per substep of ours (default: the engine's)"
+    )
+    parser.add_argument(
+        "--relax-iterations", type=int, help="relaxing solver passes per substep of ours (default: the engine's)"
+    )
+    parser.add_argument(
         "--kinetix-variant",
         type=parse_variant,
         action="append",
@@ -307,10 +318,16 @@ def main(argv=None) -> None:
     args = parser.parse_args(argv)
     if args.chunk_levels < 1 or args.episodes < 1:
         parser.error("--chunk-levels and --episodes must be at least 1")
-    if (args.sim or args.substeps is not None) and args.kinetix_variant:
-        parser.error("--sim and --substeps switch our engine and --kinetix-variant replaces it: give one of them")
-    if args.substeps is not None and args.substeps < 1:
-        parser.error(f"--substeps must be at least 1, got {args.substeps}")
+    scheme = {key: getattr(args, key) for key in SCHEME_FIELDS}
+    switched = any(value is not None for value in scheme.values())
+    if (args.sim or switched) and args.kinetix_variant:
+        parser.error(
+            "--sim, --substeps, --iterations and --relax-iterations switch our engine and --kinetix-variant replaces "
+            "it: give one of them"
+        )
+    for key, least in (("substeps", 1), ("iterations", 1), ("relax_iterations", 0)):
+        if scheme[key] is not None and scheme[key] < least:
+            parser.error(f"--{key.replace('_', '-')} must be at least {least}, got {scheme[key]}")
 
     def log(line: str) -> None:
         print(line, file=sys.stderr if args.json else sys.stdout, flush=True)
@@ -340,7 +357,7 @@ def main(argv=None) -> None:
     if variant:
         ours = kinetix_outcomes(python, paths, listing, args, log, variant)
     else:
-        ours = play_ours(paths, args.episodes, args.seed, dict(args.sim), log, args.substeps)
+        ours = play_ours(paths, args.episodes, args.seed, dict(args.sim), log, scheme)
     ours_seconds = time.perf_counter() - started
     compared = f"kinetix-env, {variant_label(variant)}" if variant else "kforge"
 
@@ -351,6 +368,8 @@ def main(argv=None) -> None:
         "compared": compared,
         "sim_overrides": dict(args.sim),
         "substeps": args.substeps,
+        "iterations": args.iterations,
+        "relax_iterations": args.relax_iterations,
         "seconds": {compared: ours_seconds, "kinetix": kinetix_seconds},
         "summary": summarize(levels),
         "levels": levels,

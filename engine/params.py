@@ -130,6 +130,8 @@ class StaticSimParams:
     num_thrusters: int = 1
     num_reserved_static: int = 4  # polygon slots 0.. that are always static (floor, walls, ceiling)
     num_substeps: int = 4  # solver substeps per step
+    num_iterations: int = 1  # position-correcting solver passes per substep; positions advance after the last
+    num_relax_iterations: int = 1  # passes without position bias per substep, after positions advanced
 
     def __post_init__(self):
         for name in ("num_polygons", "num_circles", "num_joints", "num_thrusters", "num_reserved_static"):
@@ -140,8 +142,9 @@ class StaticSimParams:
                 f"StaticSimParams.num_reserved_static ({self.num_reserved_static}) exceeds "
                 f"num_polygons ({self.num_polygons})"
             )
-        if self.num_substeps < 1:
-            raise ValueError(f"StaticSimParams.num_substeps must be >= 1, got {self.num_substeps}")
+        for name, least in (("num_substeps", 1), ("num_iterations", 1), ("num_relax_iterations", 0)):
+            if getattr(self, name) < least:
+                raise ValueError(f"StaticSimParams.{name} must be >= {least}, got {getattr(self, name)}")
 
     @property
     def num_bodies(self) -> int:

@@ -42,10 +42,6 @@ from engine.state import NO_FEATURE, ContactCache, SimState
 STATIC_CONTACT_STIFFNESS_FACTOR = 2.0
 """Contacts against static bodies are this many times stiffer (in Hz) than between movable bodies."""
 
-SOLVER_PASSES = (True, False)
-"""Each substep solves with position bias (soft step), integrates positions, then relaxes without bias. The two
-passes are unrolled with `use_bias` static, so that each compiles without the other's branches."""
-
 
 @struct.dataclass
 class StepInfo:
@@ -138,8 +134,10 @@ class Prepared:
 def substep_solver(static: StaticSimParams, batch_last: bool = True):
     """The substep loop and restitution for `static`: `SolverInput -> SolverOutput`, batch-last under vmap if asked.
 
-    Substeps, joints and colours are `lax.scan`s, so the compiled size does not grow with their number; the two
-    passes of a substep are unrolled, and joints' warm starting (nothing solved) is unrolled into one fusion.
+    A substep runs `num_iterations` passes with position bias (all but the last in a `lax.scan`), advances the
+    positions after the last, then `num_relax_iterations` passes without bias (soft step: 1, 1; Jax2D's scheme: 10
+    iterations in one substep and no relaxing pass). Substeps, joints and colours are `lax.scan`s, so the compiled
+    size does not grow with their number; joints' warm starting (nothing solved) is unrolled into one fusion.
     """
     layout = pair_layout(static)
 
@@ -153,8 +151,8 @@ def substep_solver(static: StaticSimParams, batch_last: bool = True):
         acceleration = components(solver_input.acceleration)
         move = solver_input.movable
 
-        def solver_pass(carry, use_bias):
-            """Joints then contacts; after the biased pass, integrate positions."""
+        def solver_pass(carry, use_bias: bool, advance: bool):
+            """Joints then contacts; then, if `advance`, integrate positions."""
             velocity, pose, contact_impulses, joint_impulses = carry
             velocity, joint_impulses = solve_joints(
                 velocity,
@@ -180,7 +178,7 @@ def substep_solver(static: StaticSimParams, batch_last: bool = True):
                 scalars.push_law,
             )
             pose = tuple(
-                jnp.where(move & use_bias, p + scalars.substep * v, p) for p, v in zip(pose, velocity, strict=True)
+                jnp.where(move & advance, p + scalars.substep * v, p) for p, v in zip(pose, velocity, strict=True)
             )
             return velocity, pose, contact_impulses, joint_impulses
 
@@ -197,8 +195,13 @@ def substep_solver(static: StaticSimParams, batch_last: bool = True):
             )
             velocity = warm_start_contacts(velocity, rows, contact_impulses, layout)
             carry = (velocity, pose, contact_impulses, joint_impulses)
-            for use_bias in SOLVER_PASSES:
-                carry = solver_pass(carry, use_bias)
+            if static.num_iterations > 1:
+                carry, _ = jax.lax.scan(
+                    lambda c, _: (solver_pass(c, True, False), None), carry, None, length=static.num_iterations - 1
+                )
+            carry = solver_pass(carry, True, True)
+            for _ in range(static.num_relax_iterations):
+                carry = solver_pass(carry, False, False)
             return carry, None
 
         carry = (velocity, start_pose, solver_input.contact_impulses, solver_input.joint_impulses)

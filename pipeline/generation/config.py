@@ -465,7 +465,8 @@ def data_definition(job: JobConfig) -> dict:
             for key, value in data["experts"].items()
             if key not in EXPERTS_ADDED_LATER or (adaptive and value != EXPERTS_ADDED_LATER[key])
         }
-    return data | {"physics": physics_definition(environment(job)[0].sim)}
+    params, static = environment(job)
+    return data | {"physics": physics_definition(params.sim, static.sim)}
 
 
 EXPERTS_ADDED_LATER = {"solved_window": False}
@@ -474,11 +475,21 @@ and in any mode but adaptive (the only one they change), they stay out of the da
 before them keep their fingerprint."""
 
 
-def physics_definition(sim) -> dict:
+SOLVER_SCHEME_BEFORE = {"num_substeps": 4, "num_iterations": 1, "num_relax_iterations": 1}
+"""The solver's counts (`engine.StaticSimParams`) with which datasets were first made: a count that differs enters
+the physics definition, so data made with another solver scheme is told apart."""
+
+
+def physics_definition(sim, static_sim=None) -> dict:
     """The physics parameters `sim` (`engine.SimParams`) as they enter the data definition: every field, but those of
-    PHYSICS_ADDED_LATER at their earlier-physics value."""
+    PHYSICS_ADDED_LATER at their earlier-physics value; and the solver counts of `static_sim`
+    (`engine.StaticSimParams`) that differ from SOLVER_SCHEME_BEFORE."""
     fields = dataclasses.asdict(sim)
-    return {k: v for k, v in fields.items() if k not in PHYSICS_ADDED_LATER or v != PHYSICS_ADDED_LATER[k]}
+    physics = {k: v for k, v in fields.items() if k not in PHYSICS_ADDED_LATER or v != PHYSICS_ADDED_LATER[k]}
+    if static_sim is not None:
+        counts = {key: getattr(static_sim, key) for key in SOLVER_SCHEME_BEFORE}
+        physics |= {key: count for key, count in counts.items() if count != SOLVER_SCHEME_BEFORE[key]}
+    return physics
 
 
 GROWABLE_KEY = ("split", "num_levels")

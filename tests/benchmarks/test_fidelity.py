@@ -142,20 +142,34 @@ def test_sim_switches_and_a_kinetix_variant_are_not_given_together(capsys):
     with pytest.raises(SystemExit):
         fidelity.main(["--substeps", "8", "--kinetix-variant", "padding_writes=0"])
     assert "give one of them" in capsys.readouterr().err
-
-
-def test_substeps_change_only_ours_solver_substeps():
-    static = load_level(bundled_level_path("s/h5_rotate_fall")).static
-    changed = fidelity.with_substeps(static, 8)
-    assert changed.sim.num_substeps == 8 and static.sim.num_substeps == 4
-    assert dataclasses.replace(changed, sim=static.sim) == static
-    assert fidelity.with_substeps(static, None) == static
-
-
-def test_fewer_than_one_substep_is_refused(capsys):
     with pytest.raises(SystemExit):
-        fidelity.main(["--substeps", "0"])
-    assert "--substeps must be at least 1, got 0" in capsys.readouterr().err
+        fidelity.main(["--iterations", "10", "--kinetix-variant", "padding_writes=0"])
+    assert "give one of them" in capsys.readouterr().err
+
+
+def test_the_solver_scheme_options_change_only_ours_solver_counts():
+    static = load_level(bundled_level_path("s/h5_rotate_fall")).static
+    changed = fidelity.with_solver_scheme(static, {"substeps": 1, "iterations": 10, "relax_iterations": 0})
+    assert (changed.sim.num_substeps, changed.sim.num_iterations, changed.sim.num_relax_iterations) == (1, 10, 0)
+    assert (static.sim.num_substeps, static.sim.num_iterations, static.sim.num_relax_iterations) == (4, 1, 1)
+    assert dataclasses.replace(changed, sim=static.sim) == static
+    only_substeps = fidelity.with_solver_scheme(static, {"substeps": 8, "iterations": None})
+    assert only_substeps.sim == dataclasses.replace(static.sim, num_substeps=8)
+    assert fidelity.with_solver_scheme(static, {"substeps": None}) == static
+
+
+@pytest.mark.parametrize(
+    ("option", "value", "message"),
+    [
+        ("--substeps", "0", "--substeps must be at least 1, got 0"),
+        ("--iterations", "0", "--iterations must be at least 1, got 0"),
+        ("--relax-iterations", "-1", "--relax-iterations must be at least 0, got -1"),
+    ],
+)
+def test_solver_counts_below_their_least_are_refused(capsys, option, value, message):
+    with pytest.raises(SystemExit):
+        fidelity.main([option, value])
+    assert message in capsys.readouterr().err
 
 
 STACKED_DISCS = """

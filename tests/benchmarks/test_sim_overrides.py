@@ -1,5 +1,6 @@
 """`KEY=VALUE` physics switches of the benchmarks: parsed against SimParams with one-line errors, and timed side by
-side with the defaults by `benchmarks/engine.py --vs-sim` (and other substep counts by `--vs-substeps`)."""
+side with the defaults by `benchmarks/engine.py --vs-sim` (and other solver counts by `--vs-substeps`,
+`--vs-iterations`, `--vs-relax-iterations`)."""
 
 from __future__ import annotations
 
@@ -37,11 +38,17 @@ def test_the_engine_benchmark_refuses_an_unknown_field_on_its_command_line(capsy
 
 
 @pytest.mark.parametrize(
-    ("value", "message"), [("0", "--vs-substeps must be at least 1, got 0"), ("two", "invalid int value: 'two'")]
+    ("option", "value", "message"),
+    [
+        ("--vs-substeps", "0", "--vs-substeps must be at least 1, got 0"),
+        ("--vs-substeps", "two", "invalid int value: 'two'"),
+        ("--vs-iterations", "0", "--vs-iterations must be at least 1, got 0"),
+        ("--vs-relax-iterations", "-1", "--vs-relax-iterations must be at least 0, got -1"),
+    ],
 )
-def test_the_engine_benchmark_refuses_a_substep_count_below_one_or_not_a_number(capsys, value, message):
+def test_the_engine_benchmark_refuses_a_solver_count_below_its_least_or_not_a_number(capsys, option, value, message):
     with pytest.raises(SystemExit):
-        engine_benchmark.main(["--vs-substeps", value])
+        engine_benchmark.main([option, value])
     assert message in capsys.readouterr().err
 
 
@@ -53,7 +60,7 @@ def test_the_engine_benchmark_times_another_substep_count_beside_the_default(cap
     captured = capsys.readouterr()
     report = json.loads(captured.out)
     assert "with substeps=1=" in captured.err
-    assert report["substeps"] == 1 and report["sim_overrides"] == {}
+    assert report["substeps"] == 1 and report["iterations"] is None and report["sim_overrides"] == {}
     default, fewer = report["steps_per_second"]["ours"]["s"]["2"], report["steps_per_second"]["ours_sim"]["s"]["2"]
     assert default > 0 and fewer > 0
     assert report["sim_vs_default"]["s"]["2"] == pytest.approx(fewer / default)

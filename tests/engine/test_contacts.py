@@ -6,6 +6,7 @@ Every test prints a `MEASURED` line (run pytest with -s to see them).
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -23,7 +24,7 @@ from engine_test_helpers import (
     zero_gravity,
 )
 
-from engine import ContactLaw, SceneBuilder, SimParams
+from engine import ContactLaw, SceneBuilder, SimParams, StaticSimParams
 
 PARAMS = SimParams()
 DT = PARAMS.dt
@@ -819,6 +820,49 @@ def test_the_baumgarte_contact_law_launches_a_deep_overlap_and_leaves_the_slop_a
     assert speed[-1] == pytest.approx(speed[1], rel=1e-4) and bottom[-1] > 0.3
     assert np.abs(slop_speed).max() == 0.0 and slop_bottom[-1] == pytest.approx(-0.5 * slop, abs=1e-6)
     assert 0.0 < soft_speed[-1] < 0.25 * speed[-1]
+
+
+JAX2D_SCHEME = dict(num_substeps=1, num_iterations=10, num_relax_iterations=0)
+"""Jax2D's solver scheme in ours: one step of 10 position-correcting passes, positions advanced after the last."""
+
+
+def _disc_started_in_the_floor(depth: float, static: StaticSimParams, steps: int = 20):
+    """Upward speed and bottom height above the floor [m/s, m] of a 0.25 m disc that starts `depth` inside the floor,
+    at rest, in zero gravity, under Jax2D's contact law without speculative contacts: at the start, then after each
+    step."""
+    builder = SceneBuilder(SIZE_S)
+    radius = 0.25
+    disc = builder.add_circle((2.5, FLOOR_TOP + radius - depth), radius)
+    params = SimParams(contact_law=ContactLaw.BAUMGARTE, speculative_distance=0.0, speculative_reach=0.0)
+    _, traj = run(zero_gravity(builder.build()), static, steps, params=params)
+    return traj.velocity[:, disc, 1], traj.position[:, disc, 1] - radius - FLOOR_TOP
+
+
+def test_in_jax2ds_scheme_a_deep_disc_leaves_at_the_baumgarte_speed_of_its_starting_overlap():
+    """With one substep of 10 passes and positions advanced after the last (`num_iterations`, no relaxing pass), the
+    overlap stays as at the step's start through the passes, as in Jax2D: a disc 10 cm in the floor leaves its first
+    step at exactly baumgarte_share / dt x (depth - slop) = 12/s x 9 cm = 1.08 m/s, rises by that speed x dt, and
+    keeps the speed (a smaller target never pulls it back); a disc 5 mm in, within the slop, stays where it is. Under
+    4 substeps the overlap shrinks within the step, so the first step's speed is lower."""
+    depth, share, slop = 0.1, PARAMS.baumgarte_share, PARAMS.contact_slop
+    jax2d_scheme = dataclasses.replace(SIZE_S, **JAX2D_SCHEME)
+    speed, bottom = _disc_started_in_the_floor(depth, jax2d_scheme)
+    slop_speed, slop_bottom = _disc_started_in_the_floor(0.5 * slop, jax2d_scheme)
+    substeps_speed, _ = _disc_started_in_the_floor(depth, SIZE_S)
+    target = share / DT * (depth - slop)
+    measured(
+        "disc 10 cm in the floor, Jax2D's scheme",
+        first_step=speed[1],
+        last=speed[-1],
+        bottom_after_first=bottom[1],
+        four_substeps_first_step=substeps_speed[1],
+        slop_speed_max=np.abs(slop_speed).max(),
+    )
+    assert speed[1] == pytest.approx(target, rel=1e-5)
+    assert bottom[1] == pytest.approx(-depth + target * DT, abs=1e-6)
+    assert speed[-1] == pytest.approx(target, rel=1e-5) and bottom[-1] > 0.0
+    assert np.abs(slop_speed).max() == 0.0 and slop_bottom[-1] == pytest.approx(-0.5 * slop, abs=1e-6)
+    assert substeps_speed[1] < 0.95 * target
 
 
 def test_the_soft_law_pushes_only_overlaps_deeper_than_baumgarte_depth_out_as_jax2d_does():

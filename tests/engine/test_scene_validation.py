@@ -254,8 +254,12 @@ def test_static_params_validation():
         StaticSimParams(num_polygons=-1)
     with pytest.raises(ValueError, match="exceeds"):
         StaticSimParams(num_polygons=3, num_reserved_static=4)
-    with pytest.raises(ValueError, match="num_substeps"):
+    with pytest.raises(ValueError, match="num_substeps must be >= 1"):
         StaticSimParams(num_substeps=0)
+    with pytest.raises(ValueError, match="num_iterations must be >= 1"):
+        StaticSimParams(num_iterations=0)
+    with pytest.raises(ValueError, match="num_relax_iterations must be >= 0"):
+        StaticSimParams(num_relax_iterations=-1)
     with pytest.raises(ValueError, match="unknown size"):
         StaticSimParams.for_size("xl")
 

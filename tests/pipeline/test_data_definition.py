@@ -4,7 +4,7 @@ experts section."""
 
 import math
 
-from engine import ContactLaw, LimitLaw, SimParams
+from engine import ContactLaw, LimitLaw, SimParams, StaticSimParams
 from pipeline.generation.config import (
     data_definition,
     data_fingerprint,
@@ -47,6 +47,21 @@ def test_a_later_parameter_at_another_value_enters_the_definition():
     assert physics_definition(SimParams(baumgarte_depth=0.05))["baumgarte_depth"] == 0.05
     assert "baumgarte_depth" not in physics_definition(SimParams())
     assert physics_definition(SimParams())["swept_speculative_contacts"] is True
+
+
+def test_a_solver_scheme_other_than_the_first_enters_the_definition_and_the_default_stays_out(tmp_path):
+    """The solver's counts were not in the definition when the first datasets were made (4 substeps, one pass each
+    way): at those counts they stay out, so those datasets keep their fingerprint; Jax2D's scheme (one substep of 10
+    passes, none relaxing) is told apart."""
+    jax2d_scheme = StaticSimParams(num_substeps=1, num_iterations=10, num_relax_iterations=0)
+    physics = physics_definition(SimParams(), jax2d_scheme)
+    assert (physics["num_substeps"], physics["num_iterations"], physics["num_relax_iterations"]) == (1, 10, 0)
+    assert physics_definition(SimParams(), StaticSimParams(num_iterations=2)) == physics_definition(SimParams()) | {
+        "num_iterations": 2
+    }
+    assert physics_definition(SimParams(), StaticSimParams()) == physics_definition(SimParams())
+    job = load_config(None, ["split.name=1M/s", f"output_dir={tmp_path}"])
+    assert not {"num_substeps", "num_iterations", "num_relax_iterations"} & set(data_definition(job)["physics"])
 
 
 FINGERPRINTS_BEFORE_THE_WINDOW_CHECK = {"adaptive": "09ceea303481daee", "streamed": "4dbb4cb51ffac5b4"}
