@@ -73,8 +73,14 @@ AGREEMENT_SLACK = 0.02
 """Rates agree when they differ by at most AGREEMENT_STANDARD_ERRORS standard errors plus this."""
 
 
-SCHEME_FIELDS = {"substeps": "num_substeps", "iterations": "num_iterations", "relax_iterations": "num_relax_iterations"}
-"""Options of our solver's scheme (`--substeps`, `--iterations`, `--relax-iterations`) -> `StaticSimParams` field."""
+SCHEME_FIELDS = {
+    "substeps": "num_substeps",
+    "iterations": "num_iterations",
+    "relax_iterations": "num_relax_iterations",
+    "block_contacts": "block_contacts",
+}
+"""Options of our solver's scheme (`--substeps`, `--iterations`, `--relax-iterations`, `--block-contacts`) ->
+`StaticSimParams` field."""
 
 
 def with_solver_scheme(static: StaticEnvParams, scheme: dict) -> StaticEnvParams:
@@ -297,6 +303,12 @@ def main(argv=None) -> None:
         "--relax-iterations", type=int, help="relaxing solver passes per substep of ours (default: the engine's)"
     )
     parser.add_argument(
+        "--block-contacts",
+        action="store_const",
+        const=True,
+        help="ours solves a pair's two rigid normal rows together (StaticSimParams.block_contacts)",
+    )
+    parser.add_argument(
         "--kinetix-variant",
         type=parse_variant,
         action="append",
@@ -322,8 +334,8 @@ def main(argv=None) -> None:
     switched = any(value is not None for value in scheme.values())
     if (args.sim or switched) and args.kinetix_variant:
         parser.error(
-            "--sim, --substeps, --iterations and --relax-iterations switch our engine and --kinetix-variant replaces "
-            "it: give one of them"
+            "--sim, --substeps, --iterations, --relax-iterations and --block-contacts switch our engine and "
+            "--kinetix-variant replaces it: give one of them"
         )
     for key, least in (("substeps", 1), ("iterations", 1), ("relax_iterations", 0)):
         if scheme[key] is not None and scheme[key] < least:
@@ -370,6 +382,7 @@ def main(argv=None) -> None:
         "substeps": args.substeps,
         "iterations": args.iterations,
         "relax_iterations": args.relax_iterations,
+        "block_contacts": args.block_contacts,
         "seconds": {compared: ours_seconds, "kinetix": kinetix_seconds},
         "summary": summarize(levels),
         "levels": levels,

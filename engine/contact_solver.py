@@ -335,6 +335,42 @@ def _sweep(velocity: Motion, rows: ContactRows, impulse, layout: PairLayout, sol
     return pipelined_sweep(velocity, layout.num_colours, tuple(impulse), gather, solve, apply)
 
 
+BLOCK_CONDITION_LIMIT = 1000.0
+"""A pair's two normal rows are solved together only while k00^2 < this x det(K): nearly coincident points are
+solved one after the other."""
+
+
+def _block_normal_impulses(rows: ContactRows, impulse, targets):
+    """Both normal impulses of each pair solved together: the 2x2 complementarity problem w = K x + b, x >= 0,
+    w >= 0, x . w = 0, by trying both points pushing, then one, then none (Box2D's block solver). `targets` holds per
+    point its speed plus bias at the pass's velocities and whether its row is rigid (no softness). Returns where the
+    block applies (both points enabled and rigid, K well conditioned, a case found) and the new impulses."""
+    (w0, rigid0), (w1, rigid1) = targets
+    a0, a1 = impulse[0], impulse[1]
+    usable = rows.enabled[0] & rows.enabled[1] & rigid0 & rigid1 & (rows.mass[0] > 0) & (rows.mass[1] > 0)
+    k00 = 1.0 / jnp.where(usable, rows.mass[0], 1.0)
+    k11 = 1.0 / jnp.where(usable, rows.mass[1], 1.0)
+    k01 = rows.coupling[_coupling_index(1, 0)]
+    det = k00 * k11 - k01 * k01
+    usable = usable & (k00 * k00 < BLOCK_CONDITION_LIMIT * det)
+    safe_det = jnp.where(usable, det, 1.0)
+    b0 = w0 - k00 * a0 - k01 * a1
+    b1 = w1 - k01 * a0 - k11 * a1
+    both = (-(k11 * b0 - k01 * b1) / safe_det, -(k00 * b1 - k01 * b0) / safe_det)
+    first = (-b0 / k00, jnp.zeros_like(b0))
+    second = (jnp.zeros_like(b1), -b1 / k11)
+    cases = [
+        (both, (both[0] >= 0.0) & (both[1] >= 0.0)),
+        (first, (first[0] >= 0.0) & (k01 * first[0] + b1 >= 0.0)),
+        (second, (second[1] >= 0.0) & (k01 * second[1] + b0 >= 0.0)),
+        ((jnp.zeros_like(b0), jnp.zeros_like(b1)), (b0 >= 0.0) & (b1 >= 0.0)),
+    ]
+    x0, x1, found = jnp.zeros_like(b0), jnp.zeros_like(b1), jnp.zeros_like(usable)
+    for (c0, c1), valid in reversed(cases):
+        x0, x1, found = jnp.where(valid, c0, x0), jnp.where(valid, c1, x1), found | valid
+    return usable & found, (x0, x1)
+
+
 def solve_contacts(
     velocity: Motion,
     moved: Motion,
@@ -345,18 +381,20 @@ def solve_contacts(
     max_push_velocity,
     use_bias,
     push_law: PushLaw,
+    block: bool = False,
 ):
     """One sweep of normal rows, then friction rows, of every pair; returns velocities and impulses.
 
     `moved` is each body's displacement since the start of the step; `use_bias` (bool, may be traced) selects
     the soft position-correcting solve, otherwise the relaxing solve without position bias; under the Baumgarte
     `push_law` (every point, or under the soft law the points deeper than its depth at the step's start) both
-    solve the same rigid rows with its bias.
+    solve the same rigid rows with its bias. With `block` (static) a pair's two normal rows are solved together
+    where both are rigid (`_block_normal_impulses`).
     """
 
     def solve_colour(rows, impulse, vel_a, vel_b, bodies_of, _):
         moved_a, moved_b = bodies_of(moved)
-        deltas, new_impulses = [], []
+        deltas, new_impulses, targets = [], [], []
         for p in range(NUM_POINTS):
             separation = rows.separation[p] + _row_speed(rows, p, moved_a, moved_b)
             speculative = separation > 0
@@ -373,12 +411,17 @@ def solve_contacts(
             bias = jnp.where(baumgarte & ~speculative, baumgarte_bias, bias)
             mass_scale = jnp.where(baumgarte, 1.0, mass_scale)
             impulse_scale = jnp.where(baumgarte, 0.0, impulse_scale)
+            targets.append((_row_speed(rows, p, vel_a, vel_b) + bias, (mass_scale == 1.0) & (impulse_scale == 0.0)))
             speed = _speed_after(rows, p, _row_speed(rows, p, vel_a, vel_b), deltas)
             old = impulse[p]
             new = old - rows.mass[p] * mass_scale * (speed + bias) - impulse_scale * old
             new = jnp.where(rows.enabled[p], jnp.maximum(new, 0.0), 0.0)
             deltas.append(new - old)
             new_impulses.append(new)
+        if block:
+            solved, together = _block_normal_impulses(rows, impulse, targets)
+            new_impulses = [jnp.where(solved, t, n) for t, n in zip(together, new_impulses, strict=True)]
+            deltas = [new - old for new, old in zip(new_impulses, impulse[:NUM_POINTS], strict=True)]
         for p in range(NUM_POINTS):
             r = NUM_POINTS + p
             speed = _speed_after(rows, r, _row_speed(rows, r, vel_a, vel_b), deltas)

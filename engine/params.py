@@ -132,6 +132,7 @@ class StaticSimParams:
     num_substeps: int = 4  # solver substeps per step
     num_iterations: int = 1  # position-correcting solver passes per substep; positions advance after the last
     num_relax_iterations: int = 1  # passes without position bias per substep, after positions advanced
+    block_contacts: bool = False  # a pair's two rigid normal rows are solved together, not one after the other
 
     def __post_init__(self):
         for name in ("num_polygons", "num_circles", "num_joints", "num_thrusters", "num_reserved_static"):

@@ -176,6 +176,7 @@ def substep_solver(static: StaticSimParams, batch_last: bool = True):
                 scalars.max_push_velocity,
                 use_bias,
                 scalars.push_law,
+                static.block_contacts,
             )
             pose = tuple(
                 jnp.where(move & advance, p + scalars.substep * v, p) for p, v in zip(pose, velocity, strict=True)

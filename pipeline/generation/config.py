@@ -475,14 +475,14 @@ and in any mode but adaptive (the only one they change), they stay out of the da
 before them keep their fingerprint."""
 
 
-SOLVER_SCHEME_BEFORE = {"num_substeps": 4, "num_iterations": 1, "num_relax_iterations": 1}
-"""The solver's counts (`engine.StaticSimParams`) with which datasets were first made: a count that differs enters
+SOLVER_SCHEME_BEFORE = {"num_substeps": 4, "num_iterations": 1, "num_relax_iterations": 1, "block_contacts": False}
+"""The solver's scheme (`engine.StaticSimParams`) with which datasets were first made: a setting that differs enters
 the physics definition, so data made with another solver scheme is told apart."""
 
 
 def physics_definition(sim, static_sim=None) -> dict:
     """The physics parameters `sim` (`engine.SimParams`) as they enter the data definition: every field, but those of
-    PHYSICS_ADDED_LATER at their earlier-physics value; and the solver counts of `static_sim`
+    PHYSICS_ADDED_LATER at their earlier-physics value; and the solver settings of `static_sim`
     (`engine.StaticSimParams`) that differ from SOLVER_SCHEME_BEFORE."""
     fields = dataclasses.asdict(sim)
     physics = {k: v for k, v in fields.items() if k not in PHYSICS_ADDED_LATER or v != PHYSICS_ADDED_LATER[k]}

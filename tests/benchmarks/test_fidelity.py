@@ -153,6 +153,8 @@ def test_the_solver_scheme_options_change_only_ours_solver_counts():
     assert (changed.sim.num_substeps, changed.sim.num_iterations, changed.sim.num_relax_iterations) == (1, 10, 0)
     assert (static.sim.num_substeps, static.sim.num_iterations, static.sim.num_relax_iterations) == (4, 1, 1)
     assert dataclasses.replace(changed, sim=static.sim) == static
+    blocked = fidelity.with_solver_scheme(static, {"block_contacts": True})
+    assert blocked.sim == dataclasses.replace(static.sim, block_contacts=True) and not static.sim.block_contacts
     only_substeps = fidelity.with_solver_scheme(static, {"substeps": 8, "iterations": None})
     assert only_substeps.sim == dataclasses.replace(static.sim, num_substeps=8)
     assert fidelity.with_solver_scheme(static, {"substeps": None}) == static

@@ -865,6 +865,49 @@ def test_in_jax2ds_scheme_a_deep_disc_leaves_at_the_baumgarte_speed_of_its_start
     assert substeps_speed[1] < 0.95 * target
 
 
+RESTING_OVERLAP = 0.001
+"""[m] how far the resting box starts in the floor: found without speculative contacts, and within Jax2D's slop, so
+nothing pushes it out."""
+
+
+def _box_resting_one_step(block: bool):
+    """(box's spin [rad/s] and the box-floor pair's two normal impulses of the last substep [N s], the box's mass
+    [kg], the substep [s]) after one step of a 0.5 m box resting flat 1 mm in the floor, under Jax2D's push-out with 3
+    passes per substep and none relaxing."""
+    builder = SceneBuilder(SIZE_S)
+    box = builder.add_box((2.5, FLOOR_TOP + 0.25 - RESTING_OVERLAP), (0.5, 0.5))
+    state = builder.build()
+    static = dataclasses.replace(SIZE_S, num_iterations=3, num_relax_iterations=0, block_contacts=block)
+    params = SimParams(contact_law=ContactLaw.BAUMGARTE, speculative_distance=0.0, overlap_allowance=1.0)
+    final, traj = run(state, static, 1, params=params)
+    impulses = np.asarray(final.contacts.normal_impulse[pair_index(static, 0, box)], np.float64)
+    mass = 1.0 / float(state.bodies.inverse_mass[box])
+    return traj.angular_velocity[-1, box], impulses, mass, DT / static.num_substeps
+
+
+def test_a_pairs_two_rigid_rows_solved_together_share_a_resting_boxs_weight_exactly():
+    """With `block_contacts` the two normal rows of a pair are one 2x2 complementarity problem: a box resting flat
+    on the floor has its two contact points take equal halves of its weight, m g h per substep, and keeps no spin.
+    Solved one after the other, the first point takes more in the first pass, the passes leave them unequal and the
+    box turns (from which a resting box creeps sideways and a stack drifts)."""
+    spin, impulses, mass, substep = _box_resting_one_step(block=True)
+    sequential_spin, sequential_impulses, _, _ = _box_resting_one_step(block=False)
+    weight = mass * abs(G) * substep
+    measured(
+        "box resting, one step",
+        block_impulses=impulses,
+        block_spin=spin,
+        sequential_impulses=sequential_impulses,
+        sequential_spin=sequential_spin,
+        weight_per_substep=weight,
+    )
+    assert impulses[0] == pytest.approx(impulses[1], rel=1e-5)
+    assert impulses.sum() == pytest.approx(weight, rel=1e-4)
+    assert abs(spin) < 1e-6
+    assert abs(sequential_impulses[0] - sequential_impulses[1]) > 1e-4 * weight
+    assert abs(sequential_spin) > 1e-4
+
+
 def test_the_soft_law_pushes_only_overlaps_deeper_than_baumgarte_depth_out_as_jax2d_does():
     """With `baumgarte_depth` 5 cm, a box that starts 10 cm in the floor leaves its first step exactly as under
     Jax2D's law (both its points are deeper, so both rows are Baumgarte's) and keeps flying off once it is out,

@@ -59,9 +59,11 @@ def test_a_solver_scheme_other_than_the_first_enters_the_definition_and_the_defa
     assert physics_definition(SimParams(), StaticSimParams(num_iterations=2)) == physics_definition(SimParams()) | {
         "num_iterations": 2
     }
+    assert physics_definition(SimParams(), StaticSimParams(block_contacts=True))["block_contacts"] is True
     assert physics_definition(SimParams(), StaticSimParams()) == physics_definition(SimParams())
     job = load_config(None, ["split.name=1M/s", f"output_dir={tmp_path}"])
-    assert not {"num_substeps", "num_iterations", "num_relax_iterations"} & set(data_definition(job)["physics"])
+    scheme = {"num_substeps", "num_iterations", "num_relax_iterations", "block_contacts"}
+    assert not scheme & set(data_definition(job)["physics"])
 
 
 FINGERPRINTS_BEFORE_THE_WINDOW_CHECK = {"adaptive": "09ceea303481daee", "streamed": "4dbb4cb51ffac5b4"}
