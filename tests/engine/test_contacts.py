@@ -887,25 +887,25 @@ def _box_resting_one_step(block: bool):
 
 def test_a_pairs_two_rigid_rows_solved_together_share_a_resting_boxs_weight_exactly():
     """With `block_contacts` the two normal rows of a pair are one 2x2 complementarity problem: a box resting flat
-    on the floor has its two contact points take equal halves of its weight, m g h per substep, and keeps no spin.
-    Solved one after the other, the first point takes more in the first pass, the passes leave them unequal and the
-    box turns (from which a resting box creeps sideways and a stack drifts)."""
+    on the floor has its two contact points take equal halves of its weight, m g h per substep, and keeps no spin."""
     spin, impulses, mass, substep = _box_resting_one_step(block=True)
-    sequential_spin, sequential_impulses, _, _ = _box_resting_one_step(block=False)
     weight = mass * abs(G) * substep
-    measured(
-        "box resting, one step",
-        block_impulses=impulses,
-        block_spin=spin,
-        sequential_impulses=sequential_impulses,
-        sequential_spin=sequential_spin,
-        weight_per_substep=weight,
-    )
+    measured("box resting, one step, block", impulses=impulses, spin=spin, weight_per_substep=weight)
     assert impulses[0] == pytest.approx(impulses[1], rel=1e-5)
     assert impulses.sum() == pytest.approx(weight, rel=1e-4)
     assert abs(spin) < 1e-6
-    assert abs(sequential_impulses[0] - sequential_impulses[1]) > 1e-4 * weight
-    assert abs(sequential_spin) > 1e-4
+
+
+@pytest.mark.slow  # compiles one more solver scheme: about 20 s on 2 cores
+def test_a_pairs_two_rigid_rows_solved_one_after_the_other_leave_a_resting_box_turning():
+    """Solved one after the other, the first point takes more of the weight in the first pass, the three passes
+    leave the two unequal and the box turns (from which, with no relaxing pass, a resting box creeps sideways and a
+    stack drifts; docs/fidelity.md)."""
+    spin, impulses, mass, substep = _box_resting_one_step(block=False)
+    weight = mass * abs(G) * substep
+    measured("box resting, one step, one point after the other", impulses=impulses, spin=spin)
+    assert abs(impulses[0] - impulses[1]) > 1e-4 * weight
+    assert abs(spin) > 1e-4
 
 
 def test_the_soft_law_pushes_only_overlaps_deeper_than_baumgarte_depth_out_as_jax2d_does():
