@@ -411,8 +411,10 @@ def solve_contacts(
             bias = jnp.where(baumgarte & ~speculative, baumgarte_bias, bias)
             mass_scale = jnp.where(baumgarte, 1.0, mass_scale)
             impulse_scale = jnp.where(baumgarte, 0.0, impulse_scale)
-            targets.append((_row_speed(rows, p, vel_a, vel_b) + bias, (mass_scale == 1.0) & (impulse_scale == 0.0)))
-            speed = _speed_after(rows, p, _row_speed(rows, p, vel_a, vel_b), deltas)
+            speed = _row_speed(rows, p, vel_a, vel_b)
+            if block:
+                targets.append((speed + bias, (mass_scale == 1.0) & (impulse_scale == 0.0)))
+            speed = _speed_after(rows, p, speed, deltas)
             old = impulse[p]
             new = old - rows.mass[p] * mass_scale * (speed + bias) - impulse_scale * old
             new = jnp.where(rows.enabled[p], jnp.maximum(new, 0.0), 0.0)
