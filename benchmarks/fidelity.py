@@ -78,9 +78,10 @@ SCHEME_FIELDS = {
     "iterations": "num_iterations",
     "relax_iterations": "num_relax_iterations",
     "block_contacts": "block_contacts",
+    "relax_contacts": "relax_contacts",
 }
-"""Options of our solver's scheme (`--substeps`, `--iterations`, `--relax-iterations`, `--block-contacts`) ->
-`StaticSimParams` field."""
+"""Options of our solver's scheme (`--substeps`, `--iterations`, `--relax-iterations`, `--block-contacts`,
+`--no-relax-contacts`) -> `StaticSimParams` field."""
 
 
 def with_solver_scheme(static: StaticEnvParams, scheme: dict) -> StaticEnvParams:
@@ -309,6 +310,13 @@ def main(argv=None) -> None:
         help="ours solves a pair's two rigid normal rows together (StaticSimParams.block_contacts)",
     )
     parser.add_argument(
+        "--no-relax-contacts",
+        dest="relax_contacts",
+        action="store_const",
+        const=False,
+        help="ours' relaxing passes solve joints only (StaticSimParams.relax_contacts)",
+    )
+    parser.add_argument(
         "--kinetix-variant",
         type=parse_variant,
         action="append",
@@ -334,8 +342,8 @@ def main(argv=None) -> None:
     switched = any(value is not None for value in scheme.values())
     if (args.sim or switched) and args.kinetix_variant:
         parser.error(
-            "--sim, --substeps, --iterations, --relax-iterations and --block-contacts switch our engine and "
-            "--kinetix-variant replaces it: give one of them"
+            "--sim, --substeps, --iterations, --relax-iterations, --block-contacts and --no-relax-contacts switch "
+            "our engine and --kinetix-variant replaces it: give one of them"
         )
     for key, least in (("substeps", 1), ("iterations", 1), ("relax_iterations", 0)):
         if scheme[key] is not None and scheme[key] < least:
@@ -379,10 +387,7 @@ def main(argv=None) -> None:
         "episodes": args.episodes,
         "compared": compared,
         "sim_overrides": dict(args.sim),
-        "substeps": args.substeps,
-        "iterations": args.iterations,
-        "relax_iterations": args.relax_iterations,
-        "block_contacts": args.block_contacts,
+        **scheme,
         "seconds": {compared: ours_seconds, "kinetix": kinetix_seconds},
         "summary": summarize(levels),
         "levels": levels,

@@ -83,7 +83,8 @@ class SimParams:
     speculative_distance: float = 0.02  # [m] contacts are created this far before shapes touch
     speculative_reach: float = 1.0  # [-] share of a step's motion added to the speculative distance
     overlap_allowance: float = 0.0  # [-] a pair moving less in a step than this share of its thinner shape's inner
-    # radius gets no motion in its margin and may overlap for a step, as in Jax2D; faster pairs keep it (no tunnelling)
+    # radius gets no motion in its margin and may overlap for a step, as in Jax2D; faster pairs keep it (no tunnelling),
+    # and so do pairs that bounce (restitution > 0), whose rebound then starts at the surface
     touch_distance: float = 0.005  # [m] shapes closer than this count as touching
     push_touch_distance: float = float("inf")  # [m] a contact that pushed counts as touching if this close at start
     swept_speculative_contacts: bool = True  # a circle's speculative contact acts only if its free motion meets
@@ -133,6 +134,8 @@ class StaticSimParams:
     num_iterations: int = 1  # position-correcting solver passes per substep; positions advance after the last
     num_relax_iterations: int = 1  # passes without position bias per substep, after positions advanced
     block_contacts: bool = False  # a pair's two rigid normal rows are solved together, not one after the other
+    relax_contacts: bool = True  # relaxing passes solve contacts and joints; False: joints only (contacts keep their
+    # push-out velocity, as under Jax2D's scheme, while joints and their limits let go of theirs)
 
     def __post_init__(self):
         for name in ("num_polygons", "num_circles", "num_joints", "num_thrusters", "num_reserved_static"):

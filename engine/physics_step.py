@@ -135,9 +135,10 @@ def substep_solver(static: StaticSimParams, batch_last: bool = True):
     """The substep loop and restitution for `static`: `SolverInput -> SolverOutput`, batch-last under vmap if asked.
 
     A substep runs `num_iterations` passes with position bias (all but the last in a `lax.scan`), advances the
-    positions after the last, then `num_relax_iterations` passes without bias (soft step: 1, 1; Jax2D's scheme: 10
-    iterations in one substep and no relaxing pass). Substeps, joints and colours are `lax.scan`s, so the compiled
-    size does not grow with their number; joints' warm starting (nothing solved) is unrolled into one fusion.
+    positions after the last, then `num_relax_iterations` passes without bias, of joints only unless `relax_contacts`
+    (soft step: 1, 1; Jax2D's scheme: 10 iterations in one substep and no relaxing pass). Substeps, joints and
+    colours are `lax.scan`s, so the compiled size does not grow with their number; joints' warm starting (nothing
+    solved) is unrolled into one fusion.
     """
     layout = pair_layout(static)
 
@@ -151,8 +152,8 @@ def substep_solver(static: StaticSimParams, batch_last: bool = True):
         acceleration = components(solver_input.acceleration)
         move = solver_input.movable
 
-        def solver_pass(carry, use_bias: bool, advance: bool):
-            """Joints then contacts; then, if `advance`, integrate positions."""
+        def solver_pass(carry, use_bias: bool, advance: bool, contacts: bool = True):
+            """Joints then, if `contacts`, contacts; then, if `advance`, integrate positions."""
             velocity, pose, contact_impulses, joint_impulses = carry
             velocity, joint_impulses = solve_joints(
                 velocity,
@@ -166,18 +167,19 @@ def substep_solver(static: StaticSimParams, batch_last: bool = True):
                 scalars.limit_recovery_rate,
                 scalars.limit_return_rate,
             )
-            velocity, contact_impulses = solve_contacts(
-                velocity,
-                tuple(p - s for p, s in zip(pose, start_pose, strict=True)),
-                rows,
-                contact_impulses,
-                layout,
-                scalars.inverse_substep,
-                scalars.max_push_velocity,
-                use_bias,
-                scalars.push_law,
-                static.block_contacts,
-            )
+            if contacts:
+                velocity, contact_impulses = solve_contacts(
+                    velocity,
+                    tuple(p - s for p, s in zip(pose, start_pose, strict=True)),
+                    rows,
+                    contact_impulses,
+                    layout,
+                    scalars.inverse_substep,
+                    scalars.max_push_velocity,
+                    use_bias,
+                    scalars.push_law,
+                    static.block_contacts,
+                )
             pose = tuple(
                 jnp.where(move & advance, p + scalars.substep * v, p) for p, v in zip(pose, velocity, strict=True)
             )
@@ -202,7 +204,7 @@ def substep_solver(static: StaticSimParams, batch_last: bool = True):
                 )
             carry = solver_pass(carry, True, True)
             for _ in range(static.num_relax_iterations):
-                carry = solver_pass(carry, False, False)
+                carry = solver_pass(carry, False, False, static.relax_contacts)
             return carry, None
 
         carry = (velocity, start_pose, solver_input.contact_impulses, solver_input.joint_impulses)
@@ -264,7 +266,10 @@ def prepare_step(
     motion = params.dt * (reach[a] + reach[b])
     inner = _inner_radius(geometry)
     thinner = jnp.minimum(inner[a], inner[b])
-    motion = jnp.where(motion > params.overlap_allowance * thinner, motion, 0.0)
+    restitution = jnp.minimum(bodies.restitution[a], bodies.restitution[b])
+    # A pair that bounces keeps its margin: its restitution then acts at the surface, not from an overlap's depth.
+    allowed = (motion <= params.overlap_allowance * thinner) & (restitution <= 0.0)
+    motion = jnp.where(allowed, 0.0, motion)
     margin = params.speculative_distance + params.speculative_reach * motion
     manifold = manifolds(geometry, layout, margin)
     both_active = bodies.active[a] & bodies.active[b]
@@ -293,7 +298,7 @@ def prepare_step(
         velocity=velocity[:n],
         acceleration=acceleration[:n],
         friction=params.base_friction * jnp.sqrt(bodies.friction[a] ** 2 + bodies.friction[b] ** 2),
-        restitution=jnp.minimum(bodies.restitution[a], bodies.restitution[b]),
+        restitution=restitution,
         layout=layout,
         softness=make_softness(params.contact_hertz, params.contact_damping_ratio, substep),
         static_softness=make_softness(

@@ -475,7 +475,13 @@ and in any mode but adaptive (the only one they change), they stay out of the da
 before them keep their fingerprint."""
 
 
-SOLVER_SCHEME_BEFORE = {"num_substeps": 4, "num_iterations": 1, "num_relax_iterations": 1, "block_contacts": False}
+SOLVER_SCHEME_BEFORE = {
+    "num_substeps": 4,
+    "num_iterations": 1,
+    "num_relax_iterations": 1,
+    "block_contacts": False,
+    "relax_contacts": True,
+}
 """The solver's scheme (`engine.StaticSimParams`) with which datasets were first made: a setting that differs enters
 the physics definition, so data made with another solver scheme is told apart."""
 

@@ -145,6 +145,9 @@ def test_sim_switches_and_a_kinetix_variant_are_not_given_together(capsys):
     with pytest.raises(SystemExit):
         fidelity.main(["--iterations", "10", "--kinetix-variant", "padding_writes=0"])
     assert "give one of them" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        fidelity.main(["--no-relax-contacts", "--kinetix-variant", "padding_writes=0"])
+    assert "give one of them" in capsys.readouterr().err
 
 
 def test_the_solver_scheme_options_change_only_ours_solver_counts():
@@ -155,6 +158,8 @@ def test_the_solver_scheme_options_change_only_ours_solver_counts():
     assert dataclasses.replace(changed, sim=static.sim) == static
     blocked = fidelity.with_solver_scheme(static, {"block_contacts": True})
     assert blocked.sim == dataclasses.replace(static.sim, block_contacts=True) and not static.sim.block_contacts
+    joints_relaxed = fidelity.with_solver_scheme(static, {"relax_contacts": False})
+    assert joints_relaxed.sim == dataclasses.replace(static.sim, relax_contacts=False) and static.sim.relax_contacts
     only_substeps = fidelity.with_solver_scheme(static, {"substeps": 8, "iterations": None})
     assert only_substeps.sim == dataclasses.replace(static.sim, num_substeps=8)
     assert fidelity.with_solver_scheme(static, {"substeps": None}) == static

@@ -6,14 +6,15 @@ Every test prints a `MEASURED` line (run pytest with -s to see them).
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from engine_test_helpers import SIZE_L, G, crossings, elliptic_k, joint_anchor_error, masses, rotate, run
+from engine_test_helpers import SIZE_L, SIZE_S, G, crossings, elliptic_k, joint_anchor_error, masses, rotate, run
 
-from engine import LimitLaw, MotorLaw, SceneBuilder, SimParams
+from engine import ContactLaw, LimitLaw, MotorLaw, SceneBuilder, SimParams
 
 STATIC = SIZE_L
 PARAMS = SimParams()
@@ -265,6 +266,30 @@ def test_a_spinning_wheel_meets_its_angle_limit(law):
         assert peak == 12 and abs(angle[peak] - 0.54) < 1e-4
         np.testing.assert_allclose(omega[: peak + 1], 2.7, rtol=1e-5)
         np.testing.assert_allclose(omega[peak + 1 :], -params.limit_recovery_rate * 0.04, rtol=1e-3)
+
+
+def test_relaxing_joints_only_holds_a_wheel_at_its_limit_where_no_relaxing_pass_lets_it_drift_back():
+    """The spinning wheel above, under 4 substeps of 3 position-correcting passes and Jax2D's push-out for contacts.
+    Without a relaxing pass the limit row's correction velocity stays in the wheel, which leaves its limit turning
+    back; one relaxing pass of joints only (`relax_contacts=False`) takes it out, and the wheel rests at the limit."""
+    builder = SceneBuilder(SIZE_S, boundaries=False)  # the smallest size: two schemes to compile
+    builder.add_box(PIVOT, (0.1, 0.1), static=True, slot=0)
+    wheel = builder.add_circle(PIVOT, 0.2)
+    builder.add_revolute_joint(0, wheel, PIVOT, limits=(-0.5, 0.5))
+    state = builder.build()
+    spin = np.zeros(state.bodies.angular_velocity.shape, np.float32)
+    spin[wheel] = 2.7
+    state = state.replace(bodies=state.bodies.replace(angular_velocity=jnp.asarray(spin)))
+    params = SimParams(contact_law=ContactLaw.BAUMGARTE, speculative_distance=0.0, overlap_allowance=1.0)
+    scheme = dict(num_iterations=3, block_contacts=True)
+    final = {}
+    for relax in (0, 1):
+        static = dataclasses.replace(SIZE_S, num_relax_iterations=relax, relax_contacts=False, **scheme)
+        _, traj = run(state, static, 30, params=params)
+        final[relax] = (_joint_angle(traj, state, 0).max(), traj.angular_velocity[-1, wheel])
+    measured("wheel at its limit, joints relaxed or not", relaxed=final[1], not_relaxed=final[0])
+    assert final[1][0] < 0.5 + 1e-3 and abs(final[1][1]) < 1e-3
+    assert final[0][1] < -0.01
 
 
 def test_a_wheel_started_past_its_limit_returns_as_each_law_says():

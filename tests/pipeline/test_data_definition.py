@@ -60,9 +60,10 @@ def test_a_solver_scheme_other_than_the_first_enters_the_definition_and_the_defa
         "num_iterations": 2
     }
     assert physics_definition(SimParams(), StaticSimParams(block_contacts=True))["block_contacts"] is True
+    assert physics_definition(SimParams(), StaticSimParams(relax_contacts=False))["relax_contacts"] is False
     assert physics_definition(SimParams(), StaticSimParams()) == physics_definition(SimParams())
     job = load_config(None, ["split.name=1M/s", f"output_dir={tmp_path}"])
-    scheme = {"num_substeps", "num_iterations", "num_relax_iterations", "block_contacts"}
+    scheme = {"num_substeps", "num_iterations", "num_relax_iterations", "block_contacts", "relax_contacts"}
     assert not scheme & set(data_definition(job)["physics"])
 
 
