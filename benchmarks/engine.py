@@ -30,7 +30,6 @@ per step (alone or with `--vs-sim`), `--vs-iterations` and `--vs-relax-iteration
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import os
 import sys
@@ -44,7 +43,7 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 from benchmarks.kernels import count_kernels  # noqa: E402
 from benchmarks.machine import describe_machine  # noqa: E402
 from benchmarks.scenes import build_scene  # noqa: E402
-from benchmarks.sim_overrides import sim_override  # noqa: E402
+from benchmarks.sim_overrides import sim_override, solver_count_errors, with_solver_scheme  # noqa: E402
 from benchmarks.timing import best_time, best_times_interleaved  # noqa: E402
 from engine import SimParams, current_batching, set_batching, step  # noqa: E402
 
@@ -63,8 +62,8 @@ def _batched_states(size: str, batch: int):
     return jax.tree_util.tree_map(lambda x: jnp.concatenate([x] * repeat)[:batch], stacked)
 
 
-SCHEME_FIELDS = {"substeps": "num_substeps", "iterations": "num_iterations", "relax_iterations": "num_relax_iterations"}
-"""`--vs-substeps`, `--vs-iterations`, `--vs-relax-iterations` -> the `StaticSimParams` count each sets."""
+SCHEME_FIELDS = ("substeps", "iterations", "relax_iterations")
+"""Solver counts that `--vs-substeps`, `--vs-iterations`, `--vs-relax-iterations` set (SOLVER_SCHEME_FIELDS)."""
 
 
 def compile_rollout_ours(size: str, batch: int, n_steps: int, params: SimParams | None = None, scheme=None):
@@ -72,7 +71,7 @@ def compile_rollout_ours(size: str, batch: int, n_steps: int, params: SimParams 
     (default `SimParams()`) compiled in as constants, so that a switched-off option costs nothing, and the solver
     counts of `scheme` (keys of SCHEME_FIELDS; the engine's where absent)."""
     static = build_scene(size, 0)[1]
-    static = dataclasses.replace(static, **{SCHEME_FIELDS[key]: count for key, count in (scheme or {}).items()})
+    static = with_solver_scheme(static, scheme or {})
     states = _batched_states(size, batch)
     params = SimParams() if params is None else params
     motors, thrusters = jnp.ones(static.num_joints), jnp.ones(static.num_thrusters)
@@ -273,9 +272,8 @@ def main(argv=None) -> None:
     )
     args = parser.parse_args(argv)
     scheme = {key: getattr(args, f"vs_{key}") for key in SCHEME_FIELDS}
-    for key, least in (("substeps", 1), ("iterations", 1), ("relax_iterations", 0)):
-        if scheme[key] is not None and scheme[key] < least:
-            parser.error(f"--vs-{key.replace('_', '-')} must be at least {least}, got {scheme[key]}")
+    for error in solver_count_errors(scheme, "--vs-"):
+        parser.error(error)
     log = (
         (lambda line: print(line, file=sys.stderr, flush=True)) if args.json else (lambda line: print(line, flush=True))
     )

@@ -43,7 +43,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from benchmarks.env import DEFAULT_KINETIX_VENV, kinetix_python  # noqa: E402
 from benchmarks.kinetix_variants import parse_variant, variant_label  # noqa: E402
 from benchmarks.machine import describe_machine  # noqa: E402
-from benchmarks.sim_overrides import sim_override  # noqa: E402
+from benchmarks.sim_overrides import SOLVER_SCHEME_FIELDS, sim_override, solver_count_errors  # noqa: E402
+from benchmarks.sim_overrides import with_solver_scheme as with_sim_scheme  # noqa: E402
 from env import (  # noqa: E402
     EnvParams,
     Outcome,
@@ -73,23 +74,15 @@ AGREEMENT_SLACK = 0.02
 """Rates agree when they differ by at most AGREEMENT_STANDARD_ERRORS standard errors plus this."""
 
 
-SCHEME_FIELDS = {
-    "substeps": "num_substeps",
-    "iterations": "num_iterations",
-    "relax_iterations": "num_relax_iterations",
-    "block_contacts": "block_contacts",
-    "relax_contacts": "relax_contacts",
-}
-"""Options of our solver's scheme (`--substeps`, `--iterations`, `--relax-iterations`, `--block-contacts`,
-`--no-relax-contacts`) -> `StaticSimParams` field."""
+SCHEME_FIELDS = tuple(SOLVER_SCHEME_FIELDS)
+"""Options of our solver's scheme: `--substeps`, `--iterations`, `--relax-iterations`, `--block-contacts`,
+`--no-relax-contacts`."""
 
 
 def with_solver_scheme(static: StaticEnvParams, scheme: dict) -> StaticEnvParams:
-    """`static` with the solver scheme's counts in `scheme` (keys of SCHEME_FIELDS; None leaves a count unchanged)."""
-    changes = {SCHEME_FIELDS[key]: value for key, value in scheme.items() if value is not None}
-    if not changes:
-        return static
-    return dataclasses.replace(static, sim=dataclasses.replace(static.sim, **changes))
+    """`static` with the solver scheme's settings in `scheme` (keys of SCHEME_FIELDS; None leaves one unchanged)."""
+    sim = with_sim_scheme(static.sim, scheme)
+    return static if sim == static.sim else dataclasses.replace(static, sim=sim)
 
 
 def play_ours(paths: dict[str, str], episodes: int, seed: int, sim_overrides: dict, log, scheme=None) -> dict:
@@ -345,9 +338,8 @@ def main(argv=None) -> None:
             "--sim, --substeps, --iterations, --relax-iterations, --block-contacts and --no-relax-contacts switch "
             "our engine and --kinetix-variant replaces it: give one of them"
         )
-    for key, least in (("substeps", 1), ("iterations", 1), ("relax_iterations", 0)):
-        if scheme[key] is not None and scheme[key] < least:
-            parser.error(f"--{key.replace('_', '-')} must be at least {least}, got {scheme[key]}")
+    for error in solver_count_errors(scheme):
+        parser.error(error)
 
     def log(line: str) -> None:
         print(line, file=sys.stderr if args.json else sys.stdout, flush=True)

@@ -1,10 +1,23 @@
-"""`KEY=VALUE` options that switch one `SimParams` field of our engine for a measurement (fidelity, engine speed)."""
+"""Options that switch our engine for a measurement (fidelity, engine speed): `KEY=VALUE` for one `SimParams` field,
+and the solver scheme's settings in `StaticSimParams`."""
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 
-from engine import SimParams
+from engine import SimParams, StaticSimParams
+
+SOLVER_SCHEME_FIELDS = {
+    "substeps": "num_substeps",
+    "iterations": "num_iterations",
+    "relax_iterations": "num_relax_iterations",
+    "block_contacts": "block_contacts",
+    "relax_contacts": "relax_contacts",
+}
+"""Solver scheme option (as a measurement names it) -> `StaticSimParams` field."""
+SOLVER_COUNT_LEAST = {"substeps": 1, "iterations": 1, "relax_iterations": 0}
+"""The least value of each solver count option."""
 
 
 def sim_override(text: str) -> tuple[str, float]:
@@ -19,3 +32,18 @@ def sim_override(text: str) -> tuple[str, float]:
         return key, float(value)
     except ValueError:
         raise argparse.ArgumentTypeError(f"{key}={value!r}: the value is not a number") from None
+
+
+def solver_count_errors(scheme: dict, option_prefix: str = "--") -> list[str]:
+    """One line per count of `scheme` (options of SOLVER_SCHEME_FIELDS; None: not given) below its least."""
+    return [
+        f"{option_prefix}{key.replace('_', '-')} must be at least {least}, got {scheme[key]}"
+        for key, least in SOLVER_COUNT_LEAST.items()
+        if scheme.get(key) is not None and scheme[key] < least
+    ]
+
+
+def with_solver_scheme(sim: StaticSimParams, scheme: dict) -> StaticSimParams:
+    """`sim` with the settings of `scheme` (options of SOLVER_SCHEME_FIELDS; None leaves a setting unchanged)."""
+    changes = {SOLVER_SCHEME_FIELDS[key]: value for key, value in scheme.items() if value is not None}
+    return dataclasses.replace(sim, **changes) if changes else sim
