@@ -43,7 +43,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from benchmarks.env import DEFAULT_KINETIX_VENV, kinetix_python  # noqa: E402
 from benchmarks.kinetix_variants import parse_variant, variant_label  # noqa: E402
 from benchmarks.machine import describe_machine  # noqa: E402
-from benchmarks.sim_overrides import SOLVER_SCHEME_FIELDS, sim_override, solver_count_errors  # noqa: E402
+from benchmarks.sim_overrides import add_solver_scheme_options, sim_override, solver_scheme  # noqa: E402
 from benchmarks.sim_overrides import with_solver_scheme as with_sim_scheme  # noqa: E402
 from env import (  # noqa: E402
     EnvParams,
@@ -74,13 +74,9 @@ AGREEMENT_SLACK = 0.02
 """Rates agree when they differ by at most AGREEMENT_STANDARD_ERRORS standard errors plus this."""
 
 
-SCHEME_FIELDS = tuple(SOLVER_SCHEME_FIELDS)
-"""Options of our solver's scheme: `--substeps`, `--iterations`, `--relax-iterations`, `--block-contacts`,
-`--no-relax-contacts`."""
-
-
 def with_solver_scheme(static: StaticEnvParams, scheme: dict) -> StaticEnvParams:
-    """`static` with the solver scheme's settings in `scheme` (keys of SCHEME_FIELDS; None leaves one unchanged)."""
+    """`static` with the solver scheme's settings in `scheme` (options of `add_solver_scheme_options`; None leaves
+    one unchanged)."""
     sim = with_sim_scheme(static.sim, scheme)
     return static if sim == static.sim else dataclasses.replace(static, sim=sim)
 
@@ -289,26 +285,7 @@ def main(argv=None) -> None:
     parser.add_argument("--episodes", type=int, default=280, help="random-policy episodes per level")
     parser.add_argument("--seed", type=int, default=0, help="seed of Kinetix's level sampler and of the actions")
     parser.add_argument("--sim", type=sim_override, action="append", default=[], help="SimParams KEY=VALUE of ours")
-    parser.add_argument("--substeps", type=int, help="solver substeps per physics step of ours (default: the engine's)")
-    parser.add_argument(
-        "--iterations", type=int, help="position-correcting solver passes per substep of ours (default: the engine's)"
-    )
-    parser.add_argument(
-        "--relax-iterations", type=int, help="relaxing solver passes per substep of ours (default: the engine's)"
-    )
-    parser.add_argument(
-        "--block-contacts",
-        action="store_const",
-        const=True,
-        help="ours solves a pair's two rigid normal rows together (StaticSimParams.block_contacts)",
-    )
-    parser.add_argument(
-        "--no-relax-contacts",
-        dest="relax_contacts",
-        action="store_const",
-        const=False,
-        help="ours' relaxing passes solve joints only (StaticSimParams.relax_contacts)",
-    )
+    add_solver_scheme_options(parser)
     parser.add_argument(
         "--kinetix-variant",
         type=parse_variant,
@@ -331,15 +308,13 @@ def main(argv=None) -> None:
     args = parser.parse_args(argv)
     if args.chunk_levels < 1 or args.episodes < 1:
         parser.error("--chunk-levels and --episodes must be at least 1")
-    scheme = {key: getattr(args, key) for key in SCHEME_FIELDS}
+    scheme = solver_scheme(args, parser)
     switched = any(value is not None for value in scheme.values())
     if (args.sim or switched) and args.kinetix_variant:
         parser.error(
             "--sim, --substeps, --iterations, --relax-iterations, --block-contacts and --no-relax-contacts switch "
             "our engine and --kinetix-variant replaces it: give one of them"
         )
-    for error in solver_count_errors(scheme):
-        parser.error(error)
 
     def log(line: str) -> None:
         print(line, file=sys.stderr if args.json else sys.stdout, flush=True)

@@ -9,6 +9,7 @@ velocity after each env step, in Kinetix's slot order) for a closer look.
 
     python benchmarks/fidelity_trace.py l/mjc_half_cheetah --episodes 64
     python benchmarks/fidelity_trace.py levels/s/k0-00002.json --noop --sim speculative_reach=0
+    python benchmarks/fidelity_trace.py levels/s/k0-00030.json --noop --substeps 1 --iterations 10 --relax-iterations 0
 
 (the second a random level that `benchmarks/fidelity.py --random-levels 64 --level-dir levels` sampled.)
 """
@@ -28,7 +29,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from benchmarks.env import DEFAULT_KINETIX_VENV, kinetix_python  # noqa: E402
-from benchmarks.sim_overrides import sim_override  # noqa: E402
+from benchmarks.sim_overrides import add_solver_scheme_options, sim_override, solver_scheme, with_solver_scheme  # noqa: E402
 from env import (  # noqa: E402
     MULTI_DISCRETE_SIZES,
     ActionType,
@@ -70,16 +71,18 @@ def random_actions(episodes: int, seed: int) -> np.ndarray:
     return np.stack(columns, -1).astype(np.int32)
 
 
-def trace_ours(loaded, actions: np.ndarray, sim_overrides: dict) -> dict:
-    """kforge's trace of `actions` on a loaded level (`env.LoadedLevel`): TRACED fields, reward sign and done per env
+def trace_ours(loaded, actions: np.ndarray, sim_overrides: dict, scheme: dict | None = None) -> dict:
+    """kforge's trace of `actions` on a loaded level (`env.LoadedLevel`), with the solver scheme's settings in
+    `scheme` if given (`benchmarks.sim_overrides.with_solver_scheme`): TRACED fields, reward sign and done per env
     step."""
     params = EnvParams(dense_reward_scale=0.0)
     if sim_overrides:
         params = params.replace(sim=dataclasses.replace(params.sim, **sim_overrides))
+    static = dataclasses.replace(loaded.static, sim=with_solver_scheme(loaded.static.sim, scheme or {}))
 
     def episode(episode_actions):
         def body(state, action):
-            stepped, result = advance(state, action, params, loaded.static, ActionType.MULTI_DISCRETE)
+            stepped, result = advance(state, action, params, static, ActionType.MULTI_DISCRETE)
             reward = jnp.where(result.success, 1.0, jnp.where(result.failure, -1.0, 0.0))
             return stepped, (stepped, reward, result.done)
 
@@ -130,10 +133,12 @@ def main(argv=None) -> None:
     parser.add_argument("--noop", action="store_true", help="play the no-op policy (one episode) instead")
     parser.add_argument("--seed", type=int, default=0, help="seed of the random actions")
     parser.add_argument("--sim", type=sim_override, action="append", default=[], help="SimParams KEY=VALUE of ours")
+    add_solver_scheme_options(parser)
     parser.add_argument("--tolerance", type=float, default=0.01, help="[m] positions closer than this agree")
     parser.add_argument("--kinetix-venv", type=Path, default=DEFAULT_KINETIX_VENV)
     parser.add_argument("--save", type=Path, help=".npz that keeps both traces and the actions")
     args = parser.parse_args(argv)
+    scheme = solver_scheme(args, parser)
 
     path = level_path(args.level)
     actions = np.zeros((1, EPISODE_STEPS, 6), np.int32) if args.noop else random_actions(args.episodes, args.seed)
@@ -141,7 +146,7 @@ def main(argv=None) -> None:
     with tempfile.TemporaryDirectory(prefix="kforge-trace-") as folder:
         theirs = trace_kinetix(python, path, actions, Path(folder))
     loaded = load_level(path)
-    ours = trace_ours(loaded, actions, dict(args.sim))
+    ours = trace_ours(loaded, actions, dict(args.sim), scheme)
     if args.save is not None:
         np.savez(
             args.save,

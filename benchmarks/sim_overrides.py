@@ -47,3 +47,37 @@ def with_solver_scheme(sim: StaticSimParams, scheme: dict) -> StaticSimParams:
     """`sim` with the settings of `scheme` (options of SOLVER_SCHEME_FIELDS; None leaves a setting unchanged)."""
     changes = {SOLVER_SCHEME_FIELDS[key]: value for key, value in scheme.items() if value is not None}
     return dataclasses.replace(sim, **changes) if changes else sim
+
+
+def add_solver_scheme_options(parser: argparse.ArgumentParser) -> None:
+    """`--substeps`, `--iterations`, `--relax-iterations`, `--block-contacts`, `--no-relax-contacts`: our solver's
+    scheme for a measurement (`solver_scheme` reads them back; the engine's setting where not given)."""
+    parser.add_argument("--substeps", type=int, help="solver substeps per physics step of ours (default: the engine's)")
+    parser.add_argument(
+        "--iterations", type=int, help="position-correcting solver passes per substep of ours (default: the engine's)"
+    )
+    parser.add_argument(
+        "--relax-iterations", type=int, help="relaxing solver passes per substep of ours (default: the engine's)"
+    )
+    parser.add_argument(
+        "--block-contacts",
+        action="store_const",
+        const=True,
+        help="ours solves a pair's two rigid normal rows together (StaticSimParams.block_contacts)",
+    )
+    parser.add_argument(
+        "--no-relax-contacts",
+        dest="relax_contacts",
+        action="store_const",
+        const=False,
+        help="ours' relaxing passes solve joints only (StaticSimParams.relax_contacts)",
+    )
+
+
+def solver_scheme(args: argparse.Namespace, parser: argparse.ArgumentParser) -> dict:
+    """The options of `add_solver_scheme_options` as a scheme (None: not given); counts below their least are refused
+    through `parser`."""
+    scheme = {key: getattr(args, key) for key in SOLVER_SCHEME_FIELDS}
+    for error in solver_count_errors(scheme):
+        parser.error(error)
+    return scheme

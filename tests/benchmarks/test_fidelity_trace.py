@@ -1,8 +1,11 @@
 """The paired trace of benchmarks/fidelity_trace.py: episode ends, the first step two traces part, kforge's side."""
 
 import numpy as np
+import pytest
 
+from benchmarks import fidelity_trace
 from benchmarks.fidelity_trace import EPISODE_STEPS, episode_ends, first_divergence, random_actions, trace_ours
+from engine import SimParams
 from env import MULTI_DISCRETE_SIZES, bundled_level_path, load_level
 
 
@@ -50,3 +53,21 @@ def test_kforge_side_of_a_no_op_trace_keeps_static_shapes_still_and_ends_at_the_
     floor = trace["polygon_position"][0, :, 0]
     np.testing.assert_array_equal(floor, np.broadcast_to(floor[0], floor.shape))
     np.testing.assert_allclose(floor[0], [2.5, -4.8], atol=1e-6)
+
+
+def test_kforge_side_plays_the_solver_scheme_it_is_given():
+    """s/h1_thrust_over_ball's ball starts in free fall. An env step is two physics steps: in one substep each, a
+    body falls 3 g dt^2 more than its start velocity carries it, in four substeps 2.25 g dt^2 (docs/fidelity.md), so
+    under one substep of 10 passes the ball is 0.75 g dt^2 lower after the first env step."""
+    loaded = load_level(bundled_level_path("s/h1_thrust_over_ball"))
+    no_op = np.zeros((1, EPISODE_STEPS, 6), np.int32)
+    default = trace_ours(loaded, no_op, {})["circle_position"][0, 0, 0, 1]
+    one_step = trace_ours(loaded, no_op, {}, {"substeps": 1, "iterations": 10, "relax_iterations": 0})
+    dt, gravity = SimParams().dt, 9.81
+    assert default - one_step["circle_position"][0, 0, 0, 1] == pytest.approx(0.75 * gravity * dt**2, rel=1e-3)
+
+
+def test_the_trace_refuses_a_solver_count_below_its_least(capsys):
+    with pytest.raises(SystemExit):
+        fidelity_trace.main(["s/h1_thrust_over_ball", "--iterations", "0"])
+    assert "--iterations must be at least 1, got 0" in capsys.readouterr().err
