@@ -120,7 +120,9 @@ def measure_ours(sizes, batches, n_steps: int, repeats: int, log) -> dict:
 
 
 def kinetix_python(venv: Path, log) -> Path:
-    """The virtualenv's python, creating the virtualenv with kinetix-env first if needed."""
+    """The virtualenv's python, as an absolute path (Kinetix's side runs in another folder), creating the virtualenv
+    with kinetix-env first if needed."""
+    venv = venv.absolute()
     python = venv / "bin" / "python"
     check = [str(python), "-c", "import kinetix.environment"]
     if python.exists() and subprocess.run(check, capture_output=True).returncode == 0:

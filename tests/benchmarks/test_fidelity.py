@@ -26,6 +26,18 @@ def level(noop: str, success: int, failure: int) -> dict:
     return {"noop": noop, "random": counts(success, failure)}
 
 
+def test_a_kinetix_virtualenv_named_relative_to_the_working_folder_is_found_from_any_folder(tmp_path, monkeypatch):
+    """Kinetix's side runs in benchmarks/, so a `--kinetix-venv` given relative to where the command was typed is
+    made absolute first (here a virtualenv whose python answers the import check)."""
+    python = tmp_path / "kx" / "bin" / "python"
+    python.parent.mkdir(parents=True)
+    python.write_text("#!/bin/sh\nexit 0\n")
+    python.chmod(0o755)
+    monkeypatch.chdir(tmp_path)
+    found = kinetix_python(Path("kx"), print)
+    assert found.is_absolute() and found == python
+
+
 def test_equal_rates_agree_and_far_rates_do_not():
     ours = {"hand/s/a": level("timeout", 50, 10), "hand/s/b": level("timeout", 62, 0)}
     theirs = {"hand/s/a": level("timeout", 50, 10), "hand/s/b": level("timeout", 6, 0)}
