@@ -30,9 +30,9 @@ def measured(name: str, **values):
     print(f"\nMEASURED {name}: {text}")
 
 
-def _builder_with_pivot() -> SceneBuilder:
+def _builder_with_pivot(static=STATIC) -> SceneBuilder:
     """No boundaries; a small static box at PIVOT in reserved polygon slot 0 (body 0)."""
-    builder = SceneBuilder(STATIC, boundaries=False)
+    builder = SceneBuilder(static, boundaries=False)
     builder.add_box(PIVOT, (0.1, 0.1), static=True, slot=0)
     return builder
 
@@ -241,19 +241,25 @@ def test_revolute_limits_under_gravity_and_release():
     assert abs(drive_right[-1] - 0.5) < 0.05 and abs(drive_left[-1] + 0.5) < 0.05  # now held at the other limits
 
 
+def _wheel_spinning_towards_its_limit(static):
+    """(state, wheel): a 0.2 m wheel pinned at its centre to a static box at PIVOT (body 0), limits +-0.5 rad,
+    spinning at 2.7 rad/s towards the upper limit; no boundaries."""
+    builder = _builder_with_pivot(static)
+    wheel = builder.add_circle(PIVOT, 0.2)
+    builder.add_revolute_joint(0, wheel, PIVOT, limits=(-0.5, 0.5))
+    state = builder.build()
+    spin = np.zeros(state.bodies.angular_velocity.shape, np.float32)
+    spin[wheel] = 2.7
+    return state.replace(bodies=state.bodies.replace(angular_velocity=jnp.asarray(spin))), wheel
+
+
 @pytest.mark.parametrize("law", [LimitLaw.SPECULATIVE, LimitLaw.BOUNDED_RETURN, LimitLaw.KINETIX])
 def test_a_spinning_wheel_meets_its_angle_limit(law):
     """A wheel pinned at its centre (no gravity torque), limits +-0.5 rad, spinning at 2.7 rad/s (0.045 rad a step)
     towards the upper limit. The speculative laws stop it at the limit. Kinetix's law sees the limit only at a step's
     start: the wheel reaches 0.54 rad (the first step start beyond 0.5), and that step turns it back at
     limit_recovery_rate x 0.04 rad = 0.2 rad/s, which nothing changes after (it no longer turns outward)."""
-    builder = _builder_with_pivot()
-    wheel = builder.add_circle(PIVOT, 0.2)
-    builder.add_revolute_joint(0, wheel, PIVOT, limits=(-0.5, 0.5))
-    state = builder.build()
-    spin = np.zeros(state.bodies.angular_velocity.shape, np.float32)
-    spin[wheel] = 2.7
-    state = state.replace(bodies=state.bodies.replace(angular_velocity=jnp.asarray(spin)))
+    state, wheel = _wheel_spinning_towards_its_limit(STATIC)
     params = SimParams(limit_law=law)
     _, traj = run(state, STATIC, 30, params=params)
     angle, omega = _joint_angle(traj, state, 0), traj.angular_velocity[:, wheel]
@@ -272,14 +278,7 @@ def test_relaxing_joints_only_holds_a_wheel_at_its_limit_where_no_relaxing_pass_
     """The spinning wheel above, under 4 substeps of 3 position-correcting passes and Jax2D's push-out for contacts.
     Without a relaxing pass the limit row's correction velocity stays in the wheel, which leaves its limit turning
     back; one relaxing pass of joints only (`relax_contacts=False`) takes it out, and the wheel rests at the limit."""
-    builder = SceneBuilder(SIZE_S, boundaries=False)  # the smallest size: two schemes to compile
-    builder.add_box(PIVOT, (0.1, 0.1), static=True, slot=0)
-    wheel = builder.add_circle(PIVOT, 0.2)
-    builder.add_revolute_joint(0, wheel, PIVOT, limits=(-0.5, 0.5))
-    state = builder.build()
-    spin = np.zeros(state.bodies.angular_velocity.shape, np.float32)
-    spin[wheel] = 2.7
-    state = state.replace(bodies=state.bodies.replace(angular_velocity=jnp.asarray(spin)))
+    state, wheel = _wheel_spinning_towards_its_limit(SIZE_S)  # the smallest size: two schemes to compile
     params = SimParams(contact_law=ContactLaw.BAUMGARTE, speculative_distance=0.0, overlap_allowance=1.0)
     scheme = dict(num_iterations=3, block_contacts=True)
     final = {}
