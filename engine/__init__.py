@@ -1,10 +1,10 @@
 """Rigid-body 2D physics in JAX: fixed-shape scenes of convex polygons and circles, joints and thrusters.
 
 Public surface: state and parameter types, the scene builder, `step`, how batched steps run per backend
-(`set_batching`), and bitwise-repeatable GPU execution (`use_deterministic_ops`).
+and sweep their solver (`set_batching`), and bitwise-repeatable GPU execution (`use_deterministic_ops`).
 """
 
-from engine.batch_last import BATCHING_MODES, Batching, current_batching, set_batching
+from engine.batch_last import BATCHING_MODES, SWEEP_MODES, Batching, current_batching, set_batching
 from engine.collision import manifolds, world_geometry
 from engine.collision_filter import joint_collision_matrix, modes_collide
 from engine.determinism import use_deterministic_ops, with_deterministic_ops
@@ -43,6 +43,7 @@ __all__ = [
     "MAX_POLYGON_VERTICES",
     "MIN_POLYGON_AREA",
     "NO_FEATURE",
+    "SWEEP_MODES",
     "Bodies",
     "ContactCache",
     "Joints",

@@ -2,7 +2,7 @@
 
 Each pair has four rows: the normal rows of its two points, then their friction rows, solved in that order.
 Pairs of one colour share no movable body and are solved at once; colours are swept in order (Gauss-Seidel) by
-one `engine.sweep.pipelined_sweep`, whose body is compiled once however many colours there are.
+one of `engine.sweep.SWEEPS` (looped, its body compiled once however many colours there are, or unrolled).
 
 Preparation works on one scene. The solve functions are rank-polymorphic: per-scene axes first, any number of
 trailing batch axes (see `engine.batch_last`). They work on structures of arrays, which XLA compiles to plain
@@ -21,7 +21,7 @@ from engine.collision import Manifolds
 from engine.geometry import dot2
 from engine.pairs import PairLayout
 from engine.softness import Softness
-from engine.sweep import Motion, pipelined_sweep
+from engine.sweep import Motion, Sweep
 
 NUM_ROWS = 4
 """Rows per pair: normal point 0, normal point 1, friction point 0, friction point 1."""
@@ -296,8 +296,10 @@ def warm_start_contacts(velocity: Motion, rows: ContactRows, impulses: ContactIm
     return tuple(received(v, da, db) for v, da, db in zip(velocity, change_a, change_b, strict=True))
 
 
-def _sweep(velocity: Motion, rows: ContactRows, impulse, layout: PairLayout, solve_colour, per_colour=None):
-    """Visit the colours in order (Gauss-Seidel across colours), all pairs of a colour at once.
+def _sweep(
+    velocity: Motion, rows: ContactRows, impulse, layout: PairLayout, solve_colour, sweep: Sweep, per_colour=None
+):
+    """Visit the colours in order (Gauss-Seidel across colours), all pairs of a colour at once, by `sweep`.
 
     `impulse` holds the (C, W, *batch) impulses of the rows to solve, rows 0, 1, ... of every pair.
     `solve_colour(rows, impulse, vel_a, vel_b, bodies_of, extra)` returns their new values for one colour from its
@@ -332,7 +334,7 @@ def _sweep(velocity: Motion, rows: ContactRows, impulse, layout: PairLayout, sol
             for v, da, db in zip(velocity, change_a, change_b, strict=True)
         )
 
-    return pipelined_sweep(velocity, layout.num_colours, tuple(impulse), gather, solve, apply)
+    return sweep(velocity, layout.num_colours, tuple(impulse), gather, solve, apply)
 
 
 BLOCK_CONDITION_LIMIT = 1000.0
@@ -381,6 +383,7 @@ def solve_contacts(
     max_push_velocity,
     use_bias,
     push_law: PushLaw,
+    sweep: Sweep,
     block: bool = False,
 ):
     """One sweep of normal rows, then friction rows, of every pair; returns velocities and impulses.
@@ -388,8 +391,8 @@ def solve_contacts(
     `moved` is each body's displacement since the start of the step; `use_bias` (bool, may be traced) selects
     the soft position-correcting solve, otherwise the relaxing solve without position bias; under the Baumgarte
     `push_law` (every point, or under the soft law the points deeper than its depth at the step's start) both
-    solve the same rigid rows with its bias. With `block` (static) a pair's two normal rows are solved together
-    where both are rigid (`_block_normal_impulses`).
+    solve the same rigid rows with its bias. `sweep` (one of `engine.sweep.SWEEPS`) visits the colours. With
+    `block` (static) a pair's two normal rows are solved together where both are rigid (`_block_normal_impulses`).
     """
 
     def solve_colour(rows, impulse, vel_a, vel_b, bodies_of, _):
@@ -434,12 +437,14 @@ def solve_contacts(
             new_impulses.append(new)
         return tuple(new_impulses)
 
-    velocity, impulse = _sweep(velocity, rows, impulses.impulse, layout, solve_colour)
+    velocity, impulse = _sweep(velocity, rows, impulses.impulse, layout, solve_colour, sweep)
     max_normal = tuple(jnp.maximum(m, i) for m, i in zip(impulses.max_normal, impulse[:NUM_POINTS], strict=True))
     return velocity, ContactImpulses(impulse, max_normal)
 
 
-def apply_restitution(velocity: Motion, rows: ContactRows, impulses: ContactImpulses, layout: PairLayout, threshold):
+def apply_restitution(
+    velocity: Motion, rows: ContactRows, impulses: ContactImpulses, layout: PairLayout, threshold, sweep: Sweep
+):
     """Bounce: drive the normal velocity of points that approached faster than `threshold` to -e times that speed."""
 
     def solve_colour(rows, impulse, vel_a, vel_b, _, max_normal):
@@ -455,5 +460,5 @@ def apply_restitution(velocity: Motion, rows: ContactRows, impulses: ContactImpu
         return tuple(normal)
 
     normal_impulses = impulses.impulse[:NUM_POINTS]
-    velocity, normal = _sweep(velocity, rows, normal_impulses, layout, solve_colour, impulses.max_normal)
+    velocity, normal = _sweep(velocity, rows, normal_impulses, layout, solve_colour, sweep, impulses.max_normal)
     return velocity, impulses.replace(impulse=normal + impulses.impulse[NUM_POINTS:])

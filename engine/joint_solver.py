@@ -3,8 +3,8 @@
 Preparation works on one scene. Warm starting and solving are rank-polymorphic: per-scene axes first, any
 number of trailing batch axes (see `engine.batch_last`), with body velocities and poses as `Motion` triples of
 (N+1, *batch) arrays; bodies are selected with one-hot masks because joint endpoints differ per scene. What
-depends only on poses (`JointFrames`) is computed for all joints at once before a sweep; the sweep itself is an
-`engine.sweep.pipelined_sweep`, whose body is compiled once however many joints there are.
+depends only on poses (`JointFrames`) is computed for all joints at once before a sweep; the sweep itself is one of
+`engine.sweep.SWEEPS` (looped, its body compiled once however many joints there are, or unrolled).
 """
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ from flax import struct
 from engine.geometry import rotate
 from engine.softness import Softness
 from engine.state import Joints
-from engine.sweep import Motion, pipelined_sweep
+from engine.sweep import Motion, Sweep
 
 SINGULAR_DETERMINANT = 1e-12
 """Point-constraint matrices with a smaller determinant (both bodies immovable) are not solved."""
@@ -278,8 +278,10 @@ def solve_joints(
     kinetix_limits,
     limit_recovery_rate,
     limit_return_rate,
+    sweep: Sweep,
 ):
-    """One sweep over the joints in index order: motor, limits, fixed angle, then the point constraint.
+    """One sweep (`sweep`, one of `engine.sweep.SWEEPS`) over the joints in index order: motor, limits, fixed
+    angle, then the point constraint.
 
     `use_bias` (bool, may be traced) selects the soft position-correcting solve, otherwise the relaxing solve.
     `kinetix_limits` (bool, may be traced) selects Kinetix's limit law (`engine.params.LimitLaw.KINETIX`): the
@@ -367,4 +369,4 @@ def solve_joints(
     def apply(velocity, j, change: JointImpulses):
         return _apply_impulse(velocity, _take(rows, j), _take(frames, j), change.linear, _axial(change))
 
-    return pipelined_sweep(velocity, rows.body_a.shape[0], impulses, gather, solve, apply)
+    return sweep(velocity, rows.body_a.shape[0], impulses, gather, solve, apply)

@@ -38,6 +38,7 @@ from engine.pairs import pair_layout
 from engine.params import ContactLaw, ForceTiming, LimitLaw, MotorLaw, SimParams, StaticSimParams
 from engine.softness import Softness, make_softness
 from engine.state import NO_FEATURE, ContactCache, SimState
+from engine.sweep import SWEEPS
 
 STATIC_CONTACT_STIFFNESS_FACTOR = 2.0
 """Contacts against static bodies are this many times stiffer (in Hz) than between movable bodies."""
@@ -131,16 +132,18 @@ class Prepared:
 
 
 @functools.cache
-def substep_solver(static: StaticSimParams, batch_last: bool = True):
-    """The substep loop and restitution for `static`: `SolverInput -> SolverOutput`, batch-last under vmap if asked.
+def substep_solver(static: StaticSimParams, batch_last: bool = True, sweeps: str = "looped"):
+    """The substep loop and restitution for `static`: `SolverInput -> SolverOutput`, batch-last under vmap if asked,
+    with Gauss-Seidel sweeps of the form `sweeps` (a key of `engine.sweep.SWEEPS`).
 
     A substep runs `num_iterations` passes with position bias (all but the last in a `lax.scan`), advances the
     positions after the last, then `num_relax_iterations` passes without bias, of joints only unless `relax_contacts`
-    (soft step: 1, 1; Jax2D's scheme: 10 iterations in one substep and no relaxing pass). Substeps, joints and
-    colours are `lax.scan`s, so the compiled size does not grow with their number; joints' warm starting (nothing
-    solved) is unrolled into one fusion.
+    (soft step: 1, 1; Jax2D's scheme: 10 iterations in one substep and no relaxing pass). Substeps are a
+    `lax.scan`, so the compiled size does not grow with their number, nor with the joints' and colours' under
+    looped sweeps; joints' warm starting (nothing solved) is unrolled into one fusion.
     """
     layout = pair_layout(static)
+    sweep = SWEEPS[sweeps]
 
     def solve(solver_input: SolverInput) -> SolverOutput:
         def components(x):
@@ -166,6 +169,7 @@ def substep_solver(static: StaticSimParams, batch_last: bool = True):
                 scalars.kinetix_limits,
                 scalars.limit_recovery_rate,
                 scalars.limit_return_rate,
+                sweep,
             )
             if contacts:
                 velocity, contact_impulses = solve_contacts(
@@ -178,6 +182,7 @@ def substep_solver(static: StaticSimParams, batch_last: bool = True):
                     scalars.max_push_velocity,
                     use_bias,
                     scalars.push_law,
+                    sweep,
                     static.block_contacts,
                 )
             pose = tuple(
@@ -212,7 +217,7 @@ def substep_solver(static: StaticSimParams, batch_last: bool = True):
             substep_body, carry, jnp.arange(static.num_substeps)
         )
         velocity, contact_impulses = apply_restitution(
-            velocity, rows, contact_impulses, layout, scalars.restitution_threshold
+            velocity, rows, contact_impulses, layout, scalars.restitution_threshold, sweep
         )
         return SolverOutput(jnp.stack(velocity, 1), jnp.stack(pose, 1), contact_impulses, joint_impulses)
 
@@ -410,7 +415,7 @@ def _batched_step(static: StaticSimParams, batching: Batching):
 
     def one_step(state, params, motor_actions, thruster_actions):
         prepared = prepare_step(state, params, motor_actions, thruster_actions, static)
-        solved = substep_solver(static, batching.chunked)(prepared.solver_input)
+        solved = substep_solver(static, batching.chunked, batching.sweeps)(prepared.solver_input)
         return finish_step(state, params, prepared, solved, static), _info_after_solve(prepared, solved, params, static)
 
     return vmap_in_chunks(one_step, batching.chunk_limit) if batching.chunked else one_step
@@ -432,6 +437,7 @@ def step(
 
     `motor_actions` (J,) in [-1, 1] scale each joint motor's target speed; `thruster_actions` (T,) in [0, 1]
     scale each thruster's force. Returns the new state and per-pair contact information. Under `vmap`, how the
-    batch is run (in chunks with batch-last layout, or as one vmap) follows `engine.set_batching` when traced.
+    batch is run (in chunks with batch-last layout, or as one vmap) and how the solver sweeps (looped or unrolled)
+    follow `engine.set_batching` when traced.
     """
     return _step(state, params, motor_actions, thruster_actions, static=static, batching=current_batching())

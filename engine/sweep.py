@@ -1,4 +1,4 @@
-"""Gauss-Seidel sweeps (colours of contacts, joints) as one software-pipelined `lax.scan`.
+"""Gauss-Seidel sweeps (colours of contacts, joints): as one software-pipelined `lax.scan`, or unrolled.
 
 A sweep visits items in order; each item's new impulses depend on the velocities left by the items before it.
 Written naively, XLA fuses the computation of an item's new impulses into every consumer (each velocity
@@ -11,15 +11,26 @@ the sweep's start from the carried result (where they are still unchanged), so t
 the carried value is replaced and XLA keeps both in place, with no copy per step. The body is compiled once
 whatever the number of items. A single item is solved in a loop of two steps, the second doing nothing (under a
 `cond`), and applied after it.
+
+`unrolled_sweep` does the same arithmetic with each item's code written out in order: no loop step per item, and
+the compiler may fuse across items, so a step runs far fewer kernels (what an accelerator pays for), at the price
+of a compiled size that grows with the number of items and, on CPU, of solves recomputed inside every fused
+consumer. `SWEEPS` names both; `engine.set_batching` picks one per backend.
 """
 
 from __future__ import annotations
+
+from collections.abc import Callable
 
 import jax
 import jax.numpy as jnp
 
 Motion = tuple[jnp.ndarray, jnp.ndarray, jnp.ndarray]
 """Per-body x, y and angular components (velocities [m/s, m/s, rad/s] or poses [m, m, rad]), each (N+1, *batch)."""
+
+
+Sweep = Callable
+"""`sweep(velocity, count, old, gather, solve, apply) -> (velocity, new impulses)`, as `pipelined_sweep`."""
 
 
 def pipelined_sweep(velocity, count: int, old, gather, solve, apply):
@@ -72,3 +83,22 @@ def _single_item_sweep(velocity, start, gather, solve, apply):
     new, _ = jax.lax.scan(step, start, jnp.arange(2))
     change = jax.tree_util.tree_map(lambda n, o: n - o, new, start)
     return apply(velocity, 0, change), jax.tree_util.tree_map(lambda x: x[None], new)
+
+
+def unrolled_sweep(velocity, count: int, old, gather, solve, apply):
+    """`pipelined_sweep`'s result, with the items' solves and applications written out one after another."""
+    if count == 0:
+        return velocity, old
+    leaves, treedef = jax.tree_util.tree_flatten(old)
+    new_items = []
+    for i in range(count):
+        start = jax.tree_util.tree_unflatten(treedef, [x[i] for x in leaves])
+        new = solve(gather(velocity, i), i, start)
+        velocity = apply(velocity, i, jax.tree_util.tree_map(jnp.subtract, new, start))
+        new_items.append(new)
+    return velocity, jax.tree_util.tree_map(lambda *items: jnp.stack(items), *new_items)
+
+
+SWEEPS: dict[str, Sweep] = {"looped": pipelined_sweep, "unrolled": unrolled_sweep}
+"""Sweep forms by name: "looped" compiles one loop body whatever the number of items; "unrolled" writes every item
+out (fewer kernels per step, larger programs)."""

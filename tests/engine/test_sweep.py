@@ -1,4 +1,5 @@
-"""The pipelined Gauss-Seidel sweep: the result of visiting the items one by one, and no copy per step."""
+"""The Gauss-Seidel sweeps, looped and unrolled: the result of visiting the items one by one, no copy per loop step,
+and fewer kernels unrolled."""
 
 from __future__ import annotations
 
@@ -9,7 +10,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from engine.sweep import pipelined_sweep
+from benchmarks.kernels import count_kernels
+from engine.sweep import SWEEPS, pipelined_sweep
 
 NUM_BODIES = 6
 PAIRS = np.array([[0, 1], [1, 2], [2, 3], [3, 4], [4, 5], [0, 5], [1, 4]])
@@ -59,20 +61,23 @@ def _one_by_one(velocity, count, old, gather, solve, apply):
     return velocity, jax.tree.map(lambda *xs: jnp.stack(xs), *new_items)
 
 
+@pytest.mark.parametrize("form", sorted(SWEEPS))
 @pytest.mark.parametrize("count", [1, 2, 7])
-def test_a_sweep_gives_the_result_of_visiting_the_items_one_by_one(count):
+def test_a_sweep_gives_the_result_of_visiting_the_items_one_by_one(count, form):
     """To rounding: the reference is a different program, which XLA fuses differently."""
     velocity, old, gather, solve, apply = _problem(count)
-    swept = jax.jit(lambda v, o: pipelined_sweep(v, count, o, gather, solve, apply))(velocity, old)
+    sweep = SWEEPS[form]
+    swept = jax.jit(lambda v, o: sweep(v, count, o, gather, solve, apply))(velocity, old)
     expected = jax.jit(lambda v, o: _one_by_one(v, count, o, gather, solve, apply))(velocity, old)
     for got, want in zip(jax.tree.leaves(swept), jax.tree.leaves(expected), strict=True):
         np.testing.assert_allclose(got, want, rtol=1e-6, atol=1e-6)
     assert not np.array_equal(swept[0][0], velocity[0])  # the items acted
 
 
-def test_an_empty_sweep_returns_its_inputs():
+@pytest.mark.parametrize("form", sorted(SWEEPS))
+def test_an_empty_sweep_returns_its_inputs(form):
     velocity, old, gather, solve, apply = _problem(0)
-    swept_velocity, swept_old = pipelined_sweep(velocity, 0, old, gather, solve, apply)
+    swept_velocity, swept_old = SWEEPS[form](velocity, 0, old, gather, solve, apply)
     assert swept_velocity is velocity and swept_old is old
 
 
@@ -91,3 +96,17 @@ def test_a_sweep_step_copies_no_impulses(count):
     assert len(bodies) == 1
     copies = re.findall(r"= (\w+)\[[^\]]*\][^=]*? copy\(", bodies[0])
     assert [dtype for dtype in copies if dtype != "s32"] == []  # the loop counter may be copied
+
+
+def test_an_unrolled_sweep_has_no_loop_and_runs_fewer_kernels_than_a_looped_one():
+    """What an accelerator pays for: a looped sweep launches its body's kernels once per item, an unrolled one lets
+    XLA fuse across items."""
+    velocity, old, gather, solve, apply = _problem(len(PAIRS))
+    programs = {
+        form: jax.jit(lambda v, o, sweep=sweep: sweep(v, len(PAIRS), o, gather, solve, apply))
+        for form, sweep in SWEEPS.items()
+    }
+    unrolled_hlo = programs["unrolled"].lower(velocity, old).compile().as_text()
+    assert _loop_bodies(unrolled_hlo) == [] and "while(" not in unrolled_hlo
+    looped, unrolled = (count_kernels(programs[form], velocity, old).kernels for form in ("looped", "unrolled"))
+    assert unrolled < looped, (unrolled, looped)
