@@ -7,11 +7,12 @@ one JSON document instead. On a GPU it also measures large batches and prints Ja
 next to ours.
 
 `--kernels` instead counts the kernels that one physics step and one env step run in sequence, for ours (under
-the current batching, and as one whole vmap as on a GPU) and for Jax2D's physics step, at each batch, with the
-ratio ours / Jax2D. On a GPU each kernel launch costs microseconds whatever the batch, so this count bounds the
-step rate at large batch. Method (`benchmarks.kernels`): compile the vmapped step with `jax.jit(...).lower(...)
-.compile()` and count, in the optimized HLO, the instructions that do work (fusions, custom calls, unfused
-operations) in the entry computation, with `while` bodies multiplied by XLA's `known_trip_count`.
+the current batching, as one whole vmap with looped sweeps, and as a GPU or TPU runs it: one whole vmap with
+unrolled sweeps) and for Jax2D's physics step, at each batch, with the ratios ours / Jax2D. On a GPU each kernel
+launch costs microseconds whatever the batch, so this count bounds the step rate at large batch. Method
+(`benchmarks.kernels`): compile the vmapped step with `jax.jit(...).lower(...).compile()` and count, in the
+optimized HLO, the instructions that do work (fusions, custom calls, unfused operations) in the entry computation,
+with `while` bodies multiplied by XLA's `known_trip_count`.
 
     python benchmarks/engine.py --vs jax2d
     python benchmarks/engine.py --sizes s --batches 256 --json
@@ -215,28 +216,44 @@ def _known(count) -> int:
     return count.kernels
 
 
+ACCELERATOR_BATCHING = ("whole", "unrolled")
+"""The batching mode and sweep form that `engine.set_batching`'s "auto" picks on a GPU or TPU."""
+
+
 def count_all_kernels(sizes, batches, log=print) -> dict:
-    """Kernel counts per size and batch: ours (current batching and whole), our env step, Jax2D, and ratios."""
+    """Kernel counts per size and batch: ours under the current batching, as one whole vmap with looped sweeps and
+    as an accelerator runs it (`ACCELERATOR_BATCHING`), our env step (current; accelerator's), Jax2D's physics step,
+    and the ratios to Jax2D."""
     batching = current_batching()
-    report = {"machine": describe_machine(), "batching": batching.mode, "chunk_limit": batching.chunk_limit}
+    report = {
+        "machine": describe_machine(),
+        "batching": batching.mode,
+        "chunk_limit": batching.chunk_limit,
+        "sweeps": batching.sweeps,
+    }
     for size in sizes:
         for batch in batches:
             row = {"physics_step": physics_step_kernels(size, batch), "env_step": env_step_kernels(size, batch)}
-            set_batching("whole")
             try:
-                row["physics_step_whole"] = physics_step_kernels(size, batch)
-                row["env_step_whole"] = env_step_kernels(size, batch)
+                set_batching("whole", batching.chunk_limit, "looped")
+                row["physics_step_whole_looped"] = physics_step_kernels(size, batch)
+                set_batching(ACCELERATOR_BATCHING[0], batching.chunk_limit, ACCELERATOR_BATCHING[1])
+                row["physics_step_accelerator"] = physics_step_kernels(size, batch)
+                row["env_step_accelerator"] = env_step_kernels(size, batch)
             finally:
-                set_batching(batching.mode, batching.chunk_limit)
-            row["jax2d_physics_step"] = jax2d_physics_step_kernels(size, batch)
-            row["physics_ratio_vs_jax2d"] = row["physics_step"] / row["jax2d_physics_step"]
-            row["physics_whole_ratio_vs_jax2d"] = row["physics_step_whole"] / row["jax2d_physics_step"]
+                set_batching(batching.mode, batching.chunk_limit, batching.sweeps)
+            jax2d = row["jax2d_physics_step"] = jax2d_physics_step_kernels(size, batch)
+            for form in ("physics_step", "physics_step_whole_looped", "physics_step_accelerator"):
+                row[f"{form}_ratio_vs_jax2d"] = row[form] / jax2d
             report.setdefault("kernels", {}).setdefault(size, {})[str(batch)] = row
             log(
                 f"size={size} batch={batch:>6} kernels: physics step ours {row['physics_step']} "
-                f"(whole vmap {row['physics_step_whole']}), jax2d {row['jax2d_physics_step']}, "
-                f"ratio {row['physics_ratio_vs_jax2d']:.2f} (whole {row['physics_whole_ratio_vs_jax2d']:.2f}); "
-                f"env step ours {row['env_step']} (whole vmap {row['env_step_whole']})"
+                f"({batching.mode}, {batching.sweeps}; whole vmap looped {row['physics_step_whole_looped']}, "
+                f"as on an accelerator {row['physics_step_accelerator']}), jax2d {jax2d}, ratio "
+                f"{row['physics_step_ratio_vs_jax2d']:.2f} (whole looped "
+                f"{row['physics_step_whole_looped_ratio_vs_jax2d']:.2f}, accelerator "
+                f"{row['physics_step_accelerator_ratio_vs_jax2d']:.2f}); env step ours {row['env_step']} "
+                f"(accelerator {row['env_step_accelerator']})"
             )
     return report
 

@@ -4,7 +4,7 @@ Public surface: state and parameter types, the scene builder, `step`, how batche
 and sweep their solver (`set_batching`), and bitwise-repeatable GPU execution (`use_deterministic_ops`).
 """
 
-from engine.batch_last import BATCHING_MODES, SWEEP_MODES, Batching, current_batching, set_batching
+from engine.batch_last import BATCHING_MODES, SWEEP_FORMS, SWEEP_MODES, Batching, current_batching, set_batching
 from engine.collision import manifolds, world_geometry
 from engine.collision_filter import joint_collision_matrix, modes_collide
 from engine.determinism import use_deterministic_ops, with_deterministic_ops
@@ -43,6 +43,7 @@ __all__ = [
     "MAX_POLYGON_VERTICES",
     "MIN_POLYGON_AREA",
     "NO_FEATURE",
+    "SWEEP_FORMS",
     "SWEEP_MODES",
     "Bodies",
     "ContactCache",

@@ -34,8 +34,11 @@ whole: one ordinary `jax.vmap` over the whole batch."""
 CHUNKED_BACKENDS = ("cpu",)
 """Backends on which "auto" chunks (where chunking and the batch-last layout were measured to pay)."""
 
-SWEEP_MODES = ("auto", *SWEEPS)
-"""auto: "looped" on `LOOPED_SWEEP_BACKENDS`, "unrolled" elsewhere; or one of `engine.sweep.SWEEPS` by name."""
+SWEEP_FORMS = tuple(SWEEPS)
+"""The solver's sweep forms (`engine.sweep.SWEEPS`): "looped" and "unrolled"."""
+
+SWEEP_MODES = ("auto", *SWEEP_FORMS)
+"""auto: "looped" on `LOOPED_SWEEP_BACKENDS`, "unrolled" elsewhere; or one of `SWEEP_FORMS`."""
 
 LOOPED_SWEEP_BACKENDS = ("cpu",)
 """Backends on which "auto" loops the solver's sweeps (unrolled, XLA's CPU backend recomputes each item's solve in
