@@ -5,8 +5,8 @@ Measures, on the default JAX backend (a GPU or TPU when one is installed, else t
 
 - engine: physics steps/s of ours and, where the `bench` extra is installed, of Jax2D in the same run (timed calls
   alternate), at batches 4,096-65,536 for sizes s, m and l, with Jax2D's published peaks beside them; ours with the
-  solver's sweeps in the form `engine.set_batching` picks for the backend and, side by side, in the other forms of
-  the plan (`--engine-sweeps`), so that one run says which form the backend should use;
+  solver's loops in the form `engine.set_batching` picks for the backend and, side by side, in the other forms of
+  the plan (`--engine-solver-loops`), so that one run says which form the backend should use;
 - env: env steps/s of our env (step, auto-reset, symbolic observation) at large batches;
 - PPO: training env steps/s of `agents.train_levels` at pipeline-sized level batches (configs/ppo_specialist.yaml,
   a few updates), and Kinetix's own PPO in the same run when `--kinetix-venv` holds kinetix-env (see
@@ -52,7 +52,7 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 from benchmarks.engine import JAX2D_PUBLISHED_PEAK_STEPS_PER_SECOND  # noqa: E402
 from benchmarks.machine import describe_machine  # noqa: E402
-from engine import SWEEP_FORMS  # noqa: E402
+from engine import SOLVER_LOOP_FORMS  # noqa: E402
 
 ENGINE_SPEEDUP_TARGET = 2.0
 """Engine steps/s at least this many times Jax2D's, measured in the same run."""
@@ -67,7 +67,7 @@ class Plan:
     sizes: tuple[str, ...]
     engine_batches: tuple[int, ...]
     engine_steps: int  # physics steps per timed call
-    engine_sweeps: tuple[str, ...]  # sweep forms (engine.sweep.SWEEPS) timed beside the one "auto" picks
+    engine_solver_loops: tuple[str, ...]  # forms of the solver's loops timed beside the one "auto" picks
     env_batches: tuple[int, ...]
     env_steps: int  # env steps per timed call
     ppo_levels: tuple[int, ...]  # levels trained together
@@ -83,7 +83,7 @@ FULL = Plan(
     sizes=("s", "m", "l"),
     engine_batches=(4096, 16384, 65536),
     engine_steps=20,
-    engine_sweeps=("unrolled", "looped"),
+    engine_solver_loops=("unrolled", "looped"),
     env_batches=(4096, 16384),
     env_steps=32,
     ppo_levels=(64, 256),
@@ -103,7 +103,7 @@ QUICK = Plan(
     sizes=("s",),
     engine_batches=(8,),
     engine_steps=2,
-    engine_sweeps=("unrolled", "looped"),
+    engine_solver_loops=("unrolled", "looped"),
     env_batches=(8,),
     env_steps=2,
     ppo_levels=(2,),
@@ -177,14 +177,15 @@ def _jax2d_available() -> bool:
 
 
 def measure_engine(size: str, batch: int, plan: Plan, with_jax2d: bool) -> dict:
-    """Steps/s of ours in each sweep form (the backend's "auto" form first) and of Jax2D, timed alternately."""
+    """Steps/s of ours in each form of the solver's loops (the backend's "auto" form first) and of Jax2D, timed
+    alternately."""
     from benchmarks import jax2d_baseline
     from benchmarks.engine import compile_rollout_ours
     from benchmarks.timing import best_time, best_times_interleaved
     from engine import current_batching, set_batching
 
     batching = current_batching()
-    forms = list(dict.fromkeys((batching.sweeps, *plan.engine_sweeps)))
+    forms = list(dict.fromkeys((batching.solver_loops, *plan.engine_solver_loops)))
     calls, compile_seconds = [], []
     try:
         for form in forms:
@@ -200,14 +201,14 @@ def measure_engine(size: str, batch: int, plan: Plan, with_jax2d: bool) -> dict:
         compile_seconds.append(time.perf_counter() - started)
     seconds = best_times_interleaved(calls, plan.repeats) if len(calls) > 1 else [best_time(calls[0], plan.repeats)[0]]
     rates = [batch * plan.engine_steps / s for s in seconds]
-    sweeps = {
+    by_form = {
         form: {"steps_per_second": rates[k], "compile_seconds": compile_seconds[k]} for k, form in enumerate(forms)
     }
     result = {
-        "ours_sweeps": forms[0],
+        "ours_solver_loops": forms[0],
         "ours_steps_per_second": rates[0],
         "ours_compile_seconds": compile_seconds[0],
-        "sweeps": sweeps,
+        "solver_loops": by_form,
     }
     if with_jax2d:
         result |= {
@@ -215,7 +216,7 @@ def measure_engine(size: str, batch: int, plan: Plan, with_jax2d: bool) -> dict:
             "jax2d_compile_seconds": compile_seconds[-1],
             "speedup_vs_jax2d": rates[0] / rates[-1],
         }
-        for figures in sweeps.values():
+        for figures in by_form.values():
             figures["speedup_vs_jax2d"] = figures["steps_per_second"] / rates[-1]
     return result
 
@@ -462,10 +463,10 @@ def main(argv=None) -> None:
     )
     parser.add_argument("--engine-batches", nargs="+", type=int, help="override the plan's engine batches")
     parser.add_argument(
-        "--engine-sweeps",
+        "--engine-solver-loops",
         nargs="+",
-        choices=SWEEP_FORMS,
-        help="sweep forms timed beside the backend's own (default: all; name only the backend's to time it alone)",
+        choices=SOLVER_LOOP_FORMS,
+        help="forms of the solver's loops timed beside the backend's own (default: both; name one to time it alone)",
     )
     parser.add_argument("--env-batches", nargs="+", type=int, help="override the plan's env batches")
     parser.add_argument("--ppo-levels", nargs="+", type=int, help="override the plan's PPO level batches")
@@ -477,7 +478,7 @@ def main(argv=None) -> None:
         print(json.dumps(engine_determinism(size, int(batch), int(steps))))
         return
     plan = QUICK if args.quick else FULL
-    for field in ("sizes", "engine_batches", "engine_sweeps", "env_batches", "ppo_levels"):
+    for field in ("sizes", "engine_batches", "engine_solver_loops", "env_batches", "ppo_levels"):
         if getattr(args, field):
             plan = dataclasses.replace(plan, **{field: tuple(getattr(args, field))})
     if args.determinism_batch:

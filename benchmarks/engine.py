@@ -7,9 +7,10 @@ one JSON document instead. On a GPU it also measures large batches and prints Ja
 next to ours.
 
 `--kernels` instead counts the kernels that one physics step and one env step run in sequence, for ours (under
-the current batching, as one whole vmap with looped sweeps, and as a GPU or TPU runs it: one whole vmap with
-unrolled sweeps) and for Jax2D's physics step, at each batch, with the ratios ours / Jax2D. On a GPU each kernel
-launch costs microseconds whatever the batch, so this count bounds the step rate at large batch. Method
+the current batching, as one whole vmap with the solver's loops looped, and as a GPU or TPU runs it: one whole
+vmap with the solver's loops unrolled) and for Jax2D's physics step, at each batch, with the ratios ours / Jax2D.
+On a GPU each kernel launch costs microseconds whatever the batch, so this count bounds the step rate at large
+batch. Method
 (`benchmarks.kernels`): compile the vmapped step with `jax.jit(...).lower(...).compile()` and count, in the
 optimized HLO, the instructions that do work (fusions, custom calls, unfused operations) in the entry computation,
 with `while` bodies multiplied by XLA's `known_trip_count`.
@@ -221,7 +222,7 @@ ACCELERATOR_BATCHING = ("whole", "unrolled")
 
 
 def count_all_kernels(sizes, batches, log=print) -> dict:
-    """Kernel counts per size and batch: ours under the current batching, as one whole vmap with looped sweeps and
+    """Kernel counts per size and batch: ours under the current batching, as one whole vmap with looped solver and
     as an accelerator runs it (`ACCELERATOR_BATCHING`), our env step (current; accelerator's), Jax2D's physics step,
     and the ratios to Jax2D."""
     batching = current_batching()
@@ -229,7 +230,7 @@ def count_all_kernels(sizes, batches, log=print) -> dict:
         "machine": describe_machine(),
         "batching": batching.mode,
         "chunk_limit": batching.chunk_limit,
-        "sweeps": batching.sweeps,
+        "solver_loops": batching.solver_loops,
     }
     for size in sizes:
         for batch in batches:
@@ -241,14 +242,14 @@ def count_all_kernels(sizes, batches, log=print) -> dict:
                 row["physics_step_accelerator"] = physics_step_kernels(size, batch)
                 row["env_step_accelerator"] = env_step_kernels(size, batch)
             finally:
-                set_batching(batching.mode, batching.chunk_limit, batching.sweeps)
+                set_batching(batching.mode, batching.chunk_limit, batching.solver_loops)
             jax2d = row["jax2d_physics_step"] = jax2d_physics_step_kernels(size, batch)
             for form in ("physics_step", "physics_step_whole_looped", "physics_step_accelerator"):
                 row[f"{form}_ratio_vs_jax2d"] = row[form] / jax2d
             report.setdefault("kernels", {}).setdefault(size, {})[str(batch)] = row
             log(
                 f"size={size} batch={batch:>6} kernels: physics step ours {row['physics_step']} "
-                f"({batching.mode}, {batching.sweeps}; whole vmap looped {row['physics_step_whole_looped']}, "
+                f"({batching.mode}, {batching.solver_loops}; whole vmap looped {row['physics_step_whole_looped']}, "
                 f"as on an accelerator {row['physics_step_accelerator']}), jax2d {jax2d}, ratio "
                 f"{row['physics_step_ratio_vs_jax2d']:.2f} (whole looped "
                 f"{row['physics_step_whole_looped_ratio_vs_jax2d']:.2f}, accelerator "

@@ -4,7 +4,14 @@ Public surface: state and parameter types, the scene builder, `step`, how batche
 and sweep their solver (`set_batching`), and bitwise-repeatable GPU execution (`use_deterministic_ops`).
 """
 
-from engine.batch_last import BATCHING_MODES, SWEEP_FORMS, SWEEP_MODES, Batching, current_batching, set_batching
+from engine.batch_last import (
+    BATCHING_MODES,
+    SOLVER_LOOP_FORMS,
+    SOLVER_LOOP_MODES,
+    Batching,
+    current_batching,
+    set_batching,
+)
 from engine.collision import manifolds, world_geometry
 from engine.collision_filter import joint_collision_matrix, modes_collide
 from engine.determinism import use_deterministic_ops, with_deterministic_ops
@@ -43,8 +50,8 @@ __all__ = [
     "MAX_POLYGON_VERTICES",
     "MIN_POLYGON_AREA",
     "NO_FEATURE",
-    "SWEEP_FORMS",
-    "SWEEP_MODES",
+    "SOLVER_LOOP_FORMS",
+    "SOLVER_LOOP_MODES",
     "Bodies",
     "ContactCache",
     "Joints",

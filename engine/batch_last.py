@@ -9,10 +9,10 @@ set stays in cache.
 
 Both pay only on CPU. On a GPU or TPU one vmapped program over the whole batch is faster: a chunk loop runs the
 step's kernels once per chunk in sequence, and the batch-first layout is the one those backends tile well. The
-same holds for the solver's Gauss-Seidel sweeps (`engine.sweep.SWEEPS`): looped on CPU, where a loop body compiled
-once runs fastest, unrolled elsewhere, where each kernel launch costs microseconds whatever the batch and the
-unrolled step runs about half the kernels. `set_batching` chooses per process; the default "auto" picks by
-`jax.default_backend()` when a step is traced.
+same holds for the solver's loops (its substeps and Gauss-Seidel sweeps, `engine.sweep.SWEEPS`): looped on CPU,
+where a loop body compiled once runs fastest, unrolled elsewhere, where each kernel launch costs microseconds
+whatever the batch and the unrolled step runs about half the kernels. `set_batching` chooses per process; the
+default "auto" picks by `jax.default_backend()` when a step is traced.
 """
 
 from __future__ import annotations
@@ -34,36 +34,38 @@ whole: one ordinary `jax.vmap` over the whole batch."""
 CHUNKED_BACKENDS = ("cpu",)
 """Backends on which "auto" chunks (where chunking and the batch-last layout were measured to pay)."""
 
-SWEEP_FORMS = tuple(SWEEPS)
-"""The solver's sweep forms (`engine.sweep.SWEEPS`): "looped" and "unrolled"."""
+SOLVER_LOOP_FORMS = tuple(SWEEPS)
+"""Forms of the solver's loops (substeps, passes and `engine.sweep.SWEEPS`): "looped", each a `lax.scan` whose body
+is compiled once, or "unrolled", written out in order."""
 
-SWEEP_MODES = ("auto", *SWEEP_FORMS)
-"""auto: "looped" on `LOOPED_SWEEP_BACKENDS`, "unrolled" elsewhere; or one of `SWEEP_FORMS`."""
+SOLVER_LOOP_MODES = ("auto", *SOLVER_LOOP_FORMS)
+"""auto: "looped" on `LOOPED_SOLVER_BACKENDS`, "unrolled" elsewhere; or one of `SOLVER_LOOP_FORMS`."""
 
-LOOPED_SWEEP_BACKENDS = ("cpu",)
-"""Backends on which "auto" loops the solver's sweeps (unrolled, XLA's CPU backend recomputes each item's solve in
-every fused consumer: 0.40x the steps/s of s at 256 scenes, 0.86x at 1)."""
+LOOPED_SOLVER_BACKENDS = ("cpu",)
+"""Backends on which "auto" keeps the solver's loops (unrolled, XLA's CPU backend recomputes each item's solve in
+every fused consumer: 0.67x the steps/s of s at 256 scenes, 0.57x at 1, and compiles 2-10x longer)."""
 
 
 @dataclasses.dataclass(frozen=True)
 class Batching:
     """How a vmapped step batches: a resolved mode ("chunked" or "whole"), the chunk limit in scenes, and the
-    resolved form of the solver's sweeps (a key of `engine.sweep.SWEEPS`)."""
+    resolved form of the solver's loops (one of `SOLVER_LOOP_FORMS`)."""
 
     mode: str
     chunk_limit: int = BATCH_CHUNK
-    sweeps: str = "looped"
+    solver_loops: str = "looped"
 
     @property
     def chunked(self) -> bool:
         return self.mode == "chunked"
 
 
-_requested = {"mode": "auto", "chunk_limit": BATCH_CHUNK, "sweeps": "auto"}
+_requested = {"mode": "auto", "chunk_limit": BATCH_CHUNK, "solver_loops": "auto"}
 
 
-def set_batching(mode: str = "auto", chunk_limit: int = BATCH_CHUNK, sweeps: str = "auto") -> None:
-    """Choose how vmapped steps batch (see `BATCHING_MODES`) and how the solver sweeps (see `SWEEP_MODES`); the
+def set_batching(mode: str = "auto", chunk_limit: int = BATCH_CHUNK, solver_loops: str = "auto") -> None:
+    """Choose how vmapped steps batch (see `BATCHING_MODES`) and the form of the solver's loops (see
+    `SOLVER_LOOP_MODES`); the
     choices give the same states to rounding.
 
     A change clears JAX's trace and compilation caches, so that programs traced before (an env step, a training
@@ -73,22 +75,22 @@ def set_batching(mode: str = "auto", chunk_limit: int = BATCH_CHUNK, sweeps: str
         raise ValueError(f"batching mode {mode!r} is not one of {BATCHING_MODES}")
     if int(chunk_limit) < 1:
         raise ValueError(f"batching chunk_limit must be a positive number of scenes, got {chunk_limit}")
-    if sweeps not in SWEEP_MODES:
-        raise ValueError(f"sweep mode {sweeps!r} is not one of {SWEEP_MODES}")
+    if solver_loops not in SOLVER_LOOP_MODES:
+        raise ValueError(f"solver_loops mode {solver_loops!r} is not one of {SOLVER_LOOP_MODES}")
     before = current_batching()
-    _requested.update(mode=mode, chunk_limit=int(chunk_limit), sweeps=sweeps)
+    _requested.update(mode=mode, chunk_limit=int(chunk_limit), solver_loops=solver_loops)
     if current_batching() != before:
         jax.clear_caches()
 
 
 def current_batching() -> Batching:
     """The batching set by `set_batching`, with "auto" resolved for the default backend."""
-    mode, sweeps = _requested["mode"], _requested["sweeps"]
+    mode, loops = _requested["mode"], _requested["solver_loops"]
     if mode == "auto":
         mode = "chunked" if jax.default_backend() in CHUNKED_BACKENDS else "whole"
-    if sweeps == "auto":
-        sweeps = "looped" if jax.default_backend() in LOOPED_SWEEP_BACKENDS else "unrolled"
-    return Batching(mode, _requested["chunk_limit"], sweeps)
+    if loops == "auto":
+        loops = "looped" if jax.default_backend() in LOOPED_SOLVER_BACKENDS else "unrolled"
+    return Batching(mode, _requested["chunk_limit"], loops)
 
 
 def vmap_batch_last(function):

@@ -132,18 +132,19 @@ class Prepared:
 
 
 @functools.cache
-def substep_solver(static: StaticSimParams, batch_last: bool = True, sweeps: str = "looped"):
+def substep_solver(static: StaticSimParams, batch_last: bool = True, solver_loops: str = "looped"):
     """The substep loop and restitution for `static`: `SolverInput -> SolverOutput`, batch-last under vmap if asked,
-    with Gauss-Seidel sweeps of the form `sweeps` (a key of `engine.sweep.SWEEPS`).
+    with its loops (substeps, passes, Gauss-Seidel sweeps) in the form `solver_loops` (a key of `engine.sweep.SWEEPS`).
 
     A substep runs `num_iterations` passes with position bias (all but the last in a `lax.scan`), advances the
     positions after the last, then `num_relax_iterations` passes without bias, of joints only unless `relax_contacts`
-    (soft step: 1, 1; Jax2D's scheme: 10 iterations in one substep and no relaxing pass). Substeps are a
-    `lax.scan`, so the compiled size does not grow with their number, nor with the joints' and colours' under
-    looped sweeps; joints' warm starting (nothing solved) is unrolled into one fusion.
+    (soft step: 1, 1; Jax2D's scheme: 10 iterations in one substep and no relaxing pass). Looped, substeps, passes,
+    joints and colours are `lax.scan`s, so the compiled size does not grow with their number; unrolled, they are
+    written out in order (fewer kernels, a larger program). Joints' warm starting (nothing solved) is unrolled
+    into one fusion either way.
     """
     layout = pair_layout(static)
-    sweep = SWEEPS[sweeps]
+    sweep, unrolled = SWEEPS[solver_loops], solver_loops == "unrolled"
 
     def solve(solver_input: SolverInput) -> SolverOutput:
         def components(x):
@@ -205,7 +206,11 @@ def substep_solver(static: StaticSimParams, batch_last: bool = True, sweeps: str
             carry = (velocity, pose, contact_impulses, joint_impulses)
             if static.num_iterations > 1:
                 carry, _ = jax.lax.scan(
-                    lambda c, _: (solver_pass(c, True, False), None), carry, None, length=static.num_iterations - 1
+                    lambda c, _: (solver_pass(c, True, False), None),
+                    carry,
+                    None,
+                    length=static.num_iterations - 1,
+                    unroll=unrolled,
                 )
             carry = solver_pass(carry, True, True)
             for _ in range(static.num_relax_iterations):
@@ -214,7 +219,7 @@ def substep_solver(static: StaticSimParams, batch_last: bool = True, sweeps: str
 
         carry = (velocity, start_pose, solver_input.contact_impulses, solver_input.joint_impulses)
         (velocity, pose, contact_impulses, joint_impulses), _ = jax.lax.scan(
-            substep_body, carry, jnp.arange(static.num_substeps)
+            substep_body, carry, jnp.arange(static.num_substeps), unroll=unrolled
         )
         velocity, contact_impulses = apply_restitution(
             velocity, rows, contact_impulses, layout, scalars.restitution_threshold, sweep
@@ -415,7 +420,7 @@ def _batched_step(static: StaticSimParams, batching: Batching):
 
     def one_step(state, params, motor_actions, thruster_actions):
         prepared = prepare_step(state, params, motor_actions, thruster_actions, static)
-        solved = substep_solver(static, batching.chunked, batching.sweeps)(prepared.solver_input)
+        solved = substep_solver(static, batching.chunked, batching.solver_loops)(prepared.solver_input)
         return finish_step(state, params, prepared, solved, static), _info_after_solve(prepared, solved, params, static)
 
     return vmap_in_chunks(one_step, batching.chunk_limit) if batching.chunked else one_step
@@ -437,7 +442,7 @@ def step(
 
     `motor_actions` (J,) in [-1, 1] scale each joint motor's target speed; `thruster_actions` (T,) in [0, 1]
     scale each thruster's force. Returns the new state and per-pair contact information. Under `vmap`, how the
-    batch is run (in chunks with batch-last layout, or as one vmap) and how the solver sweeps (looped or unrolled)
-    follow `engine.set_batching` when traced.
+    batch is run (in chunks with batch-last layout, or as one vmap) and the form of the solver's loops (looped or
+    unrolled) follow `engine.set_batching` when traced.
     """
     return _step(state, params, motor_actions, thruster_actions, static=static, batching=current_batching())

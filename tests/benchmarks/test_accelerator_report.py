@@ -19,7 +19,7 @@ def test_dry_run_prints_the_full_plan_without_measuring():
     assert plan["backend"] == "cpu"
     assert plan["plan"]["sizes"] == ["s", "m", "l"]
     assert plan["plan"]["engine_batches"] == [4096, 16384, 65536]
-    assert sorted(plan["plan"]["engine_sweeps"]) == ["looped", "unrolled"]  # both timed beside each other
+    assert sorted(plan["plan"]["engine_solver_loops"]) == ["looped", "unrolled"]  # both timed beside each other
     assert plan["budget_seconds"] <= 600
     assert FULL.ppo_levels == (64, 256)
 
@@ -58,10 +58,10 @@ def test_quick_report_runs_every_section_on_the_cpu():
             assert "error" not in figures and "skipped" not in figures, (section, key, figures)
     assert report["engine"]["s/8"]["ours_steps_per_second"] > 0
     assert report["engine"]["s/8"]["jax2d_steps_per_second"] > 0
-    assert report["engine"]["s/8"]["ours_sweeps"] == "looped"  # the CPU's "auto"
-    for figures in report["engine"]["s/8"]["sweeps"].values():
+    assert report["engine"]["s/8"]["ours_solver_loops"] == "looped"  # the CPU's "auto"
+    for figures in report["engine"]["s/8"]["solver_loops"].values():
         assert figures["steps_per_second"] > 0 and figures["speedup_vs_jax2d"] > 0
-    assert sorted(report["engine"]["s/8"]["sweeps"]) == ["looped", "unrolled"]
+    assert sorted(report["engine"]["s/8"]["solver_loops"]) == ["looped", "unrolled"]
     assert report["env"]["s/8"]["steps_per_second"] > 0
     assert report["ppo"]["s/2"]["steps_per_second"] > 0
     assert report["pipeline"]["s"]["levels"] == 2
@@ -92,14 +92,14 @@ def test_dry_run_takes_the_determinism_batch():
     assert json.loads(output.stdout)["plan"]["determinism_batch"] == 4096
 
 
-def test_dry_run_takes_the_engine_sweeps_and_refuses_an_unknown_one():
+def test_dry_run_takes_the_engine_solver_loops_and_refuses_an_unknown_one():
     output = subprocess.run(
-        [sys.executable, str(SCRIPT), "--dry-run", "--engine-sweeps", "looped"], capture_output=True, text=True
+        [sys.executable, str(SCRIPT), "--dry-run", "--engine-solver-loops", "looped"], capture_output=True, text=True
     )
     assert output.returncode == 0, output.stderr
-    assert json.loads(output.stdout)["plan"]["engine_sweeps"] == ["looped"]
+    assert json.loads(output.stdout)["plan"]["engine_solver_loops"] == ["looped"]
     refused = subprocess.run(
-        [sys.executable, str(SCRIPT), "--dry-run", "--engine-sweeps", "fast"], capture_output=True, text=True
+        [sys.executable, str(SCRIPT), "--dry-run", "--engine-solver-loops", "fast"], capture_output=True, text=True
     )
     assert refused.returncode == 2
-    assert "argument --engine-sweeps: invalid choice: 'fast'" in refused.stderr
+    assert "argument --engine-solver-loops: invalid choice: 'fast'" in refused.stderr

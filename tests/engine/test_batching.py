@@ -284,13 +284,14 @@ def _mode_picks(batch) -> list[int]:
     return [k % len(batch["states"]) for k in range(MODE_SCENES)]
 
 
-def _step_batch_in_mode(mode: str, batch, sweeps: str = "auto"):
-    """`MODE_STEPS` vmapped steps of the mode test batch traced under `engine.set_batching(mode, sweeps=sweeps)`: the
-    first step's (state, info), the state after the last step, and the compiled program's text."""
+def _step_batch_in_mode(mode: str, batch, solver_loops: str = "auto"):
+    """`MODE_STEPS` vmapped steps of the mode test batch traced under `engine.set_batching(mode,
+    solver_loops=solver_loops)`: the first step's (state, info), the state after the last step, and the compiled
+    program's text."""
     picks = _mode_picks(batch)
     states = stack_states([batch["states"][k] for k in picks])
     motors, thrusters = batch["motors"][picks], batch["thrusters"][picks]
-    engine.set_batching(mode, chunk_limit=TEST_CHUNK_LIMIT, sweeps=sweeps)
+    engine.set_batching(mode, chunk_limit=TEST_CHUNK_LIMIT, solver_loops=solver_loops)
     try:
         stepped = jax.jit(jax.vmap(lambda s, m, t: engine.step(s, PARAMS, m, t, static=SIZE_M)))
         compiled = stepped.lower(states, motors[:, 0], thrusters[:, 0]).compile()
@@ -312,7 +313,7 @@ def chunked_run(batch):
 def test_batches_larger_than_a_chunk_equal_single_steps(batch, request):
     """A vmapped step over more than a chunk of scenes (run in chunks, the last one padded) equals each scene stepped
     alone, row by row (`chunked_run`: chunks of `TEST_CHUNK_LIMIT`, the program that
-    test_chunked_and_whole_batching_and_both_sweeps_give_the_same_states compares with whole vmaps)."""
+    test_chunked_and_whole_batching_and_both_solver_loop_forms_give_the_same_states compares with whole vmaps)."""
     picks = _mode_picks(batch)
     motors, thrusters = batch["motors"][picks, 0], batch["thrusters"][picks, 0]
     alone = {}
@@ -335,16 +336,16 @@ def test_batches_larger_than_a_chunk_equal_single_steps(batch, request):
         np.testing.assert_array_equal(np.asarray(info.touching)[index], touching, err_msg=f"row {index}")
 
 
-def test_chunked_and_whole_batching_and_both_sweeps_give_the_same_states(batch, chunked_run):
-    """Chunked with batch-last layout and looped sweeps (the CPU's "auto":
-    test_auto_batching_chunks_and_loops_on_cpu_only), one whole vmap with looped sweeps, and one whole vmap with
-    unrolled sweeps (an accelerator's "auto") step a batch larger than a chunk alike; unrolled, the whole step runs
+def test_chunked_and_whole_batching_and_both_solver_loop_forms_give_the_same_states(batch, chunked_run):
+    """Chunked with batch-last layout and the solver's loops looped (the CPU's "auto":
+    test_auto_batching_chunks_and_loops_on_cpu_only), one whole vmap looped, and one whole vmap with the solver's
+    loops unrolled (an accelerator's "auto") step a batch larger than a chunk alike; unrolled, the whole step runs
     far fewer kernels."""
     _, chunked, chunked_program = chunked_run
     _, whole, whole_program = _step_batch_in_mode("whole", batch)
-    _, unrolled, unrolled_program = _step_batch_in_mode("whole", batch, sweeps="unrolled")
+    _, unrolled, unrolled_program = _step_batch_in_mode("whole", batch, solver_loops="unrolled")
     assert len({chunked_program, whole_program, unrolled_program}) == 3, "set_batching did not change the program"
-    for name, stepped in (("whole", whole), ("whole with unrolled sweeps", unrolled)):
+    for name, stepped in (("whole", whole), ("whole with the solver's loops unrolled", unrolled)):
         for field, expected in _dynamic_fields(chunked.bodies).items():
             np.testing.assert_allclose(
                 np.asarray(getattr(stepped.bodies, field)),
@@ -378,6 +379,6 @@ def test_auto_batching_chunks_and_loops_on_cpu_only():
     assert engine.current_batching() == engine.Batching("chunked", BATCH_CHUNK, "looped")
     with pytest.raises(ValueError, match="batching mode 'gpu'"):
         engine.set_batching("gpu")
-    with pytest.raises(ValueError, match="sweep mode 'fast' is not one of"):
-        engine.set_batching(sweeps="fast")
+    with pytest.raises(ValueError, match="solver_loops mode 'fast' is not one of"):
+        engine.set_batching(solver_loops="fast")
     assert engine.current_batching() == engine.Batching("chunked", BATCH_CHUNK, "looped")
