@@ -10,10 +10,9 @@ next to ours.
 the current batching, as one whole vmap with the solver's loops looped, and as a GPU or TPU runs it: one whole
 vmap with the solver's loops unrolled) and for Jax2D's physics step, at each batch, with the ratios ours / Jax2D.
 On a GPU each kernel launch costs microseconds whatever the batch, so this count bounds the step rate at large
-batch. Method
-(`benchmarks.kernels`): compile the vmapped step with `jax.jit(...).lower(...).compile()` and count, in the
-optimized HLO, the instructions that do work (fusions, custom calls, unfused operations) in the entry computation,
-with `while` bodies multiplied by XLA's `known_trip_count`.
+batch. Method (`benchmarks.kernels`): compile the vmapped step with `jax.jit(...).lower(...).compile()` and count,
+in the optimized HLO, the instructions that do work (fusions, custom calls, unfused operations) in the entry
+computation, with `while` bodies multiplied by XLA's `known_trip_count`.
 
     python benchmarks/engine.py --vs jax2d
     python benchmarks/engine.py --sizes s --batches 256 --json
@@ -218,13 +217,13 @@ def _known(count) -> int:
 
 
 ACCELERATOR_BATCHING = ("whole", "unrolled")
-"""The batching mode and sweep form that `engine.set_batching`'s "auto" picks on a GPU or TPU."""
+"""The batching mode and form of the solver's loops that `engine.set_batching`'s "auto" picks on a GPU or TPU."""
 
 
 def count_all_kernels(sizes, batches, log=print) -> dict:
-    """Kernel counts per size and batch: ours under the current batching, as one whole vmap with looped solver and
-    as an accelerator runs it (`ACCELERATOR_BATCHING`), our env step (current; accelerator's), Jax2D's physics step,
-    and the ratios to Jax2D."""
+    """Kernel counts per size and batch: ours under the current batching, as one whole vmap with the solver's loops
+    looped, and as an accelerator runs it (`ACCELERATOR_BATCHING`); our env step (current; accelerator's); Jax2D's
+    physics step; and the ratios to Jax2D."""
     batching = current_batching()
     report = {
         "machine": describe_machine(),

@@ -1,7 +1,7 @@
 """Rigid-body 2D physics in JAX: fixed-shape scenes of convex polygons and circles, joints and thrusters.
 
-Public surface: state and parameter types, the scene builder, `step`, how batched steps run per backend
-and sweep their solver (`set_batching`), and bitwise-repeatable GPU execution (`use_deterministic_ops`).
+Public surface: state and parameter types, the scene builder, `step`, how batched steps and the solver's loops run
+per backend (`set_batching`), and bitwise-repeatable GPU execution (`use_deterministic_ops`).
 """
 
 from engine.batch_last import (

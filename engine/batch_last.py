@@ -65,8 +65,7 @@ _requested = {"mode": "auto", "chunk_limit": BATCH_CHUNK, "solver_loops": "auto"
 
 def set_batching(mode: str = "auto", chunk_limit: int = BATCH_CHUNK, solver_loops: str = "auto") -> None:
     """Choose how vmapped steps batch (see `BATCHING_MODES`) and the form of the solver's loops (see
-    `SOLVER_LOOP_MODES`); the
-    choices give the same states to rounding.
+    `SOLVER_LOOP_MODES`); all choices give the same states to rounding.
 
     A change clears JAX's trace and compilation caches, so that programs traced before (an env step, a training
     loop) are traced again with the new batching on their next call.
