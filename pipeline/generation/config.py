@@ -121,7 +121,7 @@ class RayConfig:
     """Where the job runs; none of these change the data."""
 
     address: str | None = None  # None: embedded local Ray; "auto" or host:port: a running cluster
-    num_workers: int = 1  # worker actors
+    num_workers: int = 1  # worker actors; 0: no Ray, the job's own process does the work
     cpus_per_worker: float = 1.0  # CPUs Ray reserves per worker actor
     gpus_per_worker: float = 0.0  # GPUs Ray reserves per worker actor (1.0: one GPU each; JAX then runs on it)
     deterministic_gpu_ops: bool = True  # workers turn on XLA's deterministic GPU ops (engine 8.4x slower; none on CPU)
@@ -395,8 +395,10 @@ def check_config(job: JobConfig) -> None:
         )
     if not 1 <= job.filter.noop_steps <= 256:
         raise ConfigError(f"filter.noop_steps must be in [1, 256], got {job.filter.noop_steps}")
-    if job.ray.num_workers < 1:
-        raise ConfigError(f"ray.num_workers must be >= 1, got {job.ray.num_workers}")
+    if job.ray.num_workers < 0:
+        raise ConfigError(f"ray.num_workers must be >= 0 (0: no Ray, in this process), got {job.ray.num_workers}")
+    if job.ray.num_workers == 0 and job.ray.address is not None:
+        raise ConfigError(f"ray.address ({job.ray.address!r}) needs ray.num_workers >= 1; 0 runs without Ray")
     if not 0 < job.lease.heartbeat_s < job.lease.stale_after_s:
         raise ConfigError(
             f"lease.heartbeat_s ({job.lease.heartbeat_s}) must be > 0 and below lease.stale_after_s "

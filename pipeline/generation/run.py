@@ -1,6 +1,6 @@
-"""Generating a split's dataset with Ray workers (`kforge run`): re-running on the same directory resumes it (after
-checking its committed files), a larger `split.num_levels` grows it, SIGINT and SIGTERM stop it keeping every
-committed level batch."""
+"""Generating a split's dataset with Ray workers, or in one process without Ray (`kforge run`): re-running on the
+same directory resumes it (after checking its committed files), a larger `split.num_levels` grows it, SIGINT and
+SIGTERM stop it keeping every committed level batch."""
 
 from __future__ import annotations
 
@@ -11,6 +11,7 @@ import threading
 import time
 import warnings
 
+from engine import use_deterministic_ops
 from env import ActionType
 from pipeline.generation.config import (
     JobConfig,
@@ -31,6 +32,7 @@ from pipeline.storage import (
     DatasetSpec,
     Geometry,
     Lease,
+    LeaseLost,
     Outcome,
     committed_batches,
     create_dataset,
@@ -44,6 +46,10 @@ RAY_NAMESPACE = "kforge"
 PROGRESS_POLL_SECONDS = 2.0
 MAX_SHARD_ATTEMPTS = 3
 """A shard whose worker fails this many times in one run is abandoned for the run (committed batches stay)."""
+IN_PROCESS = 0
+"""`ray.num_workers` that runs the job without Ray: its own process does the work, one level batch after another."""
+IN_PROCESS_WORKER = "local"
+"""The name the commit records give the job's own process as worker."""
 RAY_QUIET_ENV = {"RAY_AUTH_MODE": "disabled", "RAY_USAGE_STATS_ENABLED": "0"}
 """Embedded local Ray: no token auth (a private, single-user instance) and no usage reporting."""
 
@@ -87,7 +93,11 @@ def run_job(
     level batches. Third-party logs go to the dataset's log file (and the terminal too if `verbose`); `report` gets
     the lines an operator reads (what a resumed run found). SIGINT and SIGTERM end it with `JobInterrupted`; a
     dataset whose commits name missing or damaged files is refused with `DatasetDamaged`. The job holds the
-    dataset's lease while it runs (`LeaseHeld` if another job does)."""
+    dataset's lease while it runs (`LeaseHeld` if another job does). Without Ray (`ray.num_workers=0`), XLA's
+    deterministic GPU ops (`ray.deterministic_gpu_ops`) apply to this process only if it has not computed with JAX
+    before the call, as under `kforge run`."""
+    if job.ray.num_workers == IN_PROCESS and job.ray.deterministic_gpu_ops:
+        use_deterministic_ops()  # before this process's first computation (XLA reads its flags once)
     lease = Lease.acquire(job.output_dir, job.lease.stale_after_s, job.lease.heartbeat_s)
     try:
         return _run_leased(job, lease, max_batches, show_progress, verbose, report)
@@ -97,8 +107,6 @@ def run_job(
 
 def _run_leased(job: JobConfig, lease: Lease, max_batches: int | None, show_progress: bool, verbose: bool, report):
     """`run_job` while holding the dataset's lease."""
-    import ray
-
     withdrawn = prepare_output(job)
     damaged = damaged_commits(job.output_dir)
     if damaged:
@@ -113,57 +121,20 @@ def _run_leased(job: JobConfig, lease: Lease, max_batches: int | None, show_prog
     if found == total:  # nothing to do: no Ray, no tracked run, no log file
         return _run_summary(job, found, total, 0.0, [], collections.Counter(), None)
     log_file = start_log_file(job.output_dir, verbose)
-    for name, value in RAY_QUIET_ENV.items():
-        os.environ.setdefault(name, value)
     previous_handler = signal.signal(signal.SIGTERM, _terminate_as_interrupt) if _main_thread() else None
     started = time.perf_counter()
     failures = []
     attempts = collections.Counter()
     tracker = None
-    started_ray = False
     try:
         tracker = start_tracking(job)
-        started_ray = not ray.is_initialized()
-        if started_ray:
-            _init_ray(job, verbose)
-            if previous_handler is not None:  # Ray's own SIGTERM handler (a crash report) replaced ours
-                signal.signal(signal.SIGTERM, _terminate_as_interrupt)
-        coordinator = (
-            ray.remote(Coordinator)
-            .options(num_cpus=0)
-            .remote(job.output_dir, num_shards(job), batches_per_shard(job), max_batches, lease.holder.job_id)
-        )
-        worker_class = ray.remote(Worker).options(num_cpus=job.ray.cpus_per_worker, num_gpus=job.ray.gpus_per_worker)
-        in_flight = {}
-
-        def assign(worker, name):
-            shard = ray.get(coordinator.next_shard.remote(name))
-            if shard is not None:
-                in_flight[worker.run_shard.remote(coordinator, shard)] = (worker, name, shard)
-
-        for i in range(job.ray.num_workers):
-            assign(worker_class.remote(job, f"worker-{i}"), f"worker-{i}")
+        shards = (job.output_dir, num_shards(job), batches_per_shard(job), max_batches, lease.holder.job_id)
         bar = ProgressBar(found, total, enabled=show_progress)
         try:
-            while in_flight:
-                lease.check()
-                ready, _ = ray.wait(list(in_flight), timeout=PROGRESS_POLL_SECONDS)
-                for ref in ready:
-                    worker, name, shard = in_flight.pop(ref)
-                    try:
-                        ray.get(ref)
-                    except ray.exceptions.RayError as error:
-                        attempts[shard] += 1
-                        failures.append({"shard": shard, "worker": name, "error": str(error).splitlines()[0]})
-                        if attempts[shard] >= MAX_SHARD_ATTEMPTS:
-                            ray.get(coordinator.abandon.remote(shard))  # a poison shard: left for a later run
-                        if isinstance(error, ray.exceptions.RayActorError):  # the worker process died: replace it
-                            name = f"{name}-restart{attempts.total()}"
-                            worker = worker_class.remote(job, name)
-                    ray.get(coordinator.release.remote(shard))
-                    assign(worker, name)
-                tracker.log_commits(ray.get(coordinator.take_commits.remote()))
-                bar.show(ray.get(coordinator.progress.remote())[0], ray.get(coordinator.in_flight.remote()))
+            if job.ray.num_workers == IN_PROCESS:
+                _work_in_process(job, _Observed(Coordinator(*shards), lease, tracker, bar), failures, attempts)
+            else:
+                _work_on_ray(job, shards, lease, tracker, bar, failures, attempts, verbose, previous_handler)
         finally:
             bar.close()
     except KeyboardInterrupt:
@@ -176,13 +147,105 @@ def _run_leased(job: JobConfig, lease: Lease, max_batches: int | None, show_prog
             tracker.finish()  # marks the tracked run failed
         raise
     finally:
-        if started_ray:
-            ray.shutdown()
         if previous_handler is not None:
             signal.signal(signal.SIGTERM, previous_handler)
     summary = _run_summary(job, found, total, time.perf_counter() - started, failures, attempts, log_file)
     tracker.finish(summary)
     return summary
+
+
+def _work_on_ray(job, shards: tuple, lease, tracker, bar, failures, attempts, verbose, sigterm_handler) -> None:
+    """Run the coordinator (`Coordinator(*shards)`) as an actor and `ray.num_workers` worker actors until no shard
+    is left: a failed shard is recorded in `failures` and handed out again, up to `MAX_SHARD_ATTEMPTS` times; a dead
+    worker is replaced."""
+    import ray
+
+    for name, value in RAY_QUIET_ENV.items():
+        os.environ.setdefault(name, value)
+    started_ray = not ray.is_initialized()
+    if started_ray:
+        _init_ray(job, verbose)
+        if sigterm_handler is not None:  # Ray's own SIGTERM handler (a crash report) replaced ours
+            signal.signal(signal.SIGTERM, _terminate_as_interrupt)
+    try:
+        actor = ray.remote(Coordinator).options(num_cpus=0).remote(*shards)
+        worker_class = ray.remote(Worker).options(num_cpus=job.ray.cpus_per_worker, num_gpus=job.ray.gpus_per_worker)
+        in_flight = {}
+
+        def assign(worker, name):
+            shard = ray.get(actor.next_shard.remote(name))
+            if shard is not None:
+                in_flight[worker.run_shard.remote(actor, shard)] = (worker, name, shard)
+
+        for i in range(job.ray.num_workers):
+            assign(worker_class.remote(job, f"worker-{i}"), f"worker-{i}")
+        while in_flight:
+            lease.check()
+            ready, _ = ray.wait(list(in_flight), timeout=PROGRESS_POLL_SECONDS)
+            for ref in ready:
+                worker, name, shard = in_flight.pop(ref)
+                try:
+                    ray.get(ref)
+                except ray.exceptions.RayError as error:
+                    attempts[shard] += 1
+                    failures.append({"shard": shard, "worker": name, "error": str(error).splitlines()[0]})
+                    if attempts[shard] >= MAX_SHARD_ATTEMPTS:
+                        ray.get(actor.abandon.remote(shard))  # a poison shard: left for a later run
+                    if isinstance(error, ray.exceptions.RayActorError):  # the worker process died: replace it
+                        name = f"{name}-restart{attempts.total()}"
+                        worker = worker_class.remote(job, name)
+                ray.get(actor.release.remote(shard))
+                assign(worker, name)
+            tracker.log_commits(ray.get(actor.take_commits.remote()))
+            bar.show(ray.get(actor.progress.remote())[0], ray.get(actor.in_flight.remote()))
+    finally:
+        if started_ray:
+            ray.shutdown()
+
+
+def _work_in_process(job: JobConfig, coordinator: _Observed, failures: list, attempts: collections.Counter) -> None:
+    """The work of `_work_on_ray` in this process, without Ray: one worker takes shard after shard; a shard whose
+    work raises is recorded and handed out again as on Ray (a crash of the process ends the run, as an interrupt)."""
+    worker = Worker(job, IN_PROCESS_WORKER)
+    while (shard := coordinator.next_shard(IN_PROCESS_WORKER)) is not None:
+        try:
+            worker.run_shard(coordinator, shard)
+        except LeaseLost:
+            raise
+        except Exception as error:  # contained as a failed Ray task would be
+            attempts[shard] += 1
+            message = f"{type(error).__name__}: {error}".splitlines()[0]
+            failures.append({"shard": shard, "worker": IN_PROCESS_WORKER, "error": message})
+            if attempts[shard] >= MAX_SHARD_ATTEMPTS:
+                coordinator.abandon(shard)
+        coordinator.release(shard)
+
+
+class _Observed:
+    """A coordinator in this process whose commits and training reports also check the lease, log the commits and
+    redraw the progress bar (what the driver's polling loop does on Ray)."""
+
+    def __init__(self, coordinator: Coordinator, lease: Lease, tracker, bar: ProgressBar):
+        self._coordinator, self._lease, self._tracker, self._bar = coordinator, lease, tracker, bar
+        self.next_shard = coordinator.next_shard
+        self.release = coordinator.release
+        self.abandon = coordinator.abandon
+        self.claim_batch = coordinator.claim_batch
+        self.job_id = coordinator.job_id
+
+    def commit(self, shard: int, batch: int, record: dict) -> bool:
+        self._lease.check()
+        committed = self._coordinator.commit(shard, batch, record)
+        self._tracker.log_commits(self._coordinator.take_commits())
+        self._show()
+        return committed
+
+    def report_training(self, shard: int, batch: int, updates_done: int, num_updates: int) -> None:
+        self._coordinator.report_training(shard, batch, updates_done, num_updates)
+        self._show()
+
+    def _show(self) -> None:
+        self._bar.show(self._coordinator.progress()[0], self._coordinator.in_flight())
 
 
 def _run_summary(job, found, total, seconds, failures, attempts, log_file) -> dict:

@@ -9,6 +9,7 @@ The rollout runs once per test session.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import json
 import os
 import signal
@@ -26,10 +27,7 @@ import zarr
 from engine import SceneBuilder
 from env import ActionType, EnvParams, Role, StaticEnvParams, build_level, random_action, reset, step
 from pipeline.generation.config import load_config
-from pipeline.generation.coordinator import Coordinator
-from pipeline.generation.level_batch import batches_per_shard, num_shards
-from pipeline.generation.run import prepare_output
-from pipeline.generation.worker import Worker
+from pipeline.generation.run import run_job
 from pipeline.storage import (
     LEASE_KEY,
     PROVENANCE,
@@ -183,18 +181,10 @@ def tiny_job(output_dir, *extra):
     return load_config(None, [f"output_dir={output_dir}", *TINY_JOB, *extra])
 
 
-def run_in_process(job, max_batches=None):
-    """The job's work loop without Ray, under the job's lease: one worker takes shards from the coordinator until
-    none is left."""
-    with Lease.acquire(job.output_dir) as lease:
-        prepare_output(job)
-        coordinator = Coordinator(
-            job.output_dir, num_shards(job), batches_per_shard(job), max_batches, lease.holder.job_id
-        )
-        worker = Worker(job, "local")
-        while (shard := coordinator.next_shard("local")) is not None:
-            worker.run_shard(coordinator, shard)
-            coordinator.release(shard)
+def run_in_process(job, max_batches=None) -> dict:
+    """The job run without Ray (`ray.num_workers=0`): its summary."""
+    in_process = dataclasses.replace(job, ray=dataclasses.replace(job.ray, num_workers=0))
+    return run_job(in_process, max_batches=max_batches, show_progress=False, report=lambda line: None)
 
 
 @pytest.fixture(scope="session")
@@ -238,6 +228,12 @@ def kill_session(session: int) -> None:
 KILL_WAIT_SECONDS = 30.0
 POLL_SECONDS = 0.05
 JOB_TIMEOUT_SECONDS = 900.0
+
+
+def as_a_terminal_job() -> None:
+    """`preexec_fn` of a job the test interrupts: default SIGINT handling, as a shell gives a foreground command (an
+    ignored SIGINT is inherited across exec, so a test run started in the background would pass it on)."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
 
 
 def run_job_process(config_file: Path, until=None) -> str:

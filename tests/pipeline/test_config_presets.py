@@ -107,6 +107,7 @@ def test_scale_presets_other_than_tiny_set_no_training_keys():
         ("ppo=3", "overrides: ppo: expected a section with keys num_envs,"),
         ("scale=tiny", "--scale"),
         ("split.num_levels", "'split.num_levels' is not of the form key=value"),
+        ("ray.num_workers=-1", "ray.num_workers must be >= 0 (0: no Ray, in this process), got -1"),
     ],
 )
 def test_a_bad_override_names_the_key_and_expected_type(override, message):
@@ -120,6 +121,11 @@ def test_a_bad_value_in_a_file_names_the_file_key_and_type(tmp_path):
     path.write_text("split:\n  name: x/s\n  seed: first\n")
     with pytest.raises(ConfigError, match=rf"^{path}: split\.seed: expected int, got 'first' \(str\)$"):
         load_config(path)
+
+
+def test_a_job_without_ray_cannot_name_a_ray_cluster():
+    with pytest.raises(ConfigError, match=r"^ray\.address \('auto'\) needs ray\.num_workers >= 1; 0 runs without Ray$"):
+        load_config(split_file("1M/s"), ["ray.num_workers=0", "ray.address=auto"], scale="tiny")
 
 
 def test_an_unknown_scale_lists_the_presets():

@@ -21,7 +21,9 @@ from pipeline_test_helpers import (
     JOB_TIMEOUT_SECONDS,
     KILL_WAIT_SECONDS,
     POLL_SECONDS,
+    as_a_terminal_job,
     assert_same_dataset,
+    dataset_contents,
     kill_session,
     run_in_process,
     run_job_process,
@@ -30,6 +32,7 @@ from pipeline_test_helpers import (
 )
 
 import pipeline.generation.config
+import pipeline.generation.worker
 from engine import SimParams
 from env import EnvParams
 from pipeline.cli import EXIT_DATA, EXIT_INTERRUPTED
@@ -69,6 +72,49 @@ def test_crash_between_data_and_commit_is_cleaned_and_redone(uninterrupted, tmp_
     assert committed_batches(tmp_path, 1) == []
     run_in_process(job)
     assert_same_dataset(uninterrupted, tmp_path)
+
+
+def test_a_failing_shard_of_a_job_without_ray_is_retried_abandoned_and_finished_by_a_later_run(
+    uninterrupted, tmp_path, monkeypatch
+):
+    def failing_on_shard_1(job, shard, batch, **kwargs):
+        if shard == 1:
+            raise FloatingPointError("injected")
+        return run_level_batch(job, shard, batch, **kwargs)
+
+    monkeypatch.setattr(pipeline.generation.worker, "run_level_batch", failing_on_shard_1)
+    summary = run_in_process(tiny_job(tmp_path))
+    assert summary["worker_failures"] == [{"shard": 1, "worker": "local", "error": "FloatingPointError: injected"}] * 3
+    assert summary["abandoned_shards"] == [1] and summary["committed_in_run"] == 2
+    assert (committed_batches(tmp_path, 0), committed_batches(tmp_path, 1)) == ([0, 1], [])
+    monkeypatch.undo()
+    run_in_process(tiny_job(tmp_path))
+    assert_same_dataset(uninterrupted, tmp_path)
+
+
+WITHOUT_RAY = """
+import runpy, sys
+class NoRay:  # as on a machine where Ray is not installed
+    def find_spec(self, name, path=None, target=None):
+        if name.split(".")[0] == "ray":
+            raise ModuleNotFoundError("No module named 'ray'")
+sys.meta_path.insert(0, NoRay())
+sys.argv = ["kforge", *sys.argv[1:]]
+runpy.run_module("pipeline", run_name="__main__")
+"""
+"""`python -c` code that runs `python -m pipeline` with every import of Ray failing."""
+
+
+def test_a_job_without_ray_runs_where_ray_cannot_be_imported_and_makes_the_same_data(uninterrupted, tmp_path):
+    output = tmp_path / "dataset"
+    config_file = tmp_path / "job.yaml"
+    config_file.write_text(to_yaml(tiny_job(output, "ray.num_workers=0")))
+    command = [sys.executable, "-c", WITHOUT_RAY, "run", str(config_file), "--no-progress", "--json", "--max-batches=1"]
+    finished = subprocess.run(command, capture_output=True, text=True, timeout=JOB_TIMEOUT_SECONDS)
+    assert finished.returncode == EXIT_DATA, finished.stderr[-3000:]  # incomplete: 1 of 4 level batches
+    assert json.loads(finished.stdout)["committed_in_run"] == 1
+    (record,) = dataset_contents(output)[1]  # with the digests of its data
+    assert record in dataset_contents(uninterrupted)[1]
 
 
 def test_a_config_that_changes_the_data_is_refused(tmp_path):
@@ -170,11 +216,25 @@ def test_a_damaged_commit_is_refused_by_run_repaired_by_verify_and_regenerated_i
 def test_a_complete_dataset_is_reported_without_starting_ray_or_tracking(uninterrupted, tmp_path):
     root = tmp_path / "dataset"
     shutil.copytree(uninterrupted, root)
+    logs = sorted((root / "logs").iterdir())  # the first run's
     lines = []
     summary = run_job(tiny_job(root), show_progress=False, report=lines.append)
     assert lines == ["resuming: found 4 of 4 level batches committed; nothing remains"]
     assert (summary["committed_batches"], summary["committed_in_run"], summary["log_file"]) == (4, 0, None)
-    assert not (root / "logs").exists()
+    assert sorted((root / "logs").iterdir()) == logs
+
+
+def test_a_job_without_ray_asks_for_deterministic_gpu_ops_in_its_own_process(uninterrupted, tmp_path, monkeypatch):
+    monkeypatch.setenv("XLA_FLAGS", "--xla_force_host_platform_device_count=1")  # restored after the test
+    root = tmp_path / "dataset"
+    shutil.copytree(uninterrupted, root)
+    run_job(tiny_job(root, "ray.num_workers=0", "ray.deterministic_gpu_ops=false"), show_progress=False)
+    assert os.environ["XLA_FLAGS"] == "--xla_force_host_platform_device_count=1"
+    run_job(tiny_job(root, "ray.num_workers=0"), show_progress=False)  # complete: it computes nothing, but asks first
+    assert os.environ["XLA_FLAGS"].split() == [
+        "--xla_force_host_platform_device_count=1",
+        "--xla_gpu_deterministic_ops=true",
+    ]
 
 
 def test_raising_num_levels_grows_the_dataset_to_equal_one_made_at_the_larger_count(uninterrupted, tmp_path):
@@ -246,18 +306,24 @@ def _worker_started(session: int) -> bool:
     return False
 
 
-def _as_a_terminal_job() -> None:
-    """Default SIGINT handling in the job, as a shell gives a foreground command: an ignored SIGINT is inherited
-    across exec, so a test run started in the background (where shells ignore SIGINT) would pass it on."""
-    signal.signal(signal.SIGINT, signal.SIG_DFL)
+def _run_logs(output: Path) -> int:
+    return len(list((output / "logs").glob("run-*.log")))
 
 
-@pytest.mark.parametrize("whom", ["SIGINT to the terminal's process group", "SIGTERM to the driver"])
-def test_a_signal_ends_the_job_with_one_line_naming_what_was_committed_and_how_to_resume(whom, tmp_path):
+@pytest.mark.parametrize(
+    "whom, workers",
+    [
+        ("SIGINT to the terminal's process group", 1),
+        ("SIGTERM to the driver", 1),
+        ("SIGTERM to a job without Ray", 0),
+    ],
+)
+def test_a_signal_ends_the_job_with_one_line_naming_what_was_committed_and_how_to_resume(whom, workers, tmp_path):
     output = tmp_path / "dataset"
     config_file = tmp_path / "job.yaml"
-    config_file.write_text(to_yaml(tiny_job(output)))
+    config_file.write_text(to_yaml(tiny_job(output, f"ray.num_workers={workers}")))
     run_in_process(tiny_job(output), max_batches=1)
+    logs = _run_logs(output)
     command = [sys.executable, "-m", "pipeline", "run", str(config_file), "--no-progress"]
     process = subprocess.Popen(
         command,
@@ -265,11 +331,13 @@ def test_a_signal_ends_the_job_with_one_line_naming_what_was_committed_and_how_t
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         env={**os.environ, "RAY_AUTH_MODE": "disabled"},
-        preexec_fn=_as_a_terminal_job,
+        preexec_fn=as_a_terminal_job,
     )
     try:
         deadline = time.monotonic() + JOB_TIMEOUT_SECONDS
-        while not _worker_started(process.pid) and process.poll() is None and time.monotonic() < deadline:
+        # At work: a Ray worker actor has started, or the job without Ray has opened its run's log.
+        at_work = (lambda: _worker_started(process.pid)) if workers else (lambda: _run_logs(output) > logs)
+        while not at_work() and process.poll() is None and time.monotonic() < deadline:
             time.sleep(POLL_SECONDS)
         if whom.startswith("SIGINT"):
             os.killpg(process.pid, signal.SIGINT)  # what Ctrl-C does
