@@ -1,9 +1,8 @@
 """RL agents that train on env tasks: PPO specialists, one parameter set per level, many levels per program.
 
 Public surface: the config, training of a level batch, evaluation, expert windows for the dataset, training in segments
-for adaptive budgets, the pieces they are made of (GAE, loss, the learner and its optimiser, policy), and progress
-reports from a training program while it runs; for behaviour cloning, its policy networks and objective, and episodes of
-any policy given as an actor function.
+for adaptive budgets, and the pieces they are made of (GAE, loss, the learner and its optimiser, policy); for behaviour
+cloning, its policy networks and objective, and episodes of any policy given as an actor function.
 """
 
 from agents.bc_networks import Architecture, EntityTransformerPolicy, MLPPolicy, NetworkConfig, make_bc_network
@@ -27,7 +26,6 @@ from agents.ppo import (
     train_level,
     train_levels,
 )
-from agents.progress import ProgressListener, training_progress
 from agents.segments import LevelTraining, SegmentOutput, check_segmented, put_slot, start_level, train_segments
 
 __all__ = [
@@ -45,7 +43,6 @@ __all__ = [
     "MLPPolicy",
     "NetworkConfig",
     "PPOConfig",
-    "ProgressListener",
     "SegmentOutput",
     "Selection",
     "TrainOutput",
@@ -71,5 +68,4 @@ __all__ = [
     "train_level",
     "train_levels",
     "train_segments",
-    "training_progress",
 ]

@@ -35,7 +35,6 @@ from agents.batching import ACTION_TYPE, check_level_keys, num_levels
 from agents.config import PPOConfig
 from agents.evaluate import level_episodes
 from agents.networks import make_network
-from agents.progress import report_updates
 from env import (
     EnvParams,
     EnvState,
@@ -276,13 +275,8 @@ def train_from(
     config: PPOConfig,
     env_params: EnvParams,
     static: StaticEnvParams,
-    progress: jax.Array | None = None,
 ) -> TrainOutput:
-    """PPO on one level starting from `params`, with the randomness of rollouts and minibatches drawn from `key`.
-
-    `progress`: a token from `agents.training_progress` (not batched under `vmap`), told the updates done at the
-    start of every evaluation segment.
-    """
+    """PPO on one level starting from `params`, with the randomness of rollouts and minibatches drawn from `key`."""
     train_and_evaluate = _segment_program(level, config, env_params, static)
     carry = _initial_carry(level, params, key, config, static)
     selection_key = jax.random.fold_in(key, SELECTION_STREAM)
@@ -292,8 +286,6 @@ def train_from(
     regular = config.num_updates // every  # evaluations after `every` updates each; one more after a remainder
 
     def regular_segment(state, index):
-        if progress is not None:
-            report_updates(progress, index * every, config.num_updates)
         carry, best, metrics, evaluation = train_and_evaluate(*state, index, (index + 1) * every, selection_key, every)
         return (carry, best), (metrics, evaluation)
 
@@ -426,11 +418,8 @@ def train_levels(
     config: PPOConfig,
     env_params: EnvParams,
     static: StaticEnvParams,
-    progress: jax.Array | None = None,
 ) -> TrainOutput:
     """`train_level` on every level of a batch (leading axis L) with its own key; outputs gain a leading L axis.
-
-    `progress`: a token from `agents.training_progress`, told the updates done as training goes (the same results).
 
     Initial parameters are drawn level after level (`lax.map`, not `vmap`): a batched orthogonal initialisation
     runs LAPACK QR on XLA's CPU thread pool, which deadlocked with two such calls in flight on a 2-core machine.
@@ -438,6 +427,6 @@ def train_levels(
     check_level_keys(keys, num_levels(levels))
     split = jax.vmap(jax.random.split)(keys)
     params = jax.lax.map(lambda key: initial_params(key, config, static), split[:, 0])
-    return jax.vmap(
-        lambda level, level_params, key: train_from(level, level_params, key, config, env_params, static, progress)
-    )(levels, params, split[:, 1])
+    return jax.vmap(lambda level, level_params, key: train_from(level, level_params, key, config, env_params, static))(
+        levels, params, split[:, 1]
+    )

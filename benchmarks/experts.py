@@ -51,7 +51,7 @@ from tqdm import tqdm
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
-from agents import collect_windows, evaluate, train_levels, training_progress  # noqa: E402
+from agents import collect_windows, evaluate, train_levels  # noqa: E402
 from benchmarks.env import REPO_ROOT  # noqa: E402
 from benchmarks.machine import describe_machine  # noqa: E402
 from env import FilterReason, Level, StaticEnvParams, bundled_level_path, filter_levels, load_level  # noqa: E402
@@ -61,6 +61,7 @@ from pipeline.generation.config import (  # noqa: E402
     load_config,
     ppo_config,
 )
+from pipeline.generation.estimated_progress import estimated_progress  # noqa: E402
 from pipeline.generation.level_batch import KeyPurpose, level_key, level_keys, sample_batch  # noqa: E402
 
 SPLIT_CONFIG = REPO_ROOT / "configs" / "splits" / "1M" / "s.yaml"
@@ -182,8 +183,8 @@ def run_experts(
         if (config, static, batch) not in programs:
             clock = time.perf_counter()
             programs[config, static, batch] = train_levels.lower(
-                batch_levels, train_keys, config, env_params, static, progress=jnp.int32(0)
-            ).compile()  # with a progress token, as the pipeline trains
+                batch_levels, train_keys, config, env_params, static
+            ).compile()
             seconds["compile"] = time.perf_counter() - clock
         compiled = programs[config, static, batch]
         last = min(start + batch, count) - 1
@@ -191,11 +192,9 @@ def run_experts(
             tqdm(
                 total=config.num_updates, unit="update", desc=f"  levels {first + start}-{first + last}", leave=False
             ) as bar,
-            training_progress(lambda done, total, bar=bar: bar.update(done - bar.n)) as token,
+            estimated_progress((config, static, batch), config.num_updates, functools.partial(_advance, bar)),
         ):
-            trained, elapsed = _timed(
-                functools.partial(compiled, batch_levels, train_keys, env_params, progress=token), warm_up=False
-            )
+            trained, elapsed = _timed(functools.partial(compiled, batch_levels, train_keys, env_params), warm_up=False)
         seconds["train"] += elapsed
         expert = _BatchExperts(job, trained.params, batch_levels, seed, first + indices)
         window, elapsed = _timed(expert.window, warm_up=start == 0)
@@ -210,6 +209,10 @@ def run_experts(
         log(f"  levels {first + start}-{first + last} done, {last + 1} of {count} ({seconds['train']:.0f} s training)")
     per_level = {name: np.concatenate(values)[:count] for name, values in results.items()}
     return {"per_level": per_level, "seconds": seconds, "padded_levels": padded}
+
+
+def _advance(bar: tqdm, updates_done: int, num_updates: int) -> None:
+    bar.update(updates_done - bar.n)
 
 
 def _share(part: np.ndarray) -> float | None:

@@ -18,10 +18,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from agents import ProgressListener, collect_windows, train_levels, training_progress
+from agents import collect_windows, train_levels
 from env import FilterReason, Level, filter_levels, sample_levels
 from pipeline.generation.config import FIXED_BUDGET_MODE, JobConfig, environment, ppo_config
 from pipeline.generation.devices import over_local_devices
+from pipeline.generation.estimated_progress import ProgressListener, estimated_progress
 from pipeline.storage import BatchTrajectories, Outcome, learning_curves
 
 
@@ -78,7 +79,8 @@ def run_level_batch(
 
     Every level gets an outcome (`level_outcome`); only kept levels' windows are stored. Levels past
     `split.num_levels` (padding of the last shard) are computed with the rest but never kept. `on_progress` is told
-    the PPO updates done per level while the experts train (from another thread), and all of them once trained.
+    the PPO updates done per level once the training program is compiled, an estimate of them while the experts
+    train (from another thread; `estimated_progress`), and all of them once trained.
     """
     clock = PhaseClock()
     params, static = environment(job)
@@ -88,11 +90,9 @@ def run_level_batch(
 
     config = ppo_config(job)
     train_keys = level_keys(job.split.seed, indices, KeyPurpose.TRAIN)
-    listener = on_progress or _ignore_progress  # one compiled program, whether or not anyone listens
-    with training_progress(listener) as token:
-        train = _train_program(config, static, len(indices))
-        trained = jax.block_until_ready(train(levels, train_keys, params, token))
-    listener(config.num_updates, config.num_updates)
+    train = _compiled_train_program(config, static, levels, train_keys, params)
+    with estimated_progress((config, static, len(indices)), config.num_updates, on_progress or _ignore_progress):
+        trained = jax.block_until_ready(train(levels, train_keys, params))
     clock.lap("train")
     metrics, selection = jax.device_get((trained.metrics, trained.selection))
     experts = Experts(
@@ -155,14 +155,21 @@ def batch_result(
     )
 
 
-@functools.cache
-def _train_program(config, static, num_levels: int):
-    """(levels, keys, env params, progress token) -> `train_levels`, spread over the local devices."""
+def _compiled_train_program(config, static, levels: Level, keys: jax.Array, env_params):
+    """`train_levels` for a batch of these shapes, spread over the local devices: compiled (or loaded from the
+    persistent compilation cache) once per config and level count in a process."""
+    program = (config, static, len(keys))
+    if program not in _train_programs:
 
-    def train(levels, keys, env_params, progress):
-        return train_levels(levels, keys, config, env_params, static, progress=progress)
+        def train(levels, keys, env_params):
+            return train_levels(levels, keys, config, env_params, static)
 
-    return over_local_devices(train, num_levels, level_args=2, shared_args=2)
+        spread = over_local_devices(train, len(keys), level_args=2, shared_args=1)
+        _train_programs[program] = jax.jit(spread).lower(levels, keys, env_params).compile()
+    return _train_programs[program]
+
+
+_train_programs: dict[tuple, jax.stages.Compiled] = {}
 
 
 def windows_successful(job: JobConfig, params, levels: Level, indices: np.ndarray) -> np.ndarray:

@@ -112,9 +112,15 @@ def test_a_worker_reports_each_batch_fully_trained_before_it_commits(tmp_path):
         coordinator = _RecordingCoordinator(*args)
         shard = coordinator.next_shard("local")
         Worker(job, "local").run_shard(coordinator, shard)
-    # The tiny job: 256 env steps of 4 envs x 16 steps = 4 updates per level in one evaluation segment; the program
-    # reports its start, the worker the end.
-    assert coordinator.reports == [(shard, 0, 0, 4), (shard, 0, 4, 4), (shard, 1, 0, 4), (shard, 1, 4, 4)]
+    # The tiny job: 256 env steps of 4 envs x 16 steps = 4 updates per level. Each batch reports 0 of 4 once its
+    # program is compiled, all 4 once trained, and between them, where the program ran before in this process,
+    # estimates from its time then (never all 4, never going back).
+    for batch in (0, 1):
+        reports = [report[2:] for report in coordinator.reports if report[:2] == (shard, batch)]
+        done = [updates_done for updates_done, _ in reports]
+        assert reports[0] == (0, 4) and reports[-1] == (4, 4) and {total for _, total in reports} == {4}
+        assert done[1:-1] == sorted(done[1:-1]) and all(0 <= d < 4 for d in done[1:-1]), reports
+    assert [report[1] for report in coordinator.reports] == sorted(report[1] for report in coordinator.reports)
     assert coordinator.training() == {}  # both committed
     assert coordinator.progress() == (2, 4)
 
