@@ -81,7 +81,7 @@ class Plan:
 
 FULL = Plan(
     sizes=("s", "m", "l"),
-    engine_batches=(4096, 16384, 65536),
+    engine_batches=(16384, 4096, 65536),  # measured in this order, every size at a batch before the next
     engine_steps=20,
     engine_solver_loops=("unrolled", "looped"),
     env_batches=(4096, 16384),
@@ -239,30 +239,65 @@ def measure_ppo(size: str, levels: int, plan: Plan) -> dict:
     return measure_ours(size, levels, _ppo_config(plan), plan.repeats)
 
 
-def measure_kinetix_ppo(python: Path, size: str, plan: Plan) -> dict:
+def measure_kinetix_ppo(python: Path, size: str, plan: Plan, site: Path | None = None) -> dict:
+    """Kinetix's PPO in `python`, with the packages of `site` first on its path where given."""
     from benchmarks.ppo import measure_kinetix
 
     options = argparse.Namespace(updates=plan.ppo_updates, repeats=plan.repeats, kinetix_network="ours")
-    return measure_kinetix(python, size, _ppo_config(plan), options)
+    environment = None if site is None else _with_path_first(site)
+    return measure_kinetix(python, size, _ppo_config(plan), options, environment)
 
 
-def measure_pipeline(size: str, plan: Plan, scratch: Path, extra_overrides: tuple[str, ...] = ()) -> dict:
-    """A tiny job end to end through Ray: one worker, on the accelerator when there is one."""
-    from pipeline.generation import load_config, run_job
+def _with_path_first(folder: Path | str) -> dict[str, str]:
+    """This process's environment with `folder` first on PYTHONPATH."""
+    return {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(folder), os.environ.get("PYTHONPATH")]))}
 
+
+def _ray_available() -> bool:
+    try:
+        import ray  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+def measure_pipeline(
+    size: str, plan: Plan, scratch: Path, compile_cache: Path, extra_overrides: tuple[str, ...] = ()
+) -> dict:
+    """A tiny job end to end into `scratch`, `kforge run` in a fresh process: one Ray worker on the accelerator, or
+    where Ray is not installed the job's own process (`ray.num_workers=0`); programs go to `compile_cache`, so a
+    second run loads them."""
+    from pipeline.generation.config import load_config, to_yaml
+
+    with_ray = _ray_available()
     gpus = 1.0 if jax.default_backend() == "gpu" else 0.0
+    output = scratch / f"pipeline-{size}"
     overrides = [
-        f"output_dir={scratch / f'pipeline-{size}'}",
+        f"output_dir={output}",
         f"split.name=accelerator/{size}",
         f"split.size={size}",
-        "ray.num_workers=1",
-        f"ray.gpus_per_worker={gpus}",
+        f"ray.num_workers={1 if with_ray else 0}",
+        f"ray.gpus_per_worker={gpus if with_ray else 0.0}",
+        f"compile_cache.dir={compile_cache}",
         "tracking.wandb=disabled",
         *plan.pipeline_overrides,
         *extra_overrides,
     ]
-    summary = run_job(load_config(None, overrides), show_progress=False)
-    return {"wall_seconds": summary["seconds"], "levels": summary["levels"], "outcomes": summary["outcomes"]}
+    config_file = scratch / f"pipeline-{size}.yaml"
+    scratch.mkdir(parents=True, exist_ok=True)
+    config_file.write_text(to_yaml(load_config(None, overrides)))
+    command = [sys.executable, "-m", "pipeline", "run", str(config_file), "--no-progress", "--json"]
+    root = Path(__file__).resolve().parents[1]
+    finished = subprocess.run(command, capture_output=True, text=True, env=_with_path_first(root), cwd=root)
+    if finished.returncode != 0:
+        raise RuntimeError(f"kforge run exited {finished.returncode}: {finished.stderr.strip()[-2000:]}")
+    summary = json.loads(finished.stdout)
+    return {
+        "ray": with_ray,
+        "wall_seconds": summary["seconds"],
+        "levels": summary["levels"],
+        "outcomes": summary["outcomes"],
+    }
 
 
 def engine_determinism(size: str, batch: int, steps: int) -> dict:
@@ -340,12 +375,12 @@ WORKERS_WITHOUT_DETERMINISTIC_OPS = ("ray.deterministic_gpu_ops=false",)
 for them."""
 
 
-def measure_pipeline_determinism(size: str, plan: Plan, scratch: Path) -> dict:
-    """The tiny job twice into fresh folders, its workers without XLA's deterministic GPU ops: are its stored arrays
-    byte-identical?"""
+def measure_pipeline_determinism(size: str, plan: Plan, scratch: Path, compile_cache: Path) -> dict:
+    """The tiny job twice, each in a fresh process into a fresh folder, without XLA's deterministic GPU ops: are its
+    stored arrays byte-identical?"""
     digests = []
     for run in ("first", "second"):
-        measure_pipeline(size, plan, scratch / run, WORKERS_WITHOUT_DETERMINISTIC_OPS)
+        measure_pipeline(size, plan, scratch / run, compile_cache, WORKERS_WITHOUT_DETERMINISTIC_OPS)
         digests.append(_data_digests(scratch / run / f"pipeline-{size}"))
     differing = sorted(
         f"{batch}/{name}" for batch, name in digests[0] if digests[0][batch, name] != digests[1].get((batch, name))
@@ -378,7 +413,23 @@ def check_targets(report: dict) -> dict:
     return targets
 
 
-def run(plan: Plan, budget_seconds: float, kinetix_venv: Path | None, log, sections=tuple(SECTION_SHARES)) -> dict:
+def kinetix_interpreter(venv: Path | None, site: Path | None) -> tuple[Path, Path | None] | None:
+    """(Python, package folder or None) that runs Kinetix's PPO: a virtualenv's, or this interpreter with a folder of
+    packages (`pip install --target`) first on its path, for a machine where no virtualenv can be built."""
+    if site is not None:
+        return Path(sys.executable), site.resolve()
+    if venv is not None:
+        return venv.resolve() / "bin" / "python", None
+    return None
+
+
+def run(
+    plan: Plan,
+    budget_seconds: float,
+    kinetix: tuple[Path, Path | None] | None,
+    log,
+    sections=tuple(SECTION_SHARES),
+) -> dict:
     budget = Budget(budget_seconds, sections)
     with_jax2d = _jax2d_available()
     report = {
@@ -389,8 +440,8 @@ def run(plan: Plan, budget_seconds: float, kinetix_venv: Path | None, log, secti
         "jax2d_in_run": with_jax2d,
         "jax2d_published_peak_steps_per_second": JAX2D_PUBLISHED_PEAK_STEPS_PER_SECOND,
     }
-    for size in plan.sizes:
-        for batch in plan.engine_batches:
+    for batch in plan.engine_batches:  # every size at a batch before the next batch: a short budget covers them all
+        for size in plan.sizes:
             _attempt(
                 report,
                 "engine",
@@ -402,30 +453,30 @@ def run(plan: Plan, budget_seconds: float, kinetix_venv: Path | None, log, secti
     for size in plan.sizes:
         for batch in plan.env_batches:
             _attempt(report, "env", f"{size}/{batch}", budget, functools.partial(measure_env, size, batch, plan), log)
-    kinetix_python = kinetix_venv / "bin" / "python" if kinetix_venv else None
     for size in plan.sizes:
         for levels in plan.ppo_levels:
             _attempt(report, "ppo", f"{size}/{levels}", budget, functools.partial(measure_ppo, size, levels, plan), log)
-        if kinetix_python is not None and kinetix_python.exists():
+        if kinetix is not None and kinetix[0].exists():
             _attempt(
                 report,
                 "kinetix_ppo",
                 size,
                 budget,
-                functools.partial(measure_kinetix_ppo, kinetix_python, size, plan),
+                functools.partial(measure_kinetix_ppo, kinetix[0], size, plan, kinetix[1]),
                 log,
                 budget_section="ppo",
             )
     with tempfile.TemporaryDirectory(prefix="kforge-accelerator-") as scratch:
+        scratch, compile_cache = Path(scratch), Path(scratch) / "compile-cache"
+        size = plan.sizes[0]
         _attempt(
             report,
             "pipeline",
-            plan.sizes[0],
+            size,
             budget,
-            functools.partial(measure_pipeline, plan.sizes[0], plan, Path(scratch)),
+            functools.partial(measure_pipeline, size, plan, scratch / "once", compile_cache),
             log,
         )
-    for size in plan.sizes[:1]:
         _attempt(
             report,
             "determinism",
@@ -434,13 +485,12 @@ def run(plan: Plan, budget_seconds: float, kinetix_venv: Path | None, log, secti
             functools.partial(measure_engine_determinism, size, plan.determinism_batch, plan.determinism_steps),
             log,
         )
-    with tempfile.TemporaryDirectory(prefix="kforge-accelerator-") as scratch:
         _attempt(
             report,
             "determinism",
-            f"pipeline/{plan.sizes[0]}",
+            f"pipeline/{size}",
             budget,
-            functools.partial(measure_pipeline_determinism, plan.sizes[0], plan, Path(scratch)),
+            functools.partial(measure_pipeline_determinism, size, plan, scratch / "twice", compile_cache),
             log,
         )
     report["targets"] = check_targets(report)
@@ -458,6 +508,11 @@ def main(argv=None) -> None:
     parser.add_argument("--budget", type=float, default=540.0, help="seconds for all measurements (default 540)")
     parser.add_argument("--sizes", nargs="+", choices=["s", "m", "l"], help="override the plan's sizes")
     parser.add_argument("--kinetix-venv", type=Path, help="virtualenv holding kinetix-env, for Kinetix's PPO")
+    parser.add_argument(
+        "--kinetix-site",
+        type=Path,
+        help="or a folder holding kinetix-env and its needs (pip install --target), run with this interpreter",
+    )
     parser.add_argument(
         "--sections", nargs="+", choices=list(SECTION_SHARES), default=list(SECTION_SHARES), help="what to measure"
     )
@@ -491,7 +546,8 @@ def main(argv=None) -> None:
         )
         return
     with contextlib.redirect_stdout(sys.stderr):  # Ray and the measurements may print; stdout holds only the JSON
-        report = run(plan, args.budget, args.kinetix_venv, _log, tuple(args.sections))
+        kinetix = kinetix_interpreter(args.kinetix_venv, args.kinetix_site)
+        report = run(plan, args.budget, kinetix, _log, tuple(args.sections))
     print(json.dumps(report, indent=2))
 
 

@@ -133,8 +133,9 @@ def network_parameters(config: PPOConfig, static: StaticEnvParams) -> int:
     return sum(x.size for x in jax.tree.leaves(shapes))
 
 
-def measure_kinetix(python: Path, size: str, config: PPOConfig, args) -> dict:
-    """Kinetix's PPO on one of its random levels of `size`, with our envs, rollout, epochs and minibatches."""
+def measure_kinetix(python: Path, size: str, config: PPOConfig, args, environment: dict | None = None) -> dict:
+    """Kinetix's PPO on one of its random levels of `size`, with our envs, rollout, epochs and minibatches (in
+    `environment`, else this process's)."""
     command = [
         str(python),
         str(REPO_ROOT / "benchmarks" / "kinetix_ppo_baseline.py"),
@@ -149,7 +150,7 @@ def measure_kinetix(python: Path, size: str, config: PPOConfig, args) -> dict:
     ]
     if args.kinetix_network == "ours":
         command += [f"--width={config.hidden_size}", f"--depth={config.num_hidden_layers}"]
-    output = subprocess.run(command, check=True, capture_output=True, text=True).stdout
+    output = subprocess.run(command, check=True, capture_output=True, text=True, env=environment).stdout
     return json.loads(output.strip().splitlines()[-1])
 
 

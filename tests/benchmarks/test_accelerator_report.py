@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from benchmarks.accelerator import FULL, Budget, check_targets
+from benchmarks.accelerator import FULL, Budget, check_targets, kinetix_interpreter
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
 SCRIPT = REPO_ROOT / "benchmarks" / "accelerator.py"
@@ -18,7 +18,7 @@ def test_dry_run_prints_the_full_plan_without_measuring():
     plan = json.loads(output.stdout)
     assert plan["backend"] == "cpu"
     assert plan["plan"]["sizes"] == ["s", "m", "l"]
-    assert plan["plan"]["engine_batches"] == [4096, 16384, 65536]
+    assert plan["plan"]["engine_batches"] == [16384, 4096, 65536]  # every size at 16,384 first
     assert sorted(plan["plan"]["engine_solver_loops"]) == ["looped", "unrolled"]  # both timed beside each other
     assert plan["budget_seconds"] <= 600
     assert FULL.ppo_levels == (64, 256)
@@ -64,7 +64,7 @@ def test_quick_report_runs_every_section_on_the_cpu():
     assert sorted(report["engine"]["s/8"]["solver_loops"]) == ["looped", "unrolled"]
     assert report["env"]["s/8"]["steps_per_second"] > 0
     assert report["ppo"]["s/2"]["steps_per_second"] > 0
-    assert report["pipeline"]["s"]["levels"] == 2
+    assert report["pipeline"]["s"]["levels"] == 2 and report["pipeline"]["s"]["ray"] is True  # installed here
     assert set(report["targets"]["engine_vs_jax2d"]) == {"s/8"}
     for ops in ("default_ops", "deterministic_ops"):  # on the CPU both repeat, and "vs the CPU" compares with itself
         assert report["determinism"]["engine/s"][ops]["repeat_bitwise_equal"] is True
@@ -103,3 +103,9 @@ def test_dry_run_takes_the_engine_solver_loops_and_refuses_an_unknown_one():
     )
     assert refused.returncode == 2
     assert "argument --engine-solver-loops: invalid choice: 'fast'" in refused.stderr
+
+
+def test_kinetix_runs_in_its_virtualenv_or_in_this_interpreter_with_its_package_folder_first(tmp_path):
+    assert kinetix_interpreter(None, None) is None
+    assert kinetix_interpreter(tmp_path / "venv", None) == (tmp_path / "venv" / "bin" / "python", None)
+    assert kinetix_interpreter(tmp_path / "venv", tmp_path / "site") == (Path(sys.executable), tmp_path / "site")
