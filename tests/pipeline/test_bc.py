@@ -13,7 +13,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from pipeline_test_helpers import PARAMS, STATIC
+from pipeline_test_helpers import PARAMS, STATIC, as_a_terminal_job
 
 import configs
 from env import action_mask, reset
@@ -168,7 +168,13 @@ def test_sigint_checkpoints_and_the_resumed_run_ends_as_an_uninterrupted_one(dat
     whole = tmp_path / "whole"
     subprocess.run(_train_command(dataset_dir, whole, *steps), cwd=REPO, check=True, capture_output=True)
     parts = tmp_path / "parts"
-    process = subprocess.Popen(_train_command(dataset_dir, parts, *steps), cwd=REPO, stderr=subprocess.PIPE, text=True)
+    process = subprocess.Popen(
+        _train_command(dataset_dir, parts, *steps),
+        cwd=REPO,
+        stderr=subprocess.PIPE,
+        text=True,
+        preexec_fn=as_a_terminal_job,
+    )
     while not checkpoint_steps(parts):  # the first checkpoint: training runs
         assert process.poll() is None, "the run ended before it could be interrupted"
         time.sleep(0.05)

@@ -13,7 +13,7 @@ import threading
 import time
 
 import pytest
-from pipeline_test_helpers import assert_same_dataset, run_in_process, tiny_job
+from pipeline_test_helpers import as_a_terminal_job, assert_same_dataset, run_in_process, tiny_job
 
 from pipeline.generation import ResumeRefused, run_job, to_yaml
 from pipeline.storage import LEASE_KEY, Lease, LeaseHeld, LeaseHolder, LeaseLost, read_holder
@@ -126,6 +126,7 @@ def test_the_lease_is_gone_after_success_and_after_sigint(uninterrupted, tmp_pat
         stdout=subprocess.PIPE,
         stderr=subprocess.STDOUT,
         env={**os.environ, "RAY_AUTH_MODE": "disabled"},
+        preexec_fn=as_a_terminal_job,
     )
     deadline = time.monotonic() + 300
     while not (tmp_path / "dataset" / "manifest").is_dir() and time.monotonic() < deadline:
