@@ -10,12 +10,14 @@ Measures, on the default JAX backend (a GPU or TPU when one is installed, else t
 - env: env steps/s of our env (step, auto-reset, symbolic observation) at large batches;
 - PPO: training env steps/s of `agents.train_levels` at pipeline-sized level batches (configs/ppo_specialist.yaml,
   a few updates), and Kinetix's own PPO in the same run when `--kinetix-venv` holds kinetix-env (see
-  benchmarks/env.py; it is not built here, so that the run stays unattended and offline);
-- pipeline: a tiny `kforge run` end to end (Ray, one worker with the accelerator, zarr output), its wall time and
-  level outcomes;
+  benchmarks/env.py; it is not built here, so that the run stays unattended and offline) or `--kinetix-site` a
+  folder of its packages (benchmarks/offline_wheels.py);
+- pipeline: a tiny `kforge run` end to end in a fresh process (one Ray worker with the accelerator, or the job's own
+  process where Ray is not installed; zarr output), its wall time and level outcomes;
 - determinism: an engine rollout with random actions run twice on the accelerator (bitwise equal?), timed there, and
   once on the CPU (largest difference), with XLA's deterministic GPU ops off and on (engine/determinism.py), and the
-  tiny job run twice with its workers' deterministic ops off (byte-identical data without paying for them?).
+  tiny job run twice, in two processes, with its workers' deterministic ops off (byte-identical data without paying
+  for them?).
 
 It prints one JSON document with every figure and, under "targets", each target of the accelerator issue checked
 (null where a figure is missing): engine >= 2x Jax2D in the same run and >= Jax2D's published peaks, PPO >= 5x
