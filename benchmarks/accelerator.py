@@ -34,6 +34,7 @@ import argparse
 import contextlib
 import dataclasses
 import functools
+import importlib
 import json
 import os
 import subprocess
@@ -170,9 +171,9 @@ def _attempt(report: dict, section: str, key: str, budget: Budget, measure, log,
     return entries[key]
 
 
-def _jax2d_available() -> bool:
+def _importable(module: str) -> bool:
     try:
-        import jax2d  # noqa: F401
+        importlib.import_module(module)
     except ImportError:
         return False
     return True
@@ -255,14 +256,6 @@ def _with_path_first(folder: Path | str) -> dict[str, str]:
     return {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(folder), os.environ.get("PYTHONPATH")]))}
 
 
-def _ray_available() -> bool:
-    try:
-        import ray  # noqa: F401
-    except ImportError:
-        return False
-    return True
-
-
 def measure_pipeline(
     size: str, plan: Plan, scratch: Path, compile_cache: Path, extra_overrides: tuple[str, ...] = ()
 ) -> dict:
@@ -271,7 +264,7 @@ def measure_pipeline(
     second run loads them."""
     from pipeline.generation.config import load_config, to_yaml
 
-    with_ray = _ray_available()
+    with_ray = _importable("ray")
     gpus = 1.0 if jax.default_backend() == "gpu" else 0.0
     output = scratch / f"pipeline-{size}"
     overrides = [
@@ -433,7 +426,7 @@ def run(
     sections=tuple(SECTION_SHARES),
 ) -> dict:
     budget = Budget(budget_seconds, sections)
-    with_jax2d = _jax2d_available()
+    with_jax2d = _importable("jax2d")
     report = {
         "machine": describe_machine(),
         "backend": jax.default_backend(),
