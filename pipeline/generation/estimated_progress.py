@@ -26,10 +26,11 @@ _log = logging.getLogger(__name__)
 
 @contextlib.contextmanager
 def estimated_progress(program: Hashable, num_updates: int, listener: ProgressListener) -> Iterator[None]:
-    """Tell `listener` (0, num_updates) now, an estimate every `REPORT_INTERVAL_SECONDS` while the block runs (from
-    `program`'s previous call in this process; none before its first, and never all updates), and (num_updates,
-    num_updates) when the block ends. Reports come from another thread; a listener that raises is logged, never
-    propagated. Wait for the program's results inside the block: its time is the next call's estimate."""
+    """For a call of `program` (a compiled program, or any key that names one) inside the block: tell `listener`
+    (0, num_updates) now, an estimate every `REPORT_INTERVAL_SECONDS` while the block runs (from `program`'s previous
+    call in this process; none before its first, and never all updates), and (num_updates, num_updates) when the
+    block ends. Reports come from another thread; a listener that raises is logged, never propagated. Wait for the
+    program's results inside the block: its time is the next call's estimate."""
     previous = _last_seconds.get(program)
     stop = threading.Event()
     started = time.perf_counter()

@@ -91,7 +91,7 @@ def run_level_batch(
     config = ppo_config(job)
     train_keys = level_keys(job.split.seed, indices, KeyPurpose.TRAIN)
     train = _compiled_train_program(config, static, levels, train_keys, params)
-    with estimated_progress((config, static, len(indices)), config.num_updates, on_progress or _ignore_progress):
+    with estimated_progress(train, config.num_updates, on_progress or _ignore_progress):
         trained = jax.block_until_ready(train(levels, train_keys, params))
     clock.lap("train")
     metrics, selection = jax.device_get((trained.metrics, trained.selection))
