@@ -80,8 +80,11 @@ def _clip(p1, p2, id1, id2, plane_normal, offset, clip_id):
     return q1, q2, jnp.where(d1 <= 0, id1, clip_id), jnp.where(d2 <= 0, id2, clip_id), (d1 <= 0) | (d2 <= 0)
 
 
-def polygon_polygon(a: WorldGeometry, b: WorldGeometry, margin):
-    """Manifold of two convex polygons: separating axes, then clipping of the incident edge to the reference face."""
+def polygon_polygon(a: WorldGeometry, b: WorldGeometry, margin, kinetix_points=False):
+    """Manifold of two convex polygons: separating axes, then clipping of the incident edge to the reference face.
+
+    With `kinetix_points` (may be traced) the points lie on the incident edge and every overlapping point takes the
+    pair's deepest separation, as in Jax2D."""
     separation_a, edge_a = _best_edge(a.normals, a.vertices, a.edge_valid, b.vertices)
     separation_b, edge_b = _best_edge(b.normals, b.vertices, b.edge_valid, a.vertices)
     flip = separation_b > separation_a + REFERENCE_FACE_TOLERANCE
@@ -108,13 +111,16 @@ def polygon_polygon(a: WorldGeometry, b: WorldGeometry, margin):
     separation = dot2(points, normal) - dot2(normal, r1)
     valid = ok1 & ok2 & (separation < margin) & (jnp.maximum(separation_a, separation_b) < margin)
     midpoints = points - 0.5 * separation[:, None] * normal
+    pair_separation = jnp.maximum(separation_a, separation_b)
+    midpoints = jnp.where(kinetix_points, points, midpoints)
+    separation = jnp.where(kinetix_points & (separation <= 0), pair_separation, separation)
     base_id = ((flip.astype(jnp.int32) * MAX_POLYGON_VERTICES + ref_edge) * MAX_POLYGON_VERTICES + inc_edge) * 8
     feature = jnp.where(valid, base_id + jnp.stack([id1, id2]), NO_FEATURE)
     return jnp.where(flip, -normal, normal), midpoints, separation, valid, feature
 
 
-def polygon_circle(a: WorldGeometry, b: WorldGeometry, margin):
-    """Manifold of a polygon (a) and a circle (b); one point."""
+def polygon_circle(a: WorldGeometry, b: WorldGeometry, margin, kinetix_points=False):
+    """Manifold of a polygon (a) and a circle (b); one point, on the polygon's surface with `kinetix_points`."""
     centre, radius = b.centre, b.radius
     face_distance = jnp.where(a.edge_valid, dot2(a.normals, centre - a.vertices), -jnp.inf)
     edge = jnp.argmax(face_distance)
@@ -129,21 +135,22 @@ def polygon_circle(a: WorldGeometry, b: WorldGeometry, margin):
     corner_normal = to_centre / jnp.maximum(corner_distance, DIRECTION_EPSILON)
     normal = jnp.where(in_corner_region, corner_normal, a.normals[edge])
     separation = jnp.where(in_corner_region, corner_distance, distance) - radius
-    point = centre - (radius + 0.5 * separation) * normal
+    point = centre - (radius + jnp.where(kinetix_points, 1.0, 0.5) * separation) * normal
     region = jnp.where(in_corner_region, jnp.where(before_v1, 1, 2), 0)
     valid = separation < margin
     return _one_point(normal, point, separation, valid, edge * 3 + region)
 
 
-def circle_circle(a: WorldGeometry, b: WorldGeometry, margin):
-    """Manifold of two circles; coincident centres separate along +y."""
+def circle_circle(a: WorldGeometry, b: WorldGeometry, margin, kinetix_points=False):
+    """Manifold of two circles; coincident centres separate along +y; the point on a's surface with
+    `kinetix_points`."""
     offset = b.centre - a.centre
     distance = norm2(offset)
     normal = jnp.where(
         distance > DIRECTION_EPSILON, offset / jnp.maximum(distance, DIRECTION_EPSILON), jnp.array([0.0, 1.0])
     )
     separation = distance - a.radius - b.radius
-    point = a.centre + (a.radius + 0.5 * separation) * normal
+    point = a.centre + (a.radius + jnp.where(kinetix_points, 0.0, 0.5) * separation) * normal
     return _one_point(normal, point, separation, separation < margin, jnp.int32(0))
 
 
@@ -157,8 +164,9 @@ def _one_point(normal, point, separation, valid, feature):
     )
 
 
-def manifolds(geometry: WorldGeometry, layout: PairLayout, margin: jnp.ndarray) -> Manifolds:
-    """Manifolds of all candidate pairs in layout order; `margin` (K,) [m] is each pair's speculative distance."""
+def manifolds(geometry: WorldGeometry, layout: PairLayout, margin: jnp.ndarray, kinetix_points=False) -> Manifolds:
+    """Manifolds of all candidate pairs in layout order; `margin` (K,) [m] is each pair's speculative distance;
+    `kinetix_points` (may be traced) places the points as Jax2D does (`engine.ContactPoints.KINETIX`)."""
     kinds = (
         (polygon_polygon, 0, layout.num_polygon_polygon),
         (polygon_circle, layout.num_polygon_polygon, layout.num_polygon_circle),
@@ -171,7 +179,7 @@ def manifolds(geometry: WorldGeometry, layout: PairLayout, margin: jnp.ndarray) 
         pair = slice(start, start + count)
         a = _take(geometry, layout.body_a[pair])
         b = _take(geometry, layout.body_b[pair])
-        parts.append(jax.vmap(function)(a, b, margin[pair]))
+        parts.append(jax.vmap(function, in_axes=(0, 0, 0, None))(a, b, margin[pair], kinetix_points))
     normal, point, separation, valid, feature = (jnp.concatenate(x) for x in zip(*parts, strict=True))
     return Manifolds(normal, point, separation, valid, feature.astype(jnp.int32))
 

@@ -52,6 +52,18 @@ class ContactLaw(enum.IntEnum):
     launches them); shapes at rest sink by up to the slop."""
 
 
+class ContactPoints(enum.IntEnum):
+    """Where a contact's points lie and how deep they count."""
+
+    MIDWAY = 0
+    """Midway between the two surfaces, each point with its own separation (Box2D v3)."""
+    KINETIX = 1
+    """Jax2D's: on the polygon's surface (a circle on a polygon), on the first circle's surface (two circles), at
+    the incident polygon's clipped vertices (two polygons), whose overlapping points all take the pair's deepest
+    separation; a deep overlap so moves lever arms by up to its depth and pushes a shallow corner as hard as the
+    deepest."""
+
+
 class LimitLaw(enum.IntEnum):
     """How a revolute joint's angle limits hold."""
 
@@ -113,6 +125,7 @@ class SimParams:
     contact_slop: float = 0.01  # [m] BAUMGARTE: overlap left uncorrected (Jax2D's)
     baumgarte_depth: float = float("inf")  # [m] SOFT: a contact point deeper than this at the step's start (a level
     # that starts with shapes inside each other) is pushed out by BAUMGARTE's law, the push kept in the velocity
+    contact_points: int = ContactPoints.MIDWAY  # `ContactPoints`: where contact points lie, how deep they count
     force_timing: int = ForceTiming.SPREAD  # `ForceTiming`: gravity and thrust spread over substeps or at step start
 
     # Safety clips applied after every step

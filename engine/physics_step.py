@@ -35,7 +35,7 @@ from engine.joint_solver import (
     warm_start_joints,
 )
 from engine.pairs import pair_layout
-from engine.params import ContactLaw, ForceTiming, LimitLaw, MotorLaw, SimParams, StaticSimParams
+from engine.params import ContactLaw, ContactPoints, ForceTiming, LimitLaw, MotorLaw, SimParams, StaticSimParams
 from engine.softness import Softness, make_softness
 from engine.state import NO_FEATURE, ContactCache, SimState
 from engine.sweep import SWEEPS
@@ -281,7 +281,7 @@ def prepare_step(
     allowed = (motion <= params.overlap_allowance * thinner) & (restitution <= 0.0)
     motion = jnp.where(allowed, 0.0, motion)
     margin = params.speculative_distance + params.speculative_reach * motion
-    manifold = manifolds(geometry, layout, margin)
+    manifold = manifolds(geometry, layout, margin, params.contact_points == ContactPoints.KINETIX)
     both_active = bodies.active[a] & bodies.active[b]
     modes = modes_collide(bodies.collision_mode[a], bodies.collision_mode[b])
     present = manifold.valid & both_active[:, None]

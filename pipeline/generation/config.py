@@ -27,7 +27,7 @@ from omegaconf.errors import ConfigKeyError, MissingMandatoryValue, OmegaConfBas
 
 import configs
 from agents import PPOConfig, check_segmented
-from engine import KINETIX_SIZES, ContactLaw, LimitLaw
+from engine import KINETIX_SIZES, ContactLaw, ContactPoints, LimitLaw
 from env import EnvParams, StaticEnvParams
 from pipeline.generation.compile_cache import DEFAULT_COMPILE_CACHE_DIR
 from pipeline.storage import (
@@ -449,6 +449,7 @@ PHYSICS_ADDED_LATER = {
     "baumgarte_share": 0.2,
     "contact_slop": 0.01,
     "baumgarte_depth": math.inf,
+    "contact_points": ContactPoints.MIDWAY,
 }
 """Physics parameters added after datasets were first made, each with the value at which the engine plays as it did
 before the parameter existed: at that value a parameter is left out of the data definition, so those datasets keep

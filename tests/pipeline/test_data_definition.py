@@ -4,7 +4,7 @@ experts section."""
 
 import math
 
-from engine import ContactLaw, LimitLaw, SimParams, StaticSimParams
+from engine import ContactLaw, ContactPoints, LimitLaw, SimParams, StaticSimParams
 from pipeline.generation.config import (
     data_definition,
     data_fingerprint,
@@ -29,7 +29,7 @@ def test_the_physics_from_before_the_switches_keeps_its_fingerprint(tmp_path):
         assert definition_fingerprint(data_definition(job) | {"physics": earlier_physics}) == fingerprint
         later = {"limit_law", "limit_recovery_rate", "speculative_reach", "push_touch_distance"}
         later |= {"swept_speculative_contacts", "overlap_allowance", "contact_law", "baumgarte_share", "contact_slop"}
-        later |= {"baumgarte_depth"}
+        later |= {"baumgarte_depth", "contact_points"}
         assert not later & set(earlier_physics)
         assert earlier_physics["joint_hertz"] == 75.0  # the older parameters are all there
         assert data_definition(job)["physics"]["swept_speculative_contacts"] is True
@@ -46,6 +46,10 @@ def test_a_later_parameter_at_another_value_enters_the_definition():
     assert "push_touch_distance" not in physics_definition(SimParams(push_touch_distance=math.inf))
     assert physics_definition(SimParams(baumgarte_depth=0.05))["baumgarte_depth"] == 0.05
     assert "baumgarte_depth" not in physics_definition(SimParams())
+    assert (
+        physics_definition(SimParams(contact_points=ContactPoints.KINETIX))["contact_points"] == ContactPoints.KINETIX
+    )
+    assert "contact_points" not in physics_definition(SimParams())
     assert physics_definition(SimParams())["swept_speculative_contacts"] is True
 
 
