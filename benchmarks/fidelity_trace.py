@@ -7,9 +7,18 @@ outcome against Kinetix's) and, for each episode that ended differently, both en
 some shape's position differs by more than `--tolerance`. `--save FILE` keeps both traces (every shape's pose and
 velocity after each env step, in Kinetix's slot order) for a closer look.
 
+`--from-step EPISODE:STEP` starts both engines from the very same state, Kinetix's after STEP env steps of that
+paired episode (written as a level file), and plays the episode on from there: the first step's table of every
+movable shape's position and velocity in both engines shows what one step does differently, free of the small
+differences that grew before it (contact and joint impulses kept for warm starting are Kinetix's own, ours start
+from none).
+
     python benchmarks/fidelity_trace.py l/mjc_half_cheetah --episodes 64
     python benchmarks/fidelity_trace.py levels/s/k0-00002.json --noop --sim speculative_reach=0
     python benchmarks/fidelity_trace.py levels/s/k0-00030.json --noop --substeps 1 --iterations 10 --relax-iterations 0
+    python benchmarks/fidelity_trace.py levels/s/k0-00454.json --noop --from-step 0:21 --substeps 1 --iterations 10 \
+        --relax-iterations 0 --sim contact_law=1 --sim force_timing=1 --sim speculative_distance=0 \
+        --sim overlap_allowance=2 --sim contact_points=1
 
 (the second a random level that `benchmarks/fidelity.py --random-levels 64 --level-dir levels` sampled.)
 """
@@ -109,12 +118,58 @@ def trace_kinetix(python: Path, path: Path, actions: np.ndarray, folder: Path) -
 
 
 def episode_ends(trace: dict) -> tuple[np.ndarray, np.ndarray]:
-    """Per episode: the env step its first episode ended at (EPISODE_STEPS if never) and the outcome index."""
+    """Per episode: the env step its first episode ended at (the trace's length if never) and the outcome index."""
     done = np.asarray(trace["done"], bool)
-    step = np.where(done.any(1), done.argmax(1), EPISODE_STEPS)
-    reward = np.take_along_axis(trace["reward"], np.minimum(step, EPISODE_STEPS - 1)[:, None], 1)[:, 0]
-    outcome = np.where(step == EPISODE_STEPS, 0, np.where(reward > 0, 1, np.where(reward < 0, 2, 0)))
+    length = done.shape[1]
+    step = np.where(done.any(1), done.argmax(1), length)
+    reward = np.take_along_axis(trace["reward"], np.minimum(step, length - 1)[:, None], 1)[:, 0]
+    outcome = np.where(step == length, 0, np.where(reward > 0, 1, np.where(reward < 0, 2, 0)))
     return step, outcome
+
+
+def parse_from_step(text: str) -> tuple[int, int]:
+    """'EPISODE:STEP' -> (episode, step), both >= 0 and STEP below an episode's length."""
+    try:
+        episode, step = (int(part) for part in text.split(":"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected EPISODE:STEP (two integers), got {text!r}") from None
+    if episode < 0 or not 0 <= step < EPISODE_STEPS:
+        raise argparse.ArgumentTypeError(f"EPISODE must be >= 0 and STEP in [0, {EPISODE_STEPS}), got {text!r}")
+    return episode, step
+
+
+def kinetix_state_at(python: Path, path: Path, actions: np.ndarray, steps: int, folder: Path) -> Path:
+    """Kinetix's state after the first `steps` actions of `actions[0]` from the level's start, as a level file."""
+    actions_file, out = folder / "actions_to_state.npy", folder / "kinetix_state.json"
+    np.save(actions_file, actions)
+    command = [str(python), str(KINETIX_SCRIPT), "--trace", str(path), "--actions", str(actions_file)]
+    result = subprocess.run(
+        [*command, "--state-at", str(steps), "--state-out", str(out)],
+        capture_output=True,
+        text=True,
+        cwd=KINETIX_SCRIPT.parent,
+    )
+    if result.returncode != 0:
+        raise RuntimeError(f"Kinetix's side failed:\n{result.stderr[-3000:]}")
+    return out
+
+
+def first_step_table(ours: dict, theirs: dict, active_polygons, active_circles, movable) -> list[str]:
+    """One line per active movable shape: its position and velocity after the first traced step in both engines."""
+    lines = [
+        f"{'shape':8s} {'kforge position':>18s} {'Kinetix position':>18s} {'kforge velocity':>18s} "
+        f"{'Kinetix velocity':>18s} {'kforge spin':>11s} {'Kinetix spin':>12s}"
+    ]
+    for kind, active in (("polygon", active_polygons), ("circle", active_circles)):
+        for index in np.flatnonzero(active & movable[kind]):
+            row = [f"{kind[0]}{index}"]
+            for field in ("position", "velocity"):
+                for trace in (ours, theirs):
+                    x, y = trace[f"{kind}_{field}"][0, 0, index]
+                    row.append(f"({x:7.3f}, {y:7.3f})")
+            row += [f"{trace[f'{kind}_angular_velocity'][0, 0, index]:11.3f}" for trace in (ours, theirs)]
+            lines.append(f"{row[0]:8s} " + " ".join(f"{cell:>18s}" for cell in row[1:5]) + " " + " ".join(row[5:]))
+    return lines
 
 
 def first_divergence(ours: dict, theirs: dict, active_polygons, active_circles, tolerance: float) -> np.ndarray:
@@ -137,15 +192,31 @@ def main(argv=None) -> None:
     parser.add_argument("--tolerance", type=float, default=0.01, help="[m] positions closer than this agree")
     parser.add_argument("--kinetix-venv", type=Path, default=DEFAULT_KINETIX_VENV)
     parser.add_argument("--save", type=Path, help=".npz that keeps both traces and the actions")
+    parser.add_argument(
+        "--from-step",
+        type=parse_from_step,
+        metavar="EPISODE:STEP",
+        help="start both engines from Kinetix's state after STEP env steps of paired episode EPISODE",
+    )
     args = parser.parse_args(argv)
     scheme = solver_scheme(args, parser)
 
     path = level_path(args.level)
     actions = np.zeros((1, EPISODE_STEPS, 6), np.int32) if args.noop else random_actions(args.episodes, args.seed)
     python = kinetix_python(args.kinetix_venv, print)
+    first_episode = 0
     with tempfile.TemporaryDirectory(prefix="kforge-trace-") as folder:
+        if args.from_step is not None:
+            first_episode, start = args.from_step
+            if first_episode >= len(actions):
+                parser.error(f"--from-step: episode {first_episode} of {len(actions)} paired episodes does not exist")
+            actions = actions[first_episode : first_episode + 1]
+            state = kinetix_state_at(python, path, actions, start, Path(folder))
+            path = Path(folder) / f"{Path(args.level).stem}-episode-{first_episode}-step-{start}.json"
+            state.rename(path)
+            actions = actions[:, start:]
         theirs = trace_kinetix(python, path, actions, Path(folder))
-    loaded = load_level(path)
+        loaded = load_level(path)
     ours = trace_ours(loaded, actions, dict(args.sim), scheme)
     if args.save is not None:
         np.savez(
@@ -156,9 +227,12 @@ def main(argv=None) -> None:
         )
 
     start = state_to_kinetix(reset(loaded.level), loaded.static)
-    apart = first_divergence(
-        ours, theirs, start["polygon/active"].astype(bool), start["circle/active"].astype(bool), args.tolerance
-    )
+    active_polygons, active_circles = start["polygon/active"].astype(bool), start["circle/active"].astype(bool)
+    apart = first_divergence(ours, theirs, active_polygons, active_circles, args.tolerance)
+    if args.from_step is not None:
+        movable = {kind: np.asarray(start[f"{kind}/inverse_mass"]) > 0 for kind in ("polygon", "circle")}
+        print(f"from Kinetix's state after {args.from_step[1]} env steps of episode {first_episode}, the next step:")
+        print("\n".join(first_step_table(ours, theirs, active_polygons, active_circles, movable)))
     our_end, our_outcome = episode_ends(ours)
     their_end, their_outcome = episode_ends(theirs)
     table = np.zeros((3, 3), int)
@@ -167,11 +241,13 @@ def main(argv=None) -> None:
     print(f"{'':10s}" + "".join(f"{name:>10s}" for name in OUTCOMES))
     for row, name in enumerate(OUTCOMES):
         print(f"{name:10s}" + "".join(f"{count:10d}" for count in table[row]))
+    offset = 0 if args.from_step is None else args.from_step[1]  # steps are counted from the level's start
+    our_end, their_end = (np.minimum(offset + end, EPISODE_STEPS - 1) - offset for end in (our_end, their_end))
     for episode in np.flatnonzero((our_outcome != their_outcome) | (our_end != their_end)):
         print(
-            f"episode {episode}: kforge {OUTCOMES[our_outcome[episode]]} at step {our_end[episode]}, Kinetix "
-            f"{OUTCOMES[their_outcome[episode]]} at step {their_end[episode]}; apart by {args.tolerance} m "
-            f"from step {apart[episode]}"
+            f"episode {first_episode + episode}: kforge {OUTCOMES[our_outcome[episode]]} at step "
+            f"{offset + our_end[episode]}, Kinetix {OUTCOMES[their_outcome[episode]]} at step "
+            f"{offset + their_end[episode]}; apart by {args.tolerance} m from step {offset + apart[episode]}"
         )
 
 

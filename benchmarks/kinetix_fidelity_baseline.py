@@ -18,7 +18,9 @@ Jobs, each printing JSON documents on stdout, one a line:
   faithful engine other than Jax2D itself could reach;
 - `--trace LEVEL --actions FILE --trace-out FILE`: play fixed multi-discrete action sequences (episodes, steps, 6)
   from the level's start without reset and write every shape's pose and velocity and the reward and done flag after
-  each env step to an .npz file (benchmarks/fidelity_trace.py pairs them with kforge's).
+  each env step to an .npz file (benchmarks/fidelity_trace.py pairs them with kforge's);
+- `--trace LEVEL --actions FILE --state-at STEP --state-out FILE`: play the first sequence's first STEP actions and
+  write the state reached as a Kinetix level file (so both engines can go on from the very same state).
 
 Not importable from the project's environment.
 """
@@ -293,6 +295,22 @@ def trace(path: str, actions: np.ndarray, out: Path) -> None:
     np.savez(out, reward=np.asarray(reward), done=np.asarray(done), **{k: np.asarray(v) for k, v in fields.items()})
 
 
+def export_state_at(path: str, actions: np.ndarray, steps: int, out: Path) -> None:
+    """The state after the first `steps` actions of `actions[0]`, played from the level's start, as a level file."""
+    state, static, _ = load_from_json_file(str(Path(path).resolve()))
+    static, params = static_env_params_from_size(_size_of(static)), EnvParams(dense_reward_scale=0.0)
+    state = expand_env_state(state, static)
+    env = make_kinetix_env(
+        ActionType.MULTI_DISCRETE, ObservationType.SYMBOLIC_FLAT, None, params, static, auto_reset=False
+    )
+
+    def body(current, action):
+        return env.step(jax.random.key(0), current, action, params)[1], None
+
+    reached = jax.jit(lambda s, a: jax.lax.scan(body, s, a)[0])(state, jnp.asarray(actions[0, :steps]))
+    export_env_state_to_json(str(out), reached, static, params)
+
+
 def _has_nan(state) -> jnp.ndarray:
     return jax.tree.reduce(jnp.logical_or, jax.tree.map(lambda x: jnp.isnan(x).any(), state), False)
 
@@ -308,6 +326,8 @@ def main(argv=None) -> None:
     parser.add_argument("--trace", help="a level JSON file to play with --actions, recorded to --trace-out")
     parser.add_argument("--actions", type=Path, help=".npy of multi-discrete actions (episodes, steps, 6)")
     parser.add_argument("--trace-out", type=Path, help=".npz that receives the trace")
+    parser.add_argument("--state-at", type=int, help="with --trace: env steps of the first sequence to play")
+    parser.add_argument("--state-out", type=Path, help="level file that receives the state after --state-at steps")
     parser.add_argument("--chunk-levels", type=int, default=CHUNK_LEVELS, help="levels played per printed result")
     parser.add_argument(
         "--variant",
@@ -321,7 +341,9 @@ def main(argv=None) -> None:
     def emit(document: dict) -> None:
         print(json.dumps(document), flush=True)
 
-    if args.trace:
+    if args.trace and args.state_at is not None:
+        export_state_at(args.trace, np.load(args.actions), args.state_at, args.state_out)
+    elif args.trace:
         trace(args.trace, np.load(args.actions), args.trace_out)
     for spec in args.sample:
         size, count, seed = spec.split(":")

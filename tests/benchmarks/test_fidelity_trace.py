@@ -4,7 +4,16 @@ import numpy as np
 import pytest
 
 from benchmarks import fidelity_trace
-from benchmarks.fidelity_trace import EPISODE_STEPS, episode_ends, first_divergence, random_actions, trace_ours
+from benchmarks.fidelity_trace import (
+    EPISODE_STEPS,
+    episode_ends,
+    first_divergence,
+    kinetix_state_at,
+    parse_from_step,
+    random_actions,
+    trace_kinetix,
+    trace_ours,
+)
 from engine import SimParams
 from env import MULTI_DISCRETE_SIZES, bundled_level_path, load_level
 
@@ -24,6 +33,33 @@ def test_episode_ends_give_the_first_end_and_its_outcome():
     step, outcome = episode_ends(trace)
     np.testing.assert_array_equal(step, [10, 40, EPISODE_STEPS - 1])
     np.testing.assert_array_equal(outcome, [1, 2, 0])  # success, failure, timeout
+
+
+def test_episode_ends_of_a_trace_that_starts_later_are_counted_in_its_own_length():
+    """A trace from --from-step is shorter than an episode: an episode that never ends there ends at its length."""
+    trace = {key: value[:, : EPISODE_STEPS - 100] for key, value in _trace({0: 10, 1: 200}, {0: -1.0}).items()}
+    step, outcome = episode_ends(trace)
+    np.testing.assert_array_equal(step, [10, EPISODE_STEPS - 100, EPISODE_STEPS - 100])
+    np.testing.assert_array_equal(outcome, [2, 0, 0])
+
+
+def test_from_step_reads_an_episode_and_a_step_within_an_episode():
+    assert parse_from_step("3:21") == (3, 21)
+    assert parse_from_step("0:0") == (0, 0)
+
+
+@pytest.mark.parametrize("text", ["21", "a:b", "1:2:3", "-1:5", f"0:{EPISODE_STEPS}"])
+def test_from_step_refuses_what_is_not_an_episode_and_a_step_in_one_line(text, capsys):
+    with pytest.raises(SystemExit):
+        fidelity_trace.main(["s/h1_thrust_over_ball", f"--from-step={text}"])
+    error = capsys.readouterr().err.strip().splitlines()[-1]
+    assert "--from-step" in error and repr(text) in error
+
+
+def test_from_step_refuses_an_episode_that_was_not_drawn(capsys):
+    with pytest.raises(SystemExit):
+        fidelity_trace.main(["s/h1_thrust_over_ball", "--episodes", "2", "--from-step", "2:10"])
+    assert "episode 2 of 2 paired episodes does not exist" in capsys.readouterr().err
 
 
 def test_first_divergence_is_the_first_step_a_shape_is_further_apart_than_the_tolerance():
@@ -71,3 +107,25 @@ def test_the_trace_refuses_a_solver_count_below_its_least(capsys):
     with pytest.raises(SystemExit):
         fidelity_trace.main(["s/h1_thrust_over_ball", "--iterations", "0"])
     assert "--iterations must be at least 1, got 0" in capsys.readouterr().err
+
+
+@pytest.mark.slow  # builds Kinetix's virtualenv on first use (minutes), then three short Kinetix runs: about 1 minute
+def test_kinetixs_state_at_a_step_is_where_its_trace_was_and_ours_loads_it_there(tmp_path):
+    """The state that Kinetix writes after 12 random env steps of s/h3_point_the_thruster is, loaded by ours, where
+    Kinetix's own trace had every shape after those 12 steps; and Kinetix going on from that file plays the next step
+    as its trace did (up to the warm-starting impulses, which a level file keeps)."""
+    from benchmarks.env import DEFAULT_KINETIX_VENV, kinetix_python
+
+    python = kinetix_python(DEFAULT_KINETIX_VENV, print)
+    path = bundled_level_path("s/h3_point_the_thruster")
+    actions = random_actions(1, seed=5)
+    full = trace_kinetix(python, path, actions, tmp_path)
+    state_file = kinetix_state_at(python, path, actions, 12, tmp_path)
+    loaded = load_level(state_file)
+    start = fidelity_trace.state_to_kinetix(fidelity_trace.reset(loaded.level), loaded.static)
+    for kind in ("polygon", "circle"):
+        np.testing.assert_allclose(start[f"{kind}/position"], full[f"{kind}_position"][0, 11], atol=1e-5)
+        np.testing.assert_allclose(start[f"{kind}/velocity"], full[f"{kind}_velocity"][0, 11], atol=1e-5)
+    again = trace_kinetix(python, state_file, actions[:, 12:], tmp_path)
+    for kind in ("polygon", "circle"):
+        np.testing.assert_allclose(again[f"{kind}_position"][0, 0], full[f"{kind}_position"][0, 12], atol=1e-4)
