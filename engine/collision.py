@@ -110,13 +110,12 @@ def polygon_polygon(a: WorldGeometry, b: WorldGeometry, margin, kinetix_points=F
     points = jnp.stack([p1, p2])
     separation = dot2(points, normal) - dot2(normal, r1)
     valid = ok1 & ok2 & (separation < margin) & (jnp.maximum(separation_a, separation_b) < margin)
-    midpoints = points - 0.5 * separation[:, None] * normal
+    placed = jnp.where(kinetix_points, points, points - 0.5 * separation[:, None] * normal)
     pair_separation = jnp.maximum(separation_a, separation_b)
-    midpoints = jnp.where(kinetix_points, points, midpoints)
     separation = jnp.where(kinetix_points & (separation <= 0), pair_separation, separation)
     base_id = ((flip.astype(jnp.int32) * MAX_POLYGON_VERTICES + ref_edge) * MAX_POLYGON_VERTICES + inc_edge) * 8
     feature = jnp.where(valid, base_id + jnp.stack([id1, id2]), NO_FEATURE)
-    return jnp.where(flip, -normal, normal), midpoints, separation, valid, feature
+    return jnp.where(flip, -normal, normal), placed, separation, valid, feature
 
 
 def polygon_circle(a: WorldGeometry, b: WorldGeometry, margin, kinetix_points=False):
