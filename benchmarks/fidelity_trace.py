@@ -155,7 +155,8 @@ def kinetix_state_at(python: Path, path: Path, actions: np.ndarray, steps: int, 
 
 
 def first_step_table(ours: dict, theirs: dict, active_polygons, active_circles, movable) -> list[str]:
-    """One line per active movable shape: its position and velocity after the first traced step in both engines."""
+    """One line per active movable shape: its position, velocity and spin after the first traced step in both
+    engines."""
     lines = [
         f"{'shape':8s} {'kforge position':>18s} {'Kinetix position':>18s} {'kforge velocity':>18s} "
         f"{'Kinetix velocity':>18s} {'kforge spin':>11s} {'Kinetix spin':>12s}"
@@ -196,7 +197,8 @@ def main(argv=None) -> None:
         "--from-step",
         type=parse_from_step,
         metavar="EPISODE:STEP",
-        help="start both engines from Kinetix's state after STEP env steps of paired episode EPISODE",
+        help="start both engines from Kinetix's state after STEP env steps of paired episode EPISODE (of the "
+        "--episodes drawn with --seed, or 0 with --noop)",
     )
     args = parser.parse_args(argv)
     scheme = solver_scheme(args, parser)
@@ -207,14 +209,14 @@ def main(argv=None) -> None:
     first_episode = 0
     with tempfile.TemporaryDirectory(prefix="kforge-trace-") as folder:
         if args.from_step is not None:
-            first_episode, start = args.from_step
+            first_episode, steps_before = args.from_step
             if first_episode >= len(actions):
                 parser.error(f"--from-step: episode {first_episode} of {len(actions)} paired episodes does not exist")
             actions = actions[first_episode : first_episode + 1]
-            state = kinetix_state_at(python, path, actions, start, Path(folder))
-            path = Path(folder) / f"{Path(args.level).stem}-episode-{first_episode}-step-{start}.json"
+            state = kinetix_state_at(python, path, actions, steps_before, Path(folder))
+            path = Path(folder) / f"{Path(args.level).stem}-episode-{first_episode}-step-{steps_before}.json"
             state.rename(path)
-            actions = actions[:, start:]
+            actions = actions[:, steps_before:]
         theirs = trace_kinetix(python, path, actions, Path(folder))
         loaded = load_level(path)
     ours = trace_ours(loaded, actions, dict(args.sim), scheme)
