@@ -205,13 +205,13 @@ def main(argv=None) -> None:
 
     path = level_path(args.level)
     actions = np.zeros((1, EPISODE_STEPS, 6), np.int32) if args.noop else random_actions(args.episodes, args.seed)
+    first_episode = 0 if args.from_step is None else args.from_step[0]
+    if first_episode >= len(actions):
+        parser.error(f"--from-step: episode {first_episode} of {len(actions)} paired episodes does not exist")
     python = kinetix_python(args.kinetix_venv, print)
-    first_episode = 0
     with tempfile.TemporaryDirectory(prefix="kforge-trace-") as folder:
         if args.from_step is not None:
-            first_episode, steps_before = args.from_step
-            if first_episode >= len(actions):
-                parser.error(f"--from-step: episode {first_episode} of {len(actions)} paired episodes does not exist")
+            steps_before = args.from_step[1]
             actions = actions[first_episode : first_episode + 1]
             state = kinetix_state_at(python, path, actions, steps_before, Path(folder))
             path = Path(folder) / f"{Path(args.level).stem}-episode-{first_episode}-step-{steps_before}.json"

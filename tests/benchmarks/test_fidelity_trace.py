@@ -56,10 +56,15 @@ def test_from_step_refuses_what_is_not_an_episode_and_a_step_in_one_line(text, c
     assert "--from-step" in error and repr(text) in error
 
 
-def test_from_step_refuses_an_episode_that_was_not_drawn(capsys):
+def test_from_step_refuses_an_episode_that_was_not_drawn_before_it_looks_for_kinetix(tmp_path, capsys):
+    """Refused before anything else happens: a missing Kinetix virtualenv is not built for it."""
+    venv = tmp_path / "no-kinetix-here"
     with pytest.raises(SystemExit):
-        fidelity_trace.main(["s/h1_thrust_over_ball", "--episodes", "2", "--from-step", "2:10"])
+        fidelity_trace.main(
+            ["s/h1_thrust_over_ball", "--episodes", "2", "--from-step", "2:10", "--kinetix-venv", str(venv)]
+        )
     assert "episode 2 of 2 paired episodes does not exist" in capsys.readouterr().err
+    assert not venv.exists()
 
 
 def test_first_divergence_is_the_first_step_a_shape_is_further_apart_than_the_tolerance():
