@@ -274,15 +274,19 @@ TRACE_FIELDS = {
 """What a trace records of Kinetix's state after each env step."""
 
 
-def trace(path: str, actions: np.ndarray, out: Path) -> None:
-    """Every episode of `actions` (episodes, steps, 6) played from the level's start; poses etc. per step to `out`."""
+def _level_without_reset(path: str):
+    """(start state, env without auto-reset, static params, env params) of a level file, in its size's shapes."""
     state, static, _ = load_from_json_file(str(Path(path).resolve()))
-    size = _size_of(static)
-    static, params = static_env_params_from_size(size), EnvParams(dense_reward_scale=0.0)
-    state = expand_env_state(state, static)
+    static, params = static_env_params_from_size(_size_of(static)), EnvParams(dense_reward_scale=0.0)
     env = make_kinetix_env(
         ActionType.MULTI_DISCRETE, ObservationType.SYMBOLIC_FLAT, None, params, static, auto_reset=False
     )
+    return expand_env_state(state, static), env, static, params
+
+
+def trace(path: str, actions: np.ndarray, out: Path) -> None:
+    """Every episode of `actions` (episodes, steps, 6) played from the level's start; poses etc. per step to `out`."""
+    state, env, _, params = _level_without_reset(path)
 
     def episode(episode_actions):
         def body(current, action):
@@ -297,12 +301,7 @@ def trace(path: str, actions: np.ndarray, out: Path) -> None:
 
 def export_state_at(path: str, actions: np.ndarray, steps: int, out: Path) -> None:
     """The state after the first `steps` actions of `actions[0]`, played from the level's start, as a level file."""
-    state, static, _ = load_from_json_file(str(Path(path).resolve()))
-    static, params = static_env_params_from_size(_size_of(static)), EnvParams(dense_reward_scale=0.0)
-    state = expand_env_state(state, static)
-    env = make_kinetix_env(
-        ActionType.MULTI_DISCRETE, ObservationType.SYMBOLIC_FLAT, None, params, static, auto_reset=False
-    )
+    state, env, static, params = _level_without_reset(path)
 
     def body(current, action):
         return env.step(jax.random.key(0), current, action, params)[1], None
