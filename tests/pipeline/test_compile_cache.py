@@ -54,23 +54,23 @@ def test_the_cache_folder_expands_the_home_directory_and_null_turns_it_off(monke
     assert load_config(None, ["split.name=test/s", f"output_dir={tmp_path}"]).compile_cache.dir == "~/.cache/kforge/jax"
 
 
-def test_a_worker_turns_on_deterministic_gpu_ops_before_it_computes(tmp_path, monkeypatch):
-    from pipeline.generation import Worker
-
-    monkeypatch.setenv("XLA_FLAGS", "--xla_force_host_platform_device_count=1")
-    Worker(tiny_job(tmp_path / "out"), "local")
-    assert os.environ["XLA_FLAGS"].split() == [
-        "--xla_force_host_platform_device_count=1",
-        "--xla_gpu_deterministic_ops=true",
-    ]
-
-
-def test_a_worker_leaves_xla_flags_alone_when_told_to(tmp_path, monkeypatch):
+def test_a_worker_told_to_turns_on_deterministic_gpu_ops_before_it_computes(tmp_path, monkeypatch):
     import dataclasses
 
     from pipeline.generation import Worker
 
     monkeypatch.setenv("XLA_FLAGS", "--xla_force_host_platform_device_count=1")
     job = tiny_job(tmp_path / "out")
-    Worker(dataclasses.replace(job, ray=dataclasses.replace(job.ray, deterministic_gpu_ops=False)), "local")
+    Worker(dataclasses.replace(job, ray=dataclasses.replace(job.ray, deterministic_gpu_ops=True)), "local")
+    assert os.environ["XLA_FLAGS"].split() == [
+        "--xla_force_host_platform_device_count=1",
+        "--xla_gpu_deterministic_ops=true",
+    ]
+
+
+def test_a_worker_leaves_xla_flags_alone_by_default(tmp_path, monkeypatch):
+    from pipeline.generation import Worker
+
+    monkeypatch.setenv("XLA_FLAGS", "--xla_force_host_platform_device_count=1")
+    Worker(tiny_job(tmp_path / "out"), "local")
     assert os.environ["XLA_FLAGS"] == "--xla_force_host_platform_device_count=1"

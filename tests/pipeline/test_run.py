@@ -224,13 +224,14 @@ def test_a_complete_dataset_is_reported_without_starting_ray_or_tracking(uninter
     assert sorted((root / "logs").iterdir()) == logs
 
 
-def test_a_job_without_ray_asks_for_deterministic_gpu_ops_in_its_own_process(uninterrupted, tmp_path, monkeypatch):
+def test_a_job_without_ray_told_to_asks_for_deterministic_gpu_ops_in_its_process(uninterrupted, tmp_path, monkeypatch):
     monkeypatch.setenv("XLA_FLAGS", "--xla_force_host_platform_device_count=1")  # restored after the test
     root = tmp_path / "dataset"
     shutil.copytree(uninterrupted, root)
-    run_job(tiny_job(root, "ray.num_workers=0", "ray.deterministic_gpu_ops=false"), show_progress=False)
+    run_job(tiny_job(root, "ray.num_workers=0"), show_progress=False)  # by default it leaves XLA's flags alone
     assert os.environ["XLA_FLAGS"] == "--xla_force_host_platform_device_count=1"
-    run_job(tiny_job(root, "ray.num_workers=0"), show_progress=False)  # complete: it computes nothing, but asks first
+    told = tiny_job(root, "ray.num_workers=0", "ray.deterministic_gpu_ops=true")
+    run_job(told, show_progress=False)  # the dataset is complete: it computes nothing, but asks first
     assert os.environ["XLA_FLAGS"].split() == [
         "--xla_force_host_platform_device_count=1",
         "--xla_gpu_deterministic_ops=true",
