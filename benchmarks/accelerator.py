@@ -5,8 +5,8 @@ Measures, on the default JAX backend (a GPU or TPU when one is installed, else t
 
 - engine: physics steps/s of ours and, where the `bench` extra is installed, of Jax2D in the same run (timed calls
   alternate), at batches 4,096-65,536 for sizes s, m and l, with Jax2D's published peaks beside them; ours with the
-  solver's loops in the form `engine.set_batching` picks for the backend and, side by side, in the other forms of
-  the plan (`--engine-solver-loops`), so that one run says which form the backend should use;
+  solver's loops in the form `engine.set_batching` picks for the backend and, where `--engine-solver-loops` names
+  others, in those side by side, so that one run says which form the backend should use;
 - env: env steps/s of our env (step, auto-reset, symbolic observation) at large batches;
 - PPO: training env steps/s of `agents.train_levels` at pipeline-sized level batches (configs/ppo_specialist.yaml,
   a few updates), and Kinetix's own PPO in the same run when `--kinetix-venv` holds kinetix-env (see
@@ -86,7 +86,7 @@ FULL = Plan(
     sizes=("s", "m", "l"),
     engine_batches=(16384, 4096, 65536),  # measured in this order, every size at a batch before the next
     engine_steps=20,
-    engine_solver_loops=("unrolled", "looped"),
+    engine_solver_loops=(),  # the backend's own form only: on a GPU unrolled ran 2.5x looped (H200, s at 16,384)
     env_batches=(4096, 16384),
     env_steps=32,
     ppo_levels=(64, 256),
@@ -516,7 +516,7 @@ def main(argv=None) -> None:
         "--engine-solver-loops",
         nargs="+",
         choices=SOLVER_LOOP_FORMS,
-        help="forms of the solver's loops timed beside the backend's own (default: both; name one to time it alone)",
+        help="forms of the solver's loops timed beside the backend's own (default: none)",
     )
     parser.add_argument("--env-batches", nargs="+", type=int, help="override the plan's env batches")
     parser.add_argument("--ppo-levels", nargs="+", type=int, help="override the plan's PPO level batches")
