@@ -1,7 +1,8 @@
 """Rigid-body 2D physics in JAX: fixed-shape scenes of convex polygons and circles, joints and thrusters.
 
 Public surface: state and parameter types, the scene builder, `step`, how batched steps and the solver's loops run
-per backend (`set_batching`), and bitwise-repeatable GPU execution (`use_deterministic_ops`).
+per backend (`set_batching`), named physics schemes (`physics_scheme`), and bitwise-repeatable GPU execution
+(`use_deterministic_ops`).
 """
 
 from engine.batch_last import (
@@ -39,11 +40,13 @@ from engine.params import (
 from engine.physics_step import StepInfo, step
 from engine.render import write_gif
 from engine.scene import ARENA_SIZE, FLOOR_TOP, SceneBuilder
+from engine.schemes import DEFAULT_PHYSICS_SCHEME, PHYSICS_SCHEMES, PhysicsScheme, physics_scheme
 from engine.state import NO_FEATURE, Bodies, ContactCache, Joints, SimState, Thrusters, empty_state
 
 __all__ = [
     "ARENA_SIZE",
     "BATCHING_MODES",
+    "DEFAULT_PHYSICS_SCHEME",
     "Batching",
     "CONVEXITY_TOLERANCE",
     "FLOOR_TOP",
@@ -51,6 +54,7 @@ __all__ = [
     "MAX_POLYGON_VERTICES",
     "MIN_POLYGON_AREA",
     "NO_FEATURE",
+    "PHYSICS_SCHEMES",
     "SOLVER_LOOP_FORMS",
     "SOLVER_LOOP_MODES",
     "Bodies",
@@ -62,6 +66,7 @@ __all__ = [
     "LimitLaw",
     "MotorLaw",
     "PairLayout",
+    "PhysicsScheme",
     "SceneBuilder",
     "SimParams",
     "SimState",
@@ -76,6 +81,7 @@ __all__ = [
     "manifolds",
     "modes_collide",
     "pair_layout",
+    "physics_scheme",
     "polygon_mass_properties",
     "rotate",
     "rotate_host",

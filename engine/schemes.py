@@ -1,0 +1,58 @@
+"""Named physics schemes: how the engine solves a step, as `SimParams` fields and `StaticSimParams` solver settings
+that differ from the engine's defaults."""
+
+from __future__ import annotations
+
+import dataclasses
+
+from engine.params import ContactLaw, ContactPoints, ForceTiming, LimitLaw, SimParams, StaticSimParams
+
+
+@dataclasses.dataclass(frozen=True)
+class PhysicsScheme:
+    """A physics setting applied over any `SimParams` (a level's gravity, friction and the like are kept) and any
+    `StaticSimParams` (sizes are kept)."""
+
+    summary: str
+    sim_fields: tuple[tuple[str, float], ...] = ()  # SimParams field -> value
+    solver_fields: tuple[tuple[str, int | bool], ...] = ()  # StaticSimParams solver setting -> value
+
+    def sim(self, base: SimParams) -> SimParams:
+        """`base` with the scheme's physics parameters."""
+        return base.replace(**dict(self.sim_fields)) if self.sim_fields else base
+
+    def static(self, base: StaticSimParams) -> StaticSimParams:
+        """`base` with the scheme's solver settings."""
+        return dataclasses.replace(base, **dict(self.solver_fields)) if self.solver_fields else base
+
+
+DEFAULT_PHYSICS_SCHEME = "kforge"
+
+PHYSICS_SCHEMES = {
+    DEFAULT_PHYSICS_SCHEME: PhysicsScheme(
+        "the engine's defaults: 4 substeps, soft contacts and joints; every row of the physics test plan holds"
+    ),
+    "kinetix": PhysicsScheme(
+        "Jax2D's scheme and contact geometry, the closest to Kinetix's play: one step of 10 passes, Baumgarte's "
+        "push-out, gravity and thrust at the step's start, no speculative contacts, Jax2D's contact points, overlaps "
+        "found a step late below twice the inner radius, joints past a limit returned at a bounded rate",
+        sim_fields=(
+            ("contact_law", ContactLaw.BAUMGARTE),
+            ("force_timing", ForceTiming.STEP_START),
+            ("speculative_distance", 0.0),
+            ("overlap_allowance", 2.0),
+            ("contact_points", ContactPoints.KINETIX),
+            ("limit_law", LimitLaw.BOUNDED_RETURN),
+        ),
+        solver_fields=(("num_substeps", 1), ("num_iterations", 10), ("num_relax_iterations", 0)),
+    ),
+}
+"""Scheme name -> scheme. docs/fidelity.md measures how often each agrees with Kinetix level by level, and which rows
+of the physics test plan "kinetix" breaks (stacks, bounces, joints at 1/60 s)."""
+
+
+def physics_scheme(name: str) -> PhysicsScheme:
+    """The scheme called `name`; a ValueError naming the known ones otherwise."""
+    if name not in PHYSICS_SCHEMES:
+        raise ValueError(f"unknown physics scheme {name!r}; expected one of {', '.join(PHYSICS_SCHEMES)}")
+    return PHYSICS_SCHEMES[name]
