@@ -23,7 +23,14 @@ from env.level_builder import build_level
 from env.level_files import LevelFileError, LoadedLevel, level_to_dict, load_level, save_level
 from env.level_filter import FilterReason, FilterResult, filter_levels
 from env.observations import EntityObservation, ObservationType, observation_shape, observe
-from env.params import NUM_ACTION_SLOTS, NUM_MOTOR_BINDINGS, NUM_THRUSTER_BINDINGS, EnvParams, StaticEnvParams
+from env.params import (
+    NUM_ACTION_SLOTS,
+    NUM_MOTOR_BINDINGS,
+    NUM_THRUSTER_BINDINGS,
+    EnvParams,
+    StaticEnvParams,
+    under_scheme,
+)
 from env.pixels import PIXEL_OBSERVATION_RESOLUTION, PixelObservation, pixel_observation, render_image
 from env.play import GIF_FPS, record_episode
 from env.rewards import goal_reward, green_blue_distance
@@ -92,5 +99,6 @@ __all__ = [
     "state_from_kinetix",
     "state_to_kinetix",
     "step",
+    "under_scheme",
     "write_state_gif",
 ]

@@ -6,7 +6,7 @@ import dataclasses
 
 from flax import struct
 
-from engine import SimParams, StaticSimParams
+from engine import PhysicsScheme, SimParams, StaticSimParams
 
 NUM_MOTOR_BINDINGS = 4
 """Motor colours: the first four slots of the unified action."""
@@ -49,3 +49,10 @@ class StaticEnvParams:
     @property
     def num_bodies(self) -> int:
         return self.sim.num_bodies
+
+
+def under_scheme(
+    scheme: PhysicsScheme, params: EnvParams, static: StaticEnvParams
+) -> tuple[EnvParams, StaticEnvParams]:
+    """`params` and `static` with `scheme`'s physics; the level's own constants (gravity, ...) and the sizes kept."""
+    return params.replace(sim=scheme.sim(params.sim)), dataclasses.replace(static, sim=scheme.static(static.sim))

@@ -27,8 +27,16 @@ from omegaconf.errors import ConfigKeyError, MissingMandatoryValue, OmegaConfBas
 
 import configs
 from agents import PPOConfig, check_segmented
-from engine import KINETIX_SIZES, ContactLaw, ContactPoints, LimitLaw
-from env import EnvParams, StaticEnvParams
+from engine import (
+    DEFAULT_PHYSICS_SCHEME,
+    KINETIX_SIZES,
+    PHYSICS_SCHEMES,
+    ContactLaw,
+    ContactPoints,
+    LimitLaw,
+    physics_scheme,
+)
+from env import EnvParams, StaticEnvParams, under_scheme
 from pipeline.generation.compile_cache import DEFAULT_COMPILE_CACHE_DIR
 from pipeline.storage import (
     CONFIG_FILE,
@@ -114,6 +122,7 @@ class EnvSection:
     """Environment parameters of the experts' training episodes."""
 
     dense_reward_scale: float = 0.2  # shaping scale used for training (Kinetix's repository configs use 0.2)
+    physics: str = DEFAULT_PHYSICS_SCHEME  # kforge or kinetix (closest to Kinetix's play), engine.PHYSICS_SCHEMES
 
 
 @dataclasses.dataclass
@@ -412,6 +421,8 @@ def check_config(job: JobConfig) -> None:
         raise ConfigError(f"experts.solved_evaluations must be >= 1, got {job.experts.solved_evaluations}")
     if job.experts.give_up_env_steps < 0:
         raise ConfigError(f"experts.give_up_env_steps must be >= 0, got {job.experts.give_up_env_steps}")
+    if job.env.physics not in PHYSICS_SCHEMES:
+        raise ConfigError(f"env.physics must be one of {', '.join(PHYSICS_SCHEMES)}, got {job.env.physics!r}")
     if job.tracking.wandb not in TRACKING_MODES:
         raise ConfigError(f"tracking.wandb must be one of {', '.join(TRACKING_MODES)}, got {job.tracking.wandb!r}")
     try:
@@ -434,8 +445,9 @@ def ppo_config(job: JobConfig) -> PPOConfig:
 
 
 def environment(job: JobConfig) -> tuple[EnvParams, StaticEnvParams]:
-    """The env parameters of the job's levels: the config's reward shaping, the engine's physics defaults."""
-    return EnvParams(dense_reward_scale=job.env.dense_reward_scale), StaticEnvParams.for_size(job.split.size)
+    """The env parameters of the job's levels: the config's reward shaping and physics scheme."""
+    params = EnvParams(dense_reward_scale=job.env.dense_reward_scale)
+    return under_scheme(physics_scheme(job.env.physics), params, StaticEnvParams.for_size(job.split.size))
 
 
 PHYSICS_ADDED_LATER = {
@@ -461,6 +473,7 @@ def data_definition(job: JobConfig) -> dict:
     the code, not the config, so that data made by code with other physics is told apart)."""
     sections = [name for name in DATA_SECTIONS if name != "experts" or job.experts.budget_mode != FIXED_BUDGET_MODE]
     data = {section: dataclasses.asdict(getattr(job, section)) for section in sections}
+    data["env"] = {key: value for key, value in data["env"].items() if key not in ENV_DEFINED_BY_PHYSICS}
     if "experts" in data:
         adaptive = job.experts.budget_mode == ADAPTIVE_BUDGET_MODE
         data["experts"] = {
@@ -470,6 +483,12 @@ def data_definition(job: JobConfig) -> dict:
         }
     params, static = environment(job)
     return data | {"physics": physics_definition(params.sim, static.sim)}
+
+
+ENV_DEFINED_BY_PHYSICS = ("physics",)
+"""Keys of the env section that enter the data definition through what they set, in its physics entry (the scheme's
+parameters), not by name: datasets made before the key keep their fingerprint, and two names for the same physics
+would be one dataset."""
 
 
 EXPERTS_ADDED_LATER = {"solved_window": False}

@@ -25,6 +25,7 @@ import numpy as np
 from omegaconf import OmegaConf
 
 from agents import NetworkConfig, make_bc_network, network_actor, run_episode
+from engine import DEFAULT_PHYSICS_SCHEME, PHYSICS_SCHEMES, PhysicsScheme, physics_scheme
 from env import (
     ActionType,
     EnvParams,
@@ -37,6 +38,7 @@ from env import (
     noop_action,
     random_action,
     reset,
+    under_scheme,
 )
 from pipeline.generation import JobConfig, environment, merge_layers, sample_batch, to_schema_object
 from pipeline.learning.checkpoints import checkpoint_steps, restore_checkpoint
@@ -262,15 +264,18 @@ def unseen_starts(job: JobConfig, count: int) -> StartSet:
     return StartSet(jax.vmap(reset)(stacked), jax.vmap(action_mask)(stacked), _broadcast(env_params, count), kept_ids)
 
 
-def hand_starts(static: StaticEnvParams) -> StartSet:
-    """Start states of the bundled hand-designed Kinetix levels of the dataset's size, each with its own params."""
-    size = next((name for name in ("s", "m", "l") if StaticEnvParams.for_size(name) == static), None)
+def hand_starts(static: StaticEnvParams, scheme: PhysicsScheme = PHYSICS_SCHEMES[DEFAULT_PHYSICS_SCHEME]) -> StartSet:
+    """Start states of the bundled hand-designed Kinetix levels of the dataset's size, each with its own params under
+    the dataset's physics `scheme` (which `static` was made with)."""
+    sizes = {name: under_scheme(scheme, EnvParams(), StaticEnvParams.for_size(name))[1] for name in ("s", "m", "l")}
+    size = next((name for name, sized in sizes.items() if sized == static), None)
     if size is None:
-        raise DatasetError(f"the dataset's static sizes {static} are none of Kinetix's s, m and l")
+        raise DatasetError(f"the dataset's static parameters {static} are none of Kinetix's s, m and l in its scheme")
     names = list_levels(size)
     loaded = [load_level(name) for name in names]
     stacked = jax.tree.map(lambda *xs: jnp.stack(xs), *(entry.level for entry in loaded))
-    params = jax.tree.map(lambda *xs: jnp.stack([jnp.asarray(x) for x in xs]), *(entry.params for entry in loaded))
+    own = [under_scheme(scheme, entry.params, static)[0] for entry in loaded]
+    params = jax.tree.map(lambda *xs: jnp.stack([jnp.asarray(x) for x in xs]), *own)
     return StartSet(jax.vmap(reset)(stacked), jax.vmap(action_mask)(stacked), params, names)
 
 
@@ -358,7 +363,8 @@ def evaluate_policy(
                 "per_level": {str(i): float(s) for i, s in zip(starts.level_ids, per_start["bc"], strict=True)},
             }
         else:
-            starts = hand_starts(policy.static)
+            scheme = physics_scheme(DEFAULT_PHYSICS_SCHEME if job is None else job.env.physics)
+            starts = hand_starts(policy.static, scheme)
             from_start, per_start = _play_all(policy, starts, policy.static, episodes, seed, greedy)
             result["sets"][name] = {
                 "levels": len(starts.level_ids),

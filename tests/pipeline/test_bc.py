@@ -16,19 +16,22 @@ import pytest
 from pipeline_test_helpers import PARAMS, STATIC, as_a_terminal_job
 
 import configs
-from env import action_mask, reset
+from engine import ContactPoints, physics_scheme
+from env import EnvParams, StaticEnvParams, action_mask, list_levels, load_level, reset, under_scheme
 from pipeline.cli import main
 from pipeline.generation import ConfigError
 from pipeline.learning import (
     Baseline,
     BCConfig,
     StartSet,
+    hand_starts,
     load_bc_config,
     load_policy,
     play,
     train_bc,
 )
 from pipeline.learning.checkpoints import checkpoint_steps
+from pipeline.storage import DatasetError
 
 SMALL = [
     "train.batch_size=2",
@@ -208,3 +211,19 @@ def test_unseen_levels_are_the_split_levels_past_the_dataset_that_the_filter_kee
     assert candidates[keep][:5].tolist() == ids  # every kept id in the range, in order, and no filtered one
     expected = jax.vmap(reset)(sample_batch(job, np.asarray(ids)))
     np.testing.assert_array_equal(starts.states.sim.bodies.position, expected.sim.bodies.position)
+
+
+def test_hand_levels_are_played_under_the_datasets_physics_scheme():
+    """A dataset made with env.physics=kinetix is evaluated on the hand-designed levels with that scheme's solver and
+    parameters, each level keeping its own constants; its static parameters are not size s's under the default."""
+    kinetix = physics_scheme("kinetix")
+    _, static = under_scheme(kinetix, EnvParams(), StaticEnvParams.for_size("s"))
+    starts = hand_starts(static, kinetix)
+    names = list_levels("s")
+    assert starts.level_ids == names and len(names) > 1
+    assert np.all(np.asarray(starts.params.sim.contact_points) == ContactPoints.KINETIX)
+    assert np.all(np.asarray(starts.params.sim.speculative_distance) == 0.0)
+    own = np.array([load_level(name).params.sim.base_friction for name in names], np.float32)
+    assert np.array_equal(np.asarray(starts.params.sim.base_friction), own)
+    with pytest.raises(DatasetError, match="none of Kinetix's s, m and l"):
+        hand_starts(static)  # the default scheme's size s has 4 substeps

@@ -4,8 +4,11 @@ experts section."""
 
 import math
 
+import pytest
+
 from engine import ContactLaw, ContactPoints, LimitLaw, SimParams, StaticSimParams
 from pipeline.generation.config import (
+    ConfigError,
     data_definition,
     data_fingerprint,
     definition_fingerprint,
@@ -86,3 +89,41 @@ def test_the_window_check_leaves_streamed_and_earlier_adaptive_datasets_their_fi
     earlier_adaptive = FINGERPRINTS_BEFORE_THE_WINDOW_CHECK["adaptive"]
     assert fingerprint("experts.budget_mode=adaptive", "experts.solved_window=false") == earlier_adaptive
     assert fingerprint("experts.budget_mode=adaptive") != earlier_adaptive  # the check changes which levels stop
+
+
+FINGERPRINTS_BEFORE_PHYSICS_SCHEMES = {"1M/s": "196ec675e952d03c", "10M/l": "b4d8d39441477de0"}
+"""`data_fingerprint` of each split's default job as the code before `env.physics` computed it (commit 5548280)."""
+
+
+def test_the_physics_scheme_enters_the_definition_by_its_parameters_and_the_default_keeps_fingerprints(tmp_path):
+    """`env.physics` names a scheme; what enters the data definition is what the scheme sets (in `physics`), so
+    datasets made before the key keep their fingerprint, whether the default is named or not, and "kinetix" data is
+    told apart."""
+    for split, fingerprint in FINGERPRINTS_BEFORE_PHYSICS_SCHEMES.items():
+        base = [f"split.name={split}", f"output_dir={tmp_path}"]
+        assert data_fingerprint(load_config(None, base)) == fingerprint
+        assert data_fingerprint(load_config(None, [*base, "env.physics=kforge"])) == fingerprint
+        kinetix = load_config(None, [*base, "env.physics=kinetix"])
+        assert data_fingerprint(kinetix) != fingerprint
+        definition = data_definition(kinetix)
+        assert definition["env"] == {"dense_reward_scale": 0.2}
+        scheme = {
+            "num_substeps": 1,
+            "num_iterations": 10,
+            "num_relax_iterations": 0,
+            "contact_law": 1,
+            "force_timing": 1,
+            "speculative_distance": 0.0,
+            "overlap_allowance": 2.0,
+            "contact_points": 1,
+            "limit_law": 2,
+        }
+        assert {key: definition["physics"][key] for key in scheme} == scheme
+        params, static = environment(kinetix)
+        assert (static.sim.num_substeps, static.sim.num_iterations, static.sim.num_relax_iterations) == (1, 10, 0)
+        assert (kinetix.split.size, static.sim.num_polygons, params.dense_reward_scale) == ("s", 5, 0.2)  # kept
+
+
+def test_an_unknown_physics_scheme_is_refused_in_one_line(tmp_path):
+    with pytest.raises(ConfigError, match=r"^env.physics must be one of kforge, kinetix, got 'jax2d'$"):
+        load_config(None, ["split.name=1M/s", f"output_dir={tmp_path}", "env.physics=jax2d"])

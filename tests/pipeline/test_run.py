@@ -133,6 +133,25 @@ def test_a_dataset_made_with_other_physics_is_refused(tmp_path, monkeypatch):
         prepare_output(tiny_job(tmp_path))
 
 
+def test_a_dataset_resumed_under_another_physics_scheme_is_refused(tmp_path):
+    prepare_output(tiny_job(tmp_path))
+    prepare_output(tiny_job(tmp_path, "env.physics=kforge"))  # the default, named
+    with pytest.raises(ResumeRefused, match=r"physics\.num_substeps"):
+        prepare_output(tiny_job(tmp_path, "env.physics=kinetix"))
+
+
+@pytest.mark.slow  # the tiny job's programs compiled for another solver scheme (minutes)
+def test_a_job_under_the_kinetix_physics_scheme_makes_a_dataset_of_its_own_that_verifies(tmp_path, uninterrupted):
+    job = tiny_job(tmp_path, "env.physics=kinetix")
+    assert run_in_process(job)["committed_batches"] == 4
+    attributes = open_dataset(tmp_path).spec.attributes
+    physics = attributes["data_config"]["physics"]
+    assert (physics["num_substeps"], physics["num_iterations"], physics["contact_points"]) == (1, 10, 1)
+    assert attributes["data_fingerprint"] == data_fingerprint(job)
+    assert attributes["data_fingerprint"] != open_dataset(uninterrupted).spec.attributes["data_fingerprint"]
+    verify_main([str(tmp_path)])  # exits non-zero on any problem
+
+
 @pytest.mark.slow
 def test_ray_job_with_two_workers_matches_the_in_process_run(uninterrupted, tmp_path, monkeypatch):
     monkeypatch.setenv("RAY_AUTH_MODE", "disabled")
