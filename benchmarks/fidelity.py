@@ -45,6 +45,7 @@ from benchmarks.kinetix_variants import parse_variant, variant_label  # noqa: E4
 from benchmarks.machine import describe_machine  # noqa: E402
 from benchmarks.sim_overrides import add_solver_scheme_options, sim_override, solver_scheme  # noqa: E402
 from benchmarks.sim_overrides import with_solver_scheme as with_sim_scheme  # noqa: E402
+from engine import DEFAULT_PHYSICS_SCHEME, PHYSICS_SCHEMES, physics_scheme  # noqa: E402
 from env import (  # noqa: E402
     EnvParams,
     Outcome,
@@ -54,6 +55,7 @@ from env import (  # noqa: E402
     first_episode_outcomes,
     list_levels,
     load_level,
+    under_scheme,
 )
 
 KINETIX_SCRIPT = Path(__file__).resolve().parent / "kinetix_fidelity_baseline.py"
@@ -81,16 +83,27 @@ def with_solver_scheme(static: StaticEnvParams, scheme: dict) -> StaticEnvParams
     return static if sim == static.sim else dataclasses.replace(static, sim=sim)
 
 
-def play_ours(paths: dict[str, str], episodes: int, seed: int, sim_overrides: dict, log, scheme=None) -> dict:
-    """Per level name: the no-op outcome and the random policy's outcome counts, in kforge (with the solver scheme's
-    counts in `scheme`, if given: `with_solver_scheme`)."""
+def play_ours(
+    paths: dict[str, str],
+    episodes: int,
+    seed: int,
+    sim_overrides: dict,
+    log,
+    scheme=None,
+    physics: str = DEFAULT_PHYSICS_SCHEME,
+) -> dict:
+    """Per level name: the no-op outcome and the random policy's outcome counts, in kforge under the named `physics`
+    scheme, then with the solver scheme's counts in `scheme`, if given (`with_solver_scheme`), and `sim_overrides`."""
+    named = physics_scheme(physics)
     groups: dict = {}
     for name, path in paths.items():
         loaded = load_level(path)
-        groups.setdefault(with_solver_scheme(loaded.static, scheme or {}), []).append((name, loaded))
+        _, static = under_scheme(named, EnvParams(), loaded.static)
+        groups.setdefault(with_solver_scheme(static, scheme or {}), []).append((name, loaded))
     report = {}
     for static, members in groups.items():
         params = EnvParams(dense_reward_scale=0.0)
+        params = params.replace(sim=named.sim(params.sim))
         if sim_overrides:
             params = params.replace(sim=dataclasses.replace(params.sim, **sim_overrides))
         levels = jax.tree.map(lambda *xs: np.stack(xs), *(loaded.level for _, loaded in members))
@@ -284,6 +297,12 @@ def main(argv=None) -> None:
     parser.add_argument("--random-levels", type=int, default=0, help="Kinetix-sampled random levels per size")
     parser.add_argument("--episodes", type=int, default=280, help="random-policy episodes per level")
     parser.add_argument("--seed", type=int, default=0, help="seed of Kinetix's level sampler and of the actions")
+    parser.add_argument(
+        "--physics",
+        choices=list(PHYSICS_SCHEMES),
+        default=DEFAULT_PHYSICS_SCHEME,
+        help="our engine's physics scheme (a job's env.physics), under the options below",
+    )
     parser.add_argument("--sim", type=sim_override, action="append", default=[], help="SimParams KEY=VALUE of ours")
     add_solver_scheme_options(parser)
     parser.add_argument(
@@ -310,10 +329,10 @@ def main(argv=None) -> None:
         parser.error("--chunk-levels and --episodes must be at least 1")
     scheme = solver_scheme(args, parser)
     switched = any(value is not None for value in scheme.values())
-    if (args.sim or switched) and args.kinetix_variant:
+    if (args.sim or switched or args.physics != DEFAULT_PHYSICS_SCHEME) and args.kinetix_variant:
         parser.error(
-            "--sim, --substeps, --iterations, --relax-iterations, --block-contacts and --no-relax-contacts switch "
-            "our engine and --kinetix-variant replaces it: give one of them"
+            "--physics, --sim, --substeps, --iterations, --relax-iterations, --block-contacts and "
+            "--no-relax-contacts switch our engine and --kinetix-variant replaces it: give one of them"
         )
 
     def log(line: str) -> None:
@@ -344,7 +363,7 @@ def main(argv=None) -> None:
     if variant:
         ours = kinetix_outcomes(python, paths, listing, args, log, variant)
     else:
-        ours = play_ours(paths, args.episodes, args.seed, dict(args.sim), log, scheme)
+        ours = play_ours(paths, args.episodes, args.seed, dict(args.sim), log, scheme, args.physics)
     ours_seconds = time.perf_counter() - started
     compared = f"kinetix-env, {variant_label(variant)}" if variant else "kforge"
 
@@ -353,6 +372,7 @@ def main(argv=None) -> None:
         "machine": describe_machine(),
         "episodes": args.episodes,
         "compared": compared,
+        "physics": args.physics,
         "sim_overrides": dict(args.sim),
         **scheme,
         "seconds": {compared: ours_seconds, "kinetix": kinetix_seconds},

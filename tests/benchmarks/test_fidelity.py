@@ -160,6 +160,28 @@ def test_sim_switches_and_a_kinetix_variant_are_not_given_together(capsys):
     with pytest.raises(SystemExit):
         fidelity.main(["--no-relax-contacts", "--kinetix-variant", "padding_writes=0"])
     assert "give one of them" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        fidelity.main(["--physics", "kinetix", "--kinetix-variant", "padding_writes=0"])
+    assert "give one of them" in capsys.readouterr().err
+
+
+@pytest.mark.slow  # two env programs compiled (a minute)
+def test_the_kinetix_physics_scheme_plays_as_the_measured_setting_spelled_out():
+    """`--physics kinetix` (a job's env.physics=kinetix) is the setting docs/fidelity.md measured with options:
+    Jax2D's solver scheme and contact geometry give the same outcomes, episode for episode."""
+    paths = {"s/h5_rotate_fall": str(bundled_level_path("s/h5_rotate_fall"))}
+    setting = {
+        "contact_law": 1.0,
+        "force_timing": 1.0,
+        "speculative_distance": 0.0,
+        "overlap_allowance": 2.0,
+        "contact_points": 1.0,
+        "limit_law": 2.0,
+    }
+    solver = {"substeps": 1, "iterations": 10, "relax_iterations": 0}
+    named = fidelity.play_ours(paths, 4, 0, {}, lambda line: None, None, "kinetix")
+    spelled_out = fidelity.play_ours(paths, 4, 0, setting, lambda line: None, solver)
+    assert named == spelled_out and sum(named["s/h5_rotate_fall"]["random"].values()) == 4
 
 
 def test_the_solver_scheme_options_change_only_ours_solver_counts():
