@@ -93,6 +93,7 @@ KEY_CONFIG_VALUES = (
     "filter.enabled",
     "filter.noop_steps",
     "env.dense_reward_scale",
+    "env.physics",
     "ppo.num_envs",
     "ppo.num_steps",
     "ppo.update_epochs",

@@ -105,7 +105,7 @@ def test_card_names_the_fingerprint_config_and_timings(dataset, card):
     assert open_dataset(dataset).spec.attributes["data_fingerprint"] in text
     config = _table(text, "Config")
     assert config["split.expert_budget"] == ["256"] and config["filter.noop_steps"] == ["1"]
-    assert config["scale"] == ["null"]
+    assert config["scale"] == ["null"] and config["env.physics"] == ["kforge"]
 
     seconds = [record.provenance["seconds"] for record in iter_records(dataset)]
     total = sum(s["total"] for s in seconds)
