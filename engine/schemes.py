@@ -13,7 +13,6 @@ class PhysicsScheme:
     """A physics setting applied over any `SimParams` (a level's gravity, friction and the like are kept) and any
     `StaticSimParams` (sizes are kept)."""
 
-    summary: str
     sim_fields: tuple[tuple[str, float], ...] = ()  # SimParams field -> value
     solver_fields: tuple[tuple[str, int | bool], ...] = ()  # StaticSimParams solver setting -> value
 
@@ -29,13 +28,12 @@ class PhysicsScheme:
 DEFAULT_PHYSICS_SCHEME = "kforge"
 
 PHYSICS_SCHEMES = {
-    DEFAULT_PHYSICS_SCHEME: PhysicsScheme(
-        "the engine's defaults: 4 substeps, soft contacts and joints; every row of the physics test plan holds"
-    ),
+    # The engine's defaults: 4 substeps, soft contacts and joints; every row of the physics test plan holds.
+    DEFAULT_PHYSICS_SCHEME: PhysicsScheme(),
+    # Jax2D's scheme and contact geometry, the closest to Kinetix's play: one step of 10 passes, Baumgarte's push-out,
+    # gravity and thrust at the step's start, no speculative contacts, Jax2D's contact points, overlaps found a step
+    # late below twice the inner radius, joints past a limit returned at a bounded rate.
     "kinetix": PhysicsScheme(
-        "Jax2D's scheme and contact geometry, the closest to Kinetix's play: one step of 10 passes, Baumgarte's "
-        "push-out, gravity and thrust at the step's start, no speculative contacts, Jax2D's contact points, overlaps "
-        "found a step late below twice the inner radius, joints past a limit returned at a bounded rate",
         sim_fields=(
             ("contact_law", ContactLaw.BAUMGARTE),
             ("force_timing", ForceTiming.STEP_START),
