@@ -95,6 +95,8 @@ def play_ours(
     """Per level name: the no-op outcome and the random policy's outcome counts, in kforge under the named `physics`
     scheme, then with the solver scheme's counts in `scheme`, if given (`with_solver_scheme`), and `sim_overrides`."""
     named = physics_scheme(physics)
+    params = EnvParams(dense_reward_scale=0.0)
+    params = params.replace(sim=dataclasses.replace(named.sim(params.sim), **sim_overrides))
     groups: dict = {}
     for name, path in paths.items():
         loaded = load_level(path)
@@ -102,10 +104,6 @@ def play_ours(
         groups.setdefault(with_solver_scheme(static, scheme or {}), []).append((name, loaded))
     report = {}
     for static, members in groups.items():
-        params = EnvParams(dense_reward_scale=0.0)
-        params = params.replace(sim=named.sim(params.sim))
-        if sim_overrides:
-            params = params.replace(sim=dataclasses.replace(params.sim, **sim_overrides))
         levels = jax.tree.map(lambda *xs: np.stack(xs), *(loaded.level for _, loaded in members))
         started = time.perf_counter()
         noop = _outcomes(levels, params, static, 1, None)
