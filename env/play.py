@@ -11,11 +11,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from engine import DEFAULT_PHYSICS_SCHEME, PHYSICS_SCHEMES, physics_scheme
 from env.actions import ActionType, noop_action, random_action
 from env.episode import StepResult, reset, step
 from env.gif import write_state_gif
 from env.level_files import load_level
-from env.params import EnvParams, StaticEnvParams
+from env.params import EnvParams, StaticEnvParams, under_scheme
 from env.rollout import Policy
 from env.state import EnvState, Level
 
@@ -56,17 +57,24 @@ def main(argv=None, prog: str | None = None) -> None:
     parser.add_argument("--steps", type=int, default=256, help="env steps to play (default 256, one episode)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the random policy")
     parser.add_argument("--out", type=Path, help="GIF path (default outputs/<level name>.gif)")
+    parser.add_argument(
+        "--physics",
+        choices=sorted(PHYSICS_SCHEMES),
+        default=DEFAULT_PHYSICS_SCHEME,
+        help=f"physics scheme, as a job's env.physics (default {DEFAULT_PHYSICS_SCHEME})",
+    )
     args = parser.parse_args(argv)
     if args.steps < 1:
         parser.error("--steps must be at least 1")
     loaded = load_level(args.level)
+    params, static = under_scheme(physics_scheme(args.physics), loaded.params, loaded.static)
     out = args.out or DEFAULT_OUT_DIR / f"{args.level.stem}.gif"
 
     started = time.perf_counter()
     states, results = record_episode(
-        loaded.level, loaded.params, loaded.static, Policy(args.policy), jax.random.key(args.seed), args.steps
+        loaded.level, params, static, Policy(args.policy), jax.random.key(args.seed), args.steps
     )
-    path = write_state_gif(jax.device_get(states), loaded.static, out, fps=GIF_FPS)
+    path = write_state_gif(jax.device_get(states), static, out, fps=GIF_FPS)
     results = jax.device_get(results)
     ends = np.flatnonzero(results.done)
     outcomes = [_describe(results, t) for t in ends] or ["no episode ended"]

@@ -28,7 +28,7 @@ import numpy as np
 from PIL import Image
 from tqdm import tqdm
 
-from engine import KINETIX_SIZES
+from engine import DEFAULT_PHYSICS_SCHEME, KINETIX_SIZES, PHYSICS_SCHEMES, physics_scheme
 from env import (
     BUNDLED_SIZES,
     GIF_FPS,
@@ -47,6 +47,7 @@ from env import (
     reset,
     sample_levels,
     save_level,
+    under_scheme,
     write_state_gif,
 )
 from pipeline.cli import EXIT_CODES_HELP, add_common_options, fail
@@ -170,6 +171,7 @@ def preview_command(args: argparse.Namespace) -> None:
         [(_, level)] = sampled_levels(args.size, args.seed, [args.index])
         static, params = StaticEnvParams.for_size(args.size), sample_params()
         name = f"{args.size}-seed{args.seed}-{LEVEL_FILE.format(args.index).removesuffix('.json')}"
+    params, static = under_scheme(physics_scheme(args.physics), params, static)
     out = args.out or LEVELS_DIR / f"{name}.png"
     if out.suffix == ".gif":
         states, _ = record_episode(
@@ -345,6 +347,12 @@ def _parser(prog: str | None) -> argparse.ArgumentParser:
     preview.add_argument("--steps", type=int, default=DEFAULT_GIF_STEPS, help="GIF: env steps to play (default 256)")
     preview.add_argument("--policy", choices=[p.value for p in Policy], default=Policy.NOOP.value, help="GIF: policy")
     preview.add_argument("--policy-seed", type=int, default=0, help="GIF: seed of the random policy (default 0)")
+    preview.add_argument(
+        "--physics",
+        choices=sorted(PHYSICS_SCHEMES),
+        default=DEFAULT_PHYSICS_SCHEME,
+        help=f"GIF: physics scheme, as a job's env.physics (default {DEFAULT_PHYSICS_SCHEME})",
+    )
     preview.set_defaults(run=preview_command)
 
     importer = commands.add_parser(

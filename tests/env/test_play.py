@@ -13,3 +13,14 @@ def test_render_command_writes_one_frame_per_state(levels_dir, tmp_path, capsys)
     printed = capsys.readouterr().out
     # The level's design: without thrust the green ball falls onto the red floor.
     assert str(out) in printed and "failure at step" in printed
+
+
+def test_render_plays_under_the_physics_scheme_named(levels_dir, tmp_path, capsys):
+    level = str(levels_dir / "s" / "h0_weak_thrust.json")
+    default, kinetix = tmp_path / "kforge.gif", tmp_path / "kinetix.gif"
+    main(["render", level, "--steps", "40", "--out", str(default)])
+    main(["render", level, "--steps", "40", "--out", str(kinetix), "--physics", "kinetix"])
+    a, b = iio.imread(default, index=None), iio.imread(kinetix, index=None)
+    assert (a[0] == b[0]).all()  # the level's start does not depend on the physics
+    assert (a[1] != b[1]).any()  # one env step of free fall: four substeps against one step of Jax2D's scheme
+    assert "failure at step" in capsys.readouterr().out.split("\n")[-2]  # the ball still lands on the red floor

@@ -142,6 +142,17 @@ def test_preview_writes_a_png_of_the_start_and_a_gif_of_an_episode(sampled_dir, 
     assert frames.shape[:3] == (GIF_STEPS + 1, PREVIEW_PIXELS, PREVIEW_PIXELS)  # the start and one frame per step
 
 
+def test_preview_plays_the_episode_under_the_physics_scheme_named(tmp_path):
+    frames = {}
+    for physics in ("kforge", "kinetix"):
+        gif = tmp_path / f"{physics}.gif"
+        argv = ["s/h0_weak_thrust", "--out", str(gif), "--resolution", str(PREVIEW_PIXELS), "--steps", str(GIF_STEPS)]
+        main(["preview", *argv, "--physics", physics])
+        frames[physics] = iio.imread(gif, index=None)
+    assert (frames["kforge"][0] == frames["kinetix"][0]).all()  # the start does not depend on the physics
+    assert (frames["kforge"][1:] != frames["kinetix"][1:]).any()  # free fall in substeps or in Jax2D's one step
+
+
 @pytest.mark.parametrize(
     ("subcommand", "phrase"),
     [
