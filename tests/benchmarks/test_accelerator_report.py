@@ -18,7 +18,7 @@ def test_dry_run_prints_the_full_plan_without_measuring():
     plan = json.loads(output.stdout)
     assert plan["backend"] == "cpu"
     assert plan["plan"]["sizes"] == ["s", "m", "l"]
-    assert plan["plan"]["engine_batches"] == [16384, 4096, 65536]  # every size at 16,384 first
+    assert plan["plan"]["engine_batches"] == [16384, 65536, 4096]  # every size at 16,384 first, then the largest
     assert plan["plan"]["engine_solver_loops"] == []  # the backend's own form alone: settled on a GPU
     assert plan["budget_seconds"] <= 600
     assert FULL.ppo_levels == (64, 256)
