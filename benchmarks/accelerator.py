@@ -31,6 +31,7 @@ Kinetix's PPO. `--quick` runs every section at toy sizes (a CPU check that the s
 from __future__ import annotations
 
 import argparse
+import concurrent.futures
 import contextlib
 import dataclasses
 import functools
@@ -179,29 +180,75 @@ def _importable(module: str) -> bool:
     return True
 
 
-def measure_engine(size: str, batch: int, plan: Plan, with_jax2d: bool) -> dict:
-    """Steps/s of ours in each form of the solver's loops (the backend's "auto" form first) and of Jax2D, timed
-    alternately."""
+@dataclasses.dataclass
+class EnginePrograms:
+    """One size and batch's compiled engine rollouts: ours in each form of the solver's loops (the backend's "auto"
+    form first), then Jax2D's where measured, each with its compile seconds."""
+
+    forms: list[str]
+    calls: list = dataclasses.field(default_factory=list)
+    compile_seconds: list[float] = dataclasses.field(default_factory=list)
+    with_jax2d: bool = False
+
+
+def _timed(build):
+    started = time.perf_counter()
+    call = build()
+    return call, time.perf_counter() - started
+
+
+def compile_engine_programs(
+    sizes, batch: int, plan: Plan, with_jax2d: bool, threads: int
+) -> dict[str, EnginePrograms | Exception]:
+    """Every engine program of one batch, for every size, compiled on `threads` threads at once (XLA compiles
+    outside Python's lock, so a machine's idle cores take the next programs); per size its programs, or the error
+    that stopped them."""
     from benchmarks import jax2d_baseline
     from benchmarks.engine import compile_rollout_ours
-    from benchmarks.timing import best_time, best_times_interleaved
     from engine import current_batching, set_batching
 
     batching = current_batching()
     forms = list(dict.fromkeys((batching.solver_loops, *plan.engine_solver_loops)))
-    calls, compile_seconds = [], []
-    try:
-        for form in forms:
-            set_batching(batching.mode, batching.chunk_limit, form)
-            started = time.perf_counter()
-            calls.append(compile_rollout_ours(size, batch, plan.engine_steps))
-            compile_seconds.append(time.perf_counter() - started)
-    finally:
-        set_batching()
-    if with_jax2d:
-        started = time.perf_counter()
-        calls.append(jax2d_baseline.compile_rollout(size, batch, plan.engine_steps)[0])
-        compile_seconds.append(time.perf_counter() - started)
+    pending = {size: {} for size in sizes}  # size -> {program index: future}
+    with concurrent.futures.ThreadPoolExecutor(max(1, threads)) as pool:
+        try:
+            for index, form in enumerate(forms):  # the form is read while tracing: one form's programs at a time
+                set_batching(batching.mode, batching.chunk_limit, form)
+                for size in sizes:
+                    pending[size][index] = pool.submit(
+                        _timed, lambda size=size: compile_rollout_ours(size, batch, plan.engine_steps)
+                    )
+                if index == 0 and with_jax2d:
+                    for size in sizes:
+                        pending[size][len(forms)] = pool.submit(
+                            jax2d_baseline.compile_rollout, size, batch, plan.engine_steps
+                        )
+                # Every program traced before the form changes (which clears JAX's caches) or is reset below.
+                concurrent.futures.wait([future for futures in pending.values() for future in futures.values()])
+        finally:
+            set_batching()
+    programs: dict[str, EnginePrograms | Exception] = {}
+    for size, futures in pending.items():
+        found = EnginePrograms(forms, with_jax2d=with_jax2d)
+        try:
+            for index in sorted(futures):
+                call, seconds = futures[index].result()
+                found.calls.append(call)
+                found.compile_seconds.append(seconds)
+            programs[size] = found
+        except Exception as error:  # recorded under the size's figure by `measure_engine`
+            programs[size] = error
+    return programs
+
+
+def measure_engine(programs: EnginePrograms | Exception, batch: int, plan: Plan, concurrency: int) -> dict:
+    """Steps/s of ours in each form of the solver's loops and of Jax2D, timed alternately, from their compiled
+    programs (`compile_engine_programs`)."""
+    from benchmarks.timing import best_time, best_times_interleaved
+
+    if isinstance(programs, Exception):
+        raise programs
+    calls, forms, compile_seconds = programs.calls, programs.forms, programs.compile_seconds
     seconds = best_times_interleaved(calls, plan.repeats) if len(calls) > 1 else [best_time(calls[0], plan.repeats)[0]]
     rates = [batch * plan.engine_steps / s for s in seconds]
     by_form = {
@@ -211,9 +258,10 @@ def measure_engine(size: str, batch: int, plan: Plan, with_jax2d: bool) -> dict:
         "ours_solver_loops": forms[0],
         "ours_steps_per_second": rates[0],
         "ours_compile_seconds": compile_seconds[0],
+        "compiled_concurrently": concurrency,
         "solver_loops": by_form,
     }
-    if with_jax2d:
+    if programs.with_jax2d:
         result |= {
             "jax2d_steps_per_second": rates[-1],
             "jax2d_compile_seconds": compile_seconds[-1],
@@ -424,6 +472,7 @@ def run(
     kinetix: tuple[Path, Path | None] | None,
     log,
     sections=tuple(SECTION_SHARES),
+    compile_threads: int = 1,
 ) -> dict:
     budget = Budget(budget_seconds, sections)
     with_jax2d = _importable("jax2d")
@@ -433,18 +482,26 @@ def run(
         "devices": [str(device) for device in jax.devices()],
         "plan": dataclasses.asdict(plan),
         "jax2d_in_run": with_jax2d,
+        "compile_threads": compile_threads,
         "jax2d_published_peak_steps_per_second": JAX2D_PUBLISHED_PEAK_STEPS_PER_SECOND,
     }
     for batch in plan.engine_batches:  # every size at a batch before the next batch: a short budget covers them all
+        programs = {}
+        if budget.allows("engine"):
+            started = time.perf_counter()
+            programs = compile_engine_programs(plan.sizes, batch, plan, with_jax2d, compile_threads)
+            log(f"engine: programs at batch {batch} compiled in {time.perf_counter() - started:.0f} s")
+        concurrency = min(compile_threads, len(plan.sizes) * (1 + with_jax2d))  # the first form's round, the largest
         for size in plan.sizes:
             _attempt(
                 report,
                 "engine",
                 f"{size}/{batch}",
                 budget,
-                functools.partial(measure_engine, size, batch, plan, with_jax2d),
+                functools.partial(measure_engine, programs.get(size), batch, plan, concurrency),
                 log,
             )
+        del programs  # the compiled programs hold their batches' states on the device
     for size in plan.sizes:
         for batch in plan.env_batches:
             _attempt(report, "env", f"{size}/{batch}", budget, functools.partial(measure_env, size, batch, plan), log)
@@ -521,6 +578,12 @@ def main(argv=None) -> None:
     parser.add_argument("--env-batches", nargs="+", type=int, help="override the plan's env batches")
     parser.add_argument("--ppo-levels", nargs="+", type=int, help="override the plan's PPO level batches")
     parser.add_argument("--determinism-batch", type=int, help="override the scenes of the repeated engine rollout")
+    parser.add_argument(
+        "--compile-threads",
+        type=int,
+        default=os.cpu_count() or 1,
+        help="engine programs of one batch compiled at once (default: the machine's cores)",
+    )
     parser.add_argument("--engine-determinism", nargs=3, metavar=("SIZE", "BATCH", "STEPS"), help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args.engine_determinism:  # the child process of `measure_engine_determinism`
@@ -542,7 +605,7 @@ def main(argv=None) -> None:
         return
     with contextlib.redirect_stdout(sys.stderr):  # Ray and the measurements may print; stdout holds only the JSON
         kinetix = kinetix_interpreter(args.kinetix_venv, args.kinetix_site)
-        report = run(plan, args.budget, kinetix, _log, tuple(args.sections))
+        report = run(plan, args.budget, kinetix, _log, tuple(args.sections), max(1, args.compile_threads))
     print(json.dumps(report, indent=2))
 
 

@@ -62,6 +62,7 @@ def test_quick_report_runs_every_section_on_the_cpu():
     for figures in report["engine"]["s/8"]["solver_loops"].values():
         assert figures["steps_per_second"] > 0 and figures["speedup_vs_jax2d"] > 0
     assert sorted(report["engine"]["s/8"]["solver_loops"]) == ["looped", "unrolled"]
+    assert report["engine"]["s/8"]["compiled_concurrently"] == min(report["compile_threads"], 2)  # ours and Jax2D
     assert report["env"]["s/8"]["steps_per_second"] > 0
     assert report["ppo"]["s/2"]["steps_per_second"] > 0
     assert report["pipeline"]["s"]["levels"] == 2 and report["pipeline"]["s"]["ray"] is True  # installed here
