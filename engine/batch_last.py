@@ -22,8 +22,6 @@ import dataclasses
 import jax
 import jax.numpy as jnp
 
-from engine.sweep import SWEEPS
-
 BATCH_CHUNK = 256
 """Most scenes per call under `vmap_in_chunks`: larger batches are split into equal chunks of at most this many."""
 
@@ -34,9 +32,11 @@ whole: one ordinary `jax.vmap` over the whole batch."""
 CHUNKED_BACKENDS = ("cpu",)
 """Backends on which "auto" chunks (where chunking and the batch-last layout were measured to pay)."""
 
-SOLVER_LOOP_FORMS = tuple(SWEEPS)
-"""Forms of the solver's loops (substeps, passes and `engine.sweep.SWEEPS`): "looped", each a `lax.scan` whose body
-is compiled once, or "unrolled", written out in order."""
+SOLVER_LOOP_FORMS = ("looped", "unrolled_sweeps", "unrolled")
+"""Forms of the solver's loops (substeps, passes and the Gauss-Seidel sweeps of `engine.sweep.SWEEPS`): "looped",
+each a `lax.scan` whose body is compiled once; "unrolled_sweeps", the sweeps over contact colours and joints written
+out in order inside looped substeps and passes (most of the kernels saved, about half the compile time); or
+"unrolled", everything written out."""
 
 SOLVER_LOOP_MODES = ("auto", *SOLVER_LOOP_FORMS)
 """auto: "looped" on `LOOPED_SOLVER_BACKENDS`, "unrolled" elsewhere; or one of `SOLVER_LOOP_FORMS`."""

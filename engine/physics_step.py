@@ -134,17 +134,19 @@ class Prepared:
 @functools.cache
 def substep_solver(static: StaticSimParams, batch_last: bool = True, solver_loops: str = "looped"):
     """The substep loop and restitution for `static`: `SolverInput -> SolverOutput`, batch-last under vmap if asked,
-    with its loops (substeps, passes, Gauss-Seidel sweeps) in the form `solver_loops` (a key of `engine.sweep.SWEEPS`).
+    with its loops (substeps, passes, Gauss-Seidel sweeps) in the form `solver_loops` (one of
+    `engine.batch_last.SOLVER_LOOP_FORMS`).
 
     A substep runs `num_iterations` passes with position bias (all but the last in a `lax.scan`), advances the
     positions after the last, then `num_relax_iterations` passes without bias, of joints only unless `relax_contacts`
     (soft step: 1, 1; Jax2D's scheme: 10 iterations in one substep and no relaxing pass). Looped, substeps, passes,
     joints and colours are `lax.scan`s, so the compiled size does not grow with their number; unrolled, they are
-    written out in order (fewer kernels, a larger program). Joints' warm starting (nothing solved) is unrolled
-    into one fusion either way.
+    written out in order (fewer kernels, a larger program); "unrolled_sweeps" writes out joints and colours only.
+    Joints' warm starting (nothing solved) is unrolled into one fusion either way.
     """
     layout = pair_layout(static)
-    sweep, unrolled = SWEEPS[solver_loops], solver_loops == "unrolled"
+    sweep = SWEEPS["looped" if solver_loops == "looped" else "unrolled"]
+    unrolled = solver_loops == "unrolled"
 
     def solve(solver_input: SolverInput) -> SolverOutput:
         def components(x):

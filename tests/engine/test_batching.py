@@ -313,7 +313,7 @@ def chunked_run(batch):
 def test_batches_larger_than_a_chunk_equal_single_steps(batch, request):
     """A vmapped step over more than a chunk of scenes (run in chunks, the last one padded) equals each scene stepped
     alone, row by row (`chunked_run`: chunks of `TEST_CHUNK_LIMIT`, the program that
-    test_chunked_and_whole_batching_and_both_solver_loop_forms_give_the_same_states compares with whole vmaps)."""
+    test_chunked_and_whole_batching_and_every_solver_loop_form_give_the_same_states compares with whole vmaps)."""
     picks = _mode_picks(batch)
     motors, thrusters = batch["motors"][picks, 0], batch["thrusters"][picks, 0]
     alone = {}
@@ -336,27 +336,27 @@ def test_batches_larger_than_a_chunk_equal_single_steps(batch, request):
         np.testing.assert_array_equal(np.asarray(info.touching)[index], touching, err_msg=f"row {index}")
 
 
-def test_chunked_and_whole_batching_and_both_solver_loop_forms_give_the_same_states(batch, chunked_run):
+def test_chunked_and_whole_batching_and_every_solver_loop_form_give_the_same_states(batch, chunked_run):
     """Chunked with batch-last layout and the solver's loops looped (the CPU's "auto":
-    test_auto_batching_chunks_and_loops_on_cpu_only), one whole vmap looped, and one whole vmap with the solver's
-    loops unrolled (an accelerator's "auto") step a batch larger than a chunk alike; unrolled, the whole step runs
-    far fewer kernels."""
+    test_auto_batching_chunks_and_loops_on_cpu_only), and one whole vmap with the solver's loops looped, with only
+    its sweeps unrolled, and unrolled (an accelerator's "auto") step a batch larger than a chunk alike; the more is
+    written out, the fewer kernels the whole step runs."""
     _, chunked, chunked_program = chunked_run
-    _, whole, whole_program = _step_batch_in_mode("whole", batch)
-    _, unrolled, unrolled_program = _step_batch_in_mode("whole", batch, solver_loops="unrolled")
-    assert len({chunked_program, whole_program, unrolled_program}) == 3, "set_batching did not change the program"
-    for name, stepped in (("whole", whole), ("whole with the solver's loops unrolled", unrolled)):
+    whole, programs = {}, {}
+    for form in engine.SOLVER_LOOP_FORMS:
+        _, whole[form], programs[form] = _step_batch_in_mode("whole", batch, solver_loops=form)
+    assert len({chunked_program, *programs.values()}) == 4, "set_batching did not change the program"
+    for form, stepped in whole.items():
         for field, expected in _dynamic_fields(chunked.bodies).items():
             np.testing.assert_allclose(
                 np.asarray(getattr(stepped.bodies, field)),
                 expected,
                 atol=VMAP_ATOL * MODE_STEPS,
                 rtol=VMAP_RTOL * MODE_STEPS,
-                err_msg=f"{name} vs chunked: {field}",
+                err_msg=f"whole vmap, solver's loops {form}, vs chunked: {field}",
             )
-    looped_kernels = count_hlo_kernels(whole_program).kernels
-    unrolled_kernels = count_hlo_kernels(unrolled_program).kernels
-    assert unrolled_kernels < 0.7 * looped_kernels, (unrolled_kernels, looped_kernels)
+    kernels = {form: count_hlo_kernels(program).kernels for form, program in programs.items()}
+    assert kernels["unrolled"] < kernels["unrolled_sweeps"] < 0.7 * kernels["looped"], kernels
 
 
 def test_set_batching_retraces_programs_traced_before(batch):
