@@ -180,15 +180,15 @@ def _importable(module: str) -> bool:
     return True
 
 
-@dataclasses.dataclass
+@dataclasses.dataclass(frozen=True)
 class EnginePrograms:
     """One size and batch's compiled engine rollouts: ours in each form of the solver's loops (the backend's "auto"
     form first), then Jax2D's where measured, each with its compile seconds."""
 
     forms: list[str]
-    calls: list = dataclasses.field(default_factory=list)
-    compile_seconds: list[float] = dataclasses.field(default_factory=list)
-    with_jax2d: bool = False
+    calls: list
+    compile_seconds: list[float]
+    with_jax2d: bool
 
 
 def _timed(build):
@@ -197,47 +197,61 @@ def _timed(build):
     return call, time.perf_counter() - started
 
 
+def compile_concurrently(builders: dict, threads: int) -> dict:
+    """Call every builder (each compiles a program) on `threads` threads at once: XLA compiles outside Python's
+    lock, so a machine's idle cores take the next programs. Per key the builder's result, or the error that stopped
+    it."""
+    with concurrent.futures.ThreadPoolExecutor(max(1, threads)) as pool:
+        futures = {key: pool.submit(build) for key, build in builders.items()}
+    results = {}
+    for key, future in futures.items():
+        try:
+            results[key] = future.result()
+        except Exception as error:  # recorded under the key's figure, where it is measured
+            results[key] = error
+    return results
+
+
 def compile_engine_programs(
     sizes, batch: int, plan: Plan, with_jax2d: bool, threads: int
 ) -> dict[str, EnginePrograms | Exception]:
-    """Every engine program of one batch, for every size, compiled on `threads` threads at once (XLA compiles
-    outside Python's lock, so a machine's idle cores take the next programs); per size its programs, or the error
-    that stopped them."""
+    """Every engine program of one batch, for every size, compiled at once (`compile_concurrently`); per size its
+    programs, or the error that stopped one of them."""
     from benchmarks import jax2d_baseline
     from benchmarks.engine import compile_rollout_ours
     from engine import current_batching, set_batching
 
     batching = current_batching()
     forms = list(dict.fromkeys((batching.solver_loops, *plan.engine_solver_loops)))
-    pending = {size: {} for size in sizes}  # size -> {program index: future}
-    with concurrent.futures.ThreadPoolExecutor(max(1, threads)) as pool:
-        try:
-            for index, form in enumerate(forms):  # the form is read while tracing: one form's programs at a time
-                set_batching(batching.mode, batching.chunk_limit, form)
-                for size in sizes:
-                    pending[size][index] = pool.submit(
-                        _timed, lambda size=size: compile_rollout_ours(size, batch, plan.engine_steps)
+    compiled = {}
+    try:
+        for index, form in enumerate(forms):  # the form is read while tracing: one form's programs at a time
+            set_batching(batching.mode, batching.chunk_limit, form)
+            builders = {
+                (size, index): functools.partial(
+                    _timed, functools.partial(compile_rollout_ours, size, batch, plan.engine_steps)
+                )
+                for size in sizes
+            }
+            if index == 0 and with_jax2d:
+                builders |= {
+                    (size, len(forms)): functools.partial(
+                        jax2d_baseline.compile_rollout, size, batch, plan.engine_steps
                     )
-                if index == 0 and with_jax2d:
-                    for size in sizes:
-                        pending[size][len(forms)] = pool.submit(
-                            jax2d_baseline.compile_rollout, size, batch, plan.engine_steps
-                        )
-                # Every program traced before the form changes (which clears JAX's caches) or is reset below.
-                concurrent.futures.wait([future for futures in pending.values() for future in futures.values()])
-        finally:
-            set_batching()
+                    for size in sizes
+                }
+            compiled |= compile_concurrently(builders, threads)
+    finally:
+        set_batching()
     programs: dict[str, EnginePrograms | Exception] = {}
-    for size, futures in pending.items():
-        found = EnginePrograms(forms, with_jax2d=with_jax2d)
-        try:
-            for index in sorted(futures):
-                call, seconds = futures[index].result()
-                found.calls.append(call)
-                found.compile_seconds.append(seconds)
-            programs[size] = found
-        except Exception as error:  # recorded under the size's figure by `measure_engine`
-            programs[size] = error
+    for size in sizes:
+        results = [compiled[(size, index)] for index in range(len(forms) + with_jax2d)]
+        errors = [result for result in results if isinstance(result, Exception)]
+        programs[size] = (
+            errors[0]
+            if errors
+            else EnginePrograms(forms, [call for call, _ in results], [seconds for _, seconds in results], with_jax2d)
+        )
     return programs
 
 
@@ -284,10 +298,29 @@ def _ppo_config(plan: Plan):
     return load_ppo_config(DEFAULT_CONFIG, list(plan.ppo_overrides), plan.ppo_updates)
 
 
-def measure_ppo(size: str, levels: int, plan: Plan) -> dict:
+def compile_ppo_programs(plan: Plan, threads: int) -> dict:
+    """Our training program for every size and level batch of the plan, compiled at once (`compile_concurrently`);
+    per (size, levels) the program or the error that stopped it."""
+    from benchmarks.ppo import compile_ours
+
+    config = _ppo_config(plan)
+    builders = {
+        (size, levels): functools.partial(compile_ours, size, levels, config)
+        for size in plan.sizes
+        for levels in plan.ppo_levels
+    }
+    return compile_concurrently(builders, threads)
+
+
+def measure_ppo(program, size: str, levels: int, plan: Plan, concurrency: int) -> dict:
+    """Training env steps/s of our compiled `program` (`compile_ppo_programs`, `concurrency` programs at once)."""
     from benchmarks.ppo import measure_ours
 
-    return measure_ours(size, levels, _ppo_config(plan), plan.repeats)
+    if isinstance(program, Exception):
+        raise program
+    return measure_ours(size, levels, _ppo_config(plan), plan.repeats, program=program) | {
+        "compiled_concurrently": concurrency
+    }
 
 
 def measure_kinetix_ppo(python: Path, size: str, plan: Plan, site: Path | None = None) -> dict:
@@ -505,9 +538,16 @@ def run(
     for size in plan.sizes:
         for batch in plan.env_batches:
             _attempt(report, "env", f"{size}/{batch}", budget, functools.partial(measure_env, size, batch, plan), log)
+    trainings = {}
+    if budget.allows("ppo"):
+        started = time.perf_counter()
+        trainings = compile_ppo_programs(plan, compile_threads)
+        log(f"ppo: training programs compiled in {time.perf_counter() - started:.0f} s")
+    concurrency = min(compile_threads, len(plan.sizes) * len(plan.ppo_levels))
     for size in plan.sizes:
         for levels in plan.ppo_levels:
-            _attempt(report, "ppo", f"{size}/{levels}", budget, functools.partial(measure_ppo, size, levels, plan), log)
+            measure = functools.partial(measure_ppo, trainings.get((size, levels)), size, levels, plan, concurrency)
+            _attempt(report, "ppo", f"{size}/{levels}", budget, measure, log)
         if kinetix is not None and kinetix[0].exists():
             _attempt(
                 report,
@@ -518,6 +558,7 @@ def run(
                 log,
                 budget_section="ppo",
             )
+    del trainings  # the training programs hold their levels on the device
     with tempfile.TemporaryDirectory(prefix="kforge-accelerator-") as scratch:
         scratch, compile_cache = Path(scratch), Path(scratch) / "compile-cache"
         size = plan.sizes[0]
@@ -582,7 +623,7 @@ def main(argv=None) -> None:
         "--compile-threads",
         type=int,
         default=os.cpu_count() or 1,
-        help="engine programs of one batch compiled at once (default: the machine's cores)",
+        help="programs compiled at once: the engine's of one batch, our PPO's (default: the machine's cores)",
     )
     parser.add_argument("--engine-determinism", nargs=3, metavar=("SIZE", "BATCH", "STEPS"), help=argparse.SUPPRESS)
     args = parser.parse_args(argv)

@@ -66,9 +66,18 @@ def load_ppo_config(path: Path, overrides: list[str], updates: int) -> PPOConfig
     return PPOConfig.from_mapping(values)
 
 
-def measure_ours(size: str, num_levels: int, config: PPOConfig, repeats: int, learner: bool = False) -> dict:
-    """Env steps per second of `train_levels` on `num_levels` random levels of `size` (compile excluded); with
-    `learner`, also the learner's seconds per update and its share of the training call's time."""
+@dataclasses.dataclass(frozen=True)
+class TrainingProgram:
+    """`train_levels` compiled for `num_levels` random levels of one size; `call()` runs it once."""
+
+    call: object
+    num_levels: int
+    static: StaticEnvParams
+    compile_seconds: float
+
+
+def compile_ours(size: str, num_levels: int, config: PPOConfig) -> TrainingProgram:
+    """`train_levels` on `num_levels` random levels of `size` for `config`, compiled."""
     static, env_params = StaticEnvParams.for_size(size), EnvParams()
     level_keys = jax.random.split(jax.random.key(LEVEL_SEED), num_levels)
     levels = jax.jit(lambda keys: sample_levels(keys, static))(level_keys)
@@ -76,19 +85,34 @@ def measure_ours(size: str, num_levels: int, config: PPOConfig, repeats: int, le
     start = time.perf_counter()
     compiled = train_levels.lower(levels, keys, config, env_params, static).compile()
     compile_seconds = time.perf_counter() - start
-    seconds, cpu_seconds = best_time(lambda: compiled(levels, keys, env_params), repeats)
+    return TrainingProgram(lambda: compiled(levels, keys, env_params), num_levels, static, compile_seconds)
+
+
+def measure_ours(
+    size: str,
+    num_levels: int,
+    config: PPOConfig,
+    repeats: int,
+    learner: bool = False,
+    program: TrainingProgram | None = None,
+) -> dict:
+    """Env steps per second of `train_levels` on `num_levels` random levels of `size` (compile excluded; `program`
+    if compiled already, `compile_ours`); with `learner`, also the learner's seconds per update and its share of
+    the training call's time."""
+    program = program or compile_ours(size, num_levels, config)
+    seconds, cpu_seconds = best_time(program.call, repeats)
     env_steps = num_levels * config.env_steps_per_level
     result = {
         "levels": num_levels,
         "env_steps_per_call": env_steps,
-        "compile_seconds": compile_seconds,
+        "compile_seconds": program.compile_seconds,
         "seconds": seconds,
         "cpu_seconds": cpu_seconds,
         "steps_per_second": env_steps / seconds,
         "steps_per_cpu_second": env_steps / cpu_seconds,
     }
     if learner:
-        result["learner"] = measure_learner(lambda: compiled(levels, keys, env_params), num_levels, config, static)
+        result["learner"] = measure_learner(program.call, num_levels, config, program.static)
     return result
 
 

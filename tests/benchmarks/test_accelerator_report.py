@@ -65,6 +65,7 @@ def test_quick_report_runs_every_section_on_the_cpu():
     assert report["engine"]["s/8"]["compiled_concurrently"] == min(report["compile_threads"], 2)  # ours and Jax2D
     assert report["env"]["s/8"]["steps_per_second"] > 0
     assert report["ppo"]["s/2"]["steps_per_second"] > 0
+    assert report["ppo"]["s/2"]["compiled_concurrently"] == 1  # the quick plan's one training program
     assert report["pipeline"]["s"]["levels"] == 2 and report["pipeline"]["s"]["ray"] is True  # installed here
     assert set(report["targets"]["engine_vs_jax2d"]) == {"s/8"}
     for ops in ("default_ops", "deterministic_ops"):  # on the CPU both repeat, and "vs the CPU" compares with itself
