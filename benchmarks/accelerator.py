@@ -506,9 +506,19 @@ def run(
     log,
     sections=tuple(SECTION_SHARES),
     compile_threads: int = 1,
+    checkpoint=None,
 ) -> dict:
+    """The report of `plan` within `budget_seconds`; each figure is logged and, with `checkpoint`, the report so far
+    (its targets checked) handed to it."""
     budget = Budget(budget_seconds, sections)
     with_jax2d = _importable("jax2d")
+    if checkpoint is not None:
+        given_log = log
+
+        def log(line: str) -> None:
+            given_log(line)
+            checkpoint(report | {"targets": check_targets(report)})
+
     report = {
         "machine": describe_machine(),
         "backend": jax.default_backend(),
@@ -590,6 +600,13 @@ def run(
     return report
 
 
+def _write_report(path: Path, report: dict) -> None:
+    """`report` as JSON at `path`, replacing the file whole (a reader never sees half of it)."""
+    partial = path.with_name(path.name + ".partial")
+    partial.write_text(json.dumps(report, indent=2))
+    partial.replace(path)
+
+
 def _log(line: str) -> None:
     print(line, file=sys.stderr, flush=True)
 
@@ -625,6 +642,9 @@ def main(argv=None) -> None:
         default=os.cpu_count() or 1,
         help="programs compiled at once: the engine's of one batch, our PPO's (default: the machine's cores)",
     )
+    parser.add_argument(
+        "--out", type=Path, help="also write the report here after every figure, so a run cut short keeps what it had"
+    )
     parser.add_argument("--engine-determinism", nargs=3, metavar=("SIZE", "BATCH", "STEPS"), help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args.engine_determinism:  # the child process of `measure_engine_determinism`
@@ -646,7 +666,10 @@ def main(argv=None) -> None:
         return
     with contextlib.redirect_stdout(sys.stderr):  # Ray and the measurements may print; stdout holds only the JSON
         kinetix = kinetix_interpreter(args.kinetix_venv, args.kinetix_site)
-        report = run(plan, args.budget, kinetix, _log, tuple(args.sections), max(1, args.compile_threads))
+        checkpoint = None if args.out is None else functools.partial(_write_report, args.out)
+        report = run(plan, args.budget, kinetix, _log, tuple(args.sections), max(1, args.compile_threads), checkpoint)
+    if args.out is not None:
+        _write_report(args.out, report)
     print(json.dumps(report, indent=2))
 
 

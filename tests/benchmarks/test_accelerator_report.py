@@ -111,3 +111,32 @@ def test_kinetix_runs_in_its_virtualenv_or_in_this_interpreter_with_its_package_
     assert kinetix_interpreter(None, None) is None
     assert kinetix_interpreter(tmp_path / "venv", None) == (tmp_path / "venv" / "bin" / "python", None)
     assert kinetix_interpreter(tmp_path / "venv", tmp_path / "site") == (Path(sys.executable), tmp_path / "site")
+
+
+def test_a_checkpoint_gets_the_report_after_every_figure(tmp_path):
+    from benchmarks.accelerator import QUICK, run
+
+    snapshots = []
+    report = run(QUICK, 0.0, None, lambda line: None, ("engine", "env"), checkpoint=snapshots.append)
+    assert [sorted(k for k in ("engine", "env") if k in snapshot) for snapshot in snapshots] == [
+        ["engine"],
+        ["engine", "env"],
+    ]  # a run cut short after its first figure would have kept it
+    assert snapshots[-1] == report and snapshots[0]["targets"]["engine_vs_jax2d"] == {"s/8": None}
+    output = subprocess.run(
+        [
+            sys.executable,
+            str(SCRIPT),
+            "--quick",
+            "--sections",
+            "env",
+            "--budget",
+            "0",
+            "--out",
+            str(tmp_path / "r.json"),
+        ],
+        capture_output=True,
+        text=True,
+        check=True,
+    )
+    assert json.loads((tmp_path / "r.json").read_text()) == json.loads(output.stdout)
