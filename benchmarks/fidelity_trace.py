@@ -39,6 +39,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from benchmarks.env import DEFAULT_KINETIX_VENV, kinetix_python  # noqa: E402
 from benchmarks.sim_overrides import add_solver_scheme_options, sim_override, solver_scheme, with_solver_scheme  # noqa: E402
+from engine import DEFAULT_PHYSICS_SCHEME, PHYSICS_SCHEMES, physics_scheme  # noqa: E402
 from env import (  # noqa: E402
     MULTI_DISCRETE_SIZES,
     ActionType,
@@ -48,6 +49,7 @@ from env import (  # noqa: E402
     load_level,
     reset,
     state_to_kinetix,
+    under_scheme,
 )
 
 KINETIX_SCRIPT = Path(__file__).resolve().parent / "kinetix_fidelity_baseline.py"
@@ -80,14 +82,15 @@ def random_actions(episodes: int, seed: int) -> np.ndarray:
     return np.stack(columns, -1).astype(np.int32)
 
 
-def trace_ours(loaded, actions: np.ndarray, sim_overrides: dict, scheme: dict | None = None) -> dict:
-    """kforge's trace of `actions` on a loaded level (`env.LoadedLevel`), with the solver scheme's settings in
-    `scheme` if given (`benchmarks.sim_overrides.with_solver_scheme`): TRACED fields, reward sign and done per env
-    step."""
-    params = EnvParams(dense_reward_scale=0.0)
-    if sim_overrides:
-        params = params.replace(sim=dataclasses.replace(params.sim, **sim_overrides))
-    static = dataclasses.replace(loaded.static, sim=with_solver_scheme(loaded.static.sim, scheme or {}))
+def trace_ours(
+    loaded, actions: np.ndarray, sim_overrides: dict, scheme: dict | None = None, physics: str = DEFAULT_PHYSICS_SCHEME
+) -> dict:
+    """kforge's trace of `actions` on a loaded level (`env.LoadedLevel`) under the named `physics` scheme, then with
+    the solver scheme's settings in `scheme` if given (`benchmarks.sim_overrides.with_solver_scheme`) and
+    `sim_overrides`: TRACED fields, reward sign and done per env step."""
+    params, static = under_scheme(physics_scheme(physics), EnvParams(dense_reward_scale=0.0), loaded.static)
+    params = params.replace(sim=dataclasses.replace(params.sim, **sim_overrides))
+    static = dataclasses.replace(static, sim=with_solver_scheme(static.sim, scheme or {}))
 
     def episode(episode_actions):
         def body(state, action):
@@ -188,6 +191,12 @@ def main(argv=None) -> None:
     parser.add_argument("--episodes", type=int, default=64, help="paired random-action episodes")
     parser.add_argument("--noop", action="store_true", help="play the no-op policy (one episode) instead")
     parser.add_argument("--seed", type=int, default=0, help="seed of the random actions")
+    parser.add_argument(
+        "--physics",
+        choices=list(PHYSICS_SCHEMES),
+        default=DEFAULT_PHYSICS_SCHEME,
+        help="our engine's physics scheme (a job's env.physics), under the options below",
+    )
     parser.add_argument("--sim", type=sim_override, action="append", default=[], help="SimParams KEY=VALUE of ours")
     add_solver_scheme_options(parser)
     parser.add_argument("--tolerance", type=float, default=0.01, help="[m] positions closer than this agree")
@@ -219,7 +228,7 @@ def main(argv=None) -> None:
             actions = actions[:, steps_before:]
         theirs = trace_kinetix(python, path, actions, Path(folder))
         loaded = load_level(path)
-    ours = trace_ours(loaded, actions, dict(args.sim), scheme)
+    ours = trace_ours(loaded, actions, dict(args.sim), scheme, args.physics)
     if args.save is not None:
         np.savez(
             args.save,

@@ -108,6 +108,17 @@ def test_kforge_side_plays_the_solver_scheme_it_is_given():
     assert default - one_step["circle_position"][0, 0, 0, 1] == pytest.approx(0.75 * gravity * dt**2, rel=1e-3)
 
 
+def test_kforge_side_plays_the_physics_scheme_named():
+    """As above: under the "kinetix" scheme (one step of 10 passes, gravity at the step's start) the free-falling ball
+    is 0.75 g dt^2 lower after the first env step than under the default's four substeps."""
+    loaded = load_level(bundled_level_path("s/h1_thrust_over_ball"))
+    no_op = np.zeros((1, EPISODE_STEPS, 6), np.int32)
+    default = trace_ours(loaded, no_op, {})["circle_position"][0, 0, 0, 1]
+    kinetix = trace_ours(loaded, no_op, {}, physics="kinetix")["circle_position"][0, 0, 0, 1]
+    dt, gravity = SimParams().dt, 9.81
+    assert default - kinetix == pytest.approx(0.75 * gravity * dt**2, rel=1e-3)
+
+
 def test_the_trace_refuses_a_solver_count_below_its_least(capsys):
     with pytest.raises(SystemExit):
         fidelity_trace.main(["s/h1_thrust_over_ball", "--iterations", "0"])
