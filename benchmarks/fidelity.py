@@ -43,9 +43,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from benchmarks.env import DEFAULT_KINETIX_VENV, kinetix_python  # noqa: E402
 from benchmarks.kinetix_variants import parse_variant, variant_label  # noqa: E402
 from benchmarks.machine import describe_machine  # noqa: E402
-from benchmarks.sim_overrides import add_solver_scheme_options, sim_override, solver_scheme  # noqa: E402
+from benchmarks.sim_overrides import add_physics_option, add_solver_scheme_options, sim_override, solver_scheme  # noqa: E402
 from benchmarks.sim_overrides import with_solver_scheme as with_sim_scheme  # noqa: E402
-from engine import DEFAULT_PHYSICS_SCHEME, PHYSICS_SCHEMES, physics_scheme  # noqa: E402
+from engine import DEFAULT_PHYSICS_SCHEME, physics_scheme  # noqa: E402
 from env import (  # noqa: E402
     EnvParams,
     Outcome,
@@ -295,12 +295,7 @@ def main(argv=None) -> None:
     parser.add_argument("--random-levels", type=int, default=0, help="Kinetix-sampled random levels per size")
     parser.add_argument("--episodes", type=int, default=280, help="random-policy episodes per level")
     parser.add_argument("--seed", type=int, default=0, help="seed of Kinetix's level sampler and of the actions")
-    parser.add_argument(
-        "--physics",
-        choices=list(PHYSICS_SCHEMES),
-        default=DEFAULT_PHYSICS_SCHEME,
-        help="our engine's physics scheme (a job's env.physics), under the options below",
-    )
+    add_physics_option(parser)
     parser.add_argument("--sim", type=sim_override, action="append", default=[], help="SimParams KEY=VALUE of ours")
     add_solver_scheme_options(parser)
     parser.add_argument(

@@ -38,8 +38,14 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from benchmarks.env import DEFAULT_KINETIX_VENV, kinetix_python  # noqa: E402
-from benchmarks.sim_overrides import add_solver_scheme_options, sim_override, solver_scheme, with_solver_scheme  # noqa: E402
-from engine import DEFAULT_PHYSICS_SCHEME, PHYSICS_SCHEMES, physics_scheme  # noqa: E402
+from benchmarks.sim_overrides import (
+    add_physics_option,
+    add_solver_scheme_options,
+    sim_override,
+    solver_scheme,
+    with_solver_scheme,
+)  # noqa: E402
+from engine import DEFAULT_PHYSICS_SCHEME, physics_scheme  # noqa: E402
 from env import (  # noqa: E402
     MULTI_DISCRETE_SIZES,
     ActionType,
@@ -191,12 +197,7 @@ def main(argv=None) -> None:
     parser.add_argument("--episodes", type=int, default=64, help="paired random-action episodes")
     parser.add_argument("--noop", action="store_true", help="play the no-op policy (one episode) instead")
     parser.add_argument("--seed", type=int, default=0, help="seed of the random actions")
-    parser.add_argument(
-        "--physics",
-        choices=list(PHYSICS_SCHEMES),
-        default=DEFAULT_PHYSICS_SCHEME,
-        help="our engine's physics scheme (a job's env.physics), under the options below",
-    )
+    add_physics_option(parser)
     parser.add_argument("--sim", type=sim_override, action="append", default=[], help="SimParams KEY=VALUE of ours")
     add_solver_scheme_options(parser)
     parser.add_argument("--tolerance", type=float, default=0.01, help="[m] positions closer than this agree")

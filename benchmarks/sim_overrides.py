@@ -6,7 +6,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 
-from engine import SimParams, StaticSimParams
+from engine import DEFAULT_PHYSICS_SCHEME, PHYSICS_SCHEMES, SimParams, StaticSimParams
 
 SOLVER_SCHEME_FIELDS = {
     "substeps": "num_substeps",
@@ -47,6 +47,16 @@ def with_solver_scheme(sim: StaticSimParams, scheme: dict) -> StaticSimParams:
     """`sim` with the settings of `scheme` (options of SOLVER_SCHEME_FIELDS; None leaves a setting unchanged)."""
     changes = {SOLVER_SCHEME_FIELDS[key]: value for key, value in scheme.items() if value is not None}
     return dataclasses.replace(sim, **changes) if changes else sim
+
+
+def add_physics_option(parser: argparse.ArgumentParser) -> None:
+    """`--physics NAME`: our engine's named physics scheme (a job's env.physics), which the other options switch."""
+    parser.add_argument(
+        "--physics",
+        choices=list(PHYSICS_SCHEMES),
+        default=DEFAULT_PHYSICS_SCHEME,
+        help="our engine's physics scheme (a job's env.physics), under the options below",
+    )
 
 
 def add_solver_scheme_options(parser: argparse.ArgumentParser) -> None:
