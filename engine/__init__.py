@@ -29,6 +29,7 @@ from engine.pairs import PairLayout, pair_layout
 from engine.params import (
     KINETIX_SIZES,
     MAX_POLYGON_VERTICES,
+    CollisionRules,
     ContactLaw,
     ContactPoints,
     ForceTiming,
@@ -60,6 +61,7 @@ __all__ = [
     "Bodies",
     "ContactCache",
     "Joints",
+    "CollisionRules",
     "ContactLaw",
     "ContactPoints",
     "ForceTiming",

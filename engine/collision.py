@@ -16,6 +16,9 @@ from engine.state import NO_FEATURE, Bodies
 REFERENCE_FACE_TOLERANCE = 5e-4
 """[m] polygon B's face becomes the reference only if it separates more than A's by this (avoids flip-flopping)."""
 
+KINETIX_REFERENCE_FACE_TOLERANCE = 1e-2
+"""[m] the same tolerance in Jax2D's polygon pairs (`CollisionRules.JAX2D`)."""
+
 DIRECTION_EPSILON = 1e-9
 """[m] below this distance a direction is undefined and a fixed fallback is used."""
 
@@ -80,23 +83,42 @@ def _clip(p1, p2, id1, id2, plane_normal, offset, clip_id):
     return q1, q2, jnp.where(d1 <= 0, id1, clip_id), jnp.where(d2 <= 0, id2, clip_id), (d1 <= 0) | (d2 <= 0)
 
 
-def polygon_polygon(a: WorldGeometry, b: WorldGeometry, margin, kinetix_points=False):
+def _deepest_two(vertices, valid, normal):
+    """Indices of the two valid vertices deepest along -normal, deepest first."""
+    depth = jnp.where(valid, dot2(vertices, normal), jnp.inf)
+    first = jnp.argmin(depth)
+    second = jnp.argmin(depth.at[first].set(jnp.inf))
+    return first, second
+
+
+def _clamp_to_face(point, r1, tangent, length):
+    """`point` moved along the face's tangent into the face's extent; True where it moved."""
+    along = dot2(point - r1, tangent)
+    clamped = jnp.clip(along, 0.0, length)
+    return point + (clamped - along) * tangent, clamped != along
+
+
+def polygon_polygon(a: WorldGeometry, b: WorldGeometry, margin, kinetix_points=False, jax2d_geometry=False):
     """Manifold of two convex polygons: separating axes, then clipping of the incident edge to the reference face.
 
-    With `kinetix_points` (may be traced) the points lie on the incident edge and every overlapping point takes the
-    pair's deepest separation, as in Jax2D."""
+    With `kinetix_points` (may be traced) the points lie on the incident polygon and every overlapping point takes the
+    pair's deepest separation, as in Jax2D; with `jax2d_geometry` (may be traced) the points are Jax2D's: the incident
+    polygon's two deepest vertices moved along the reference face into its extent (`engine.CollisionRules.JAX2D`)."""
     separation_a, edge_a = _best_edge(a.normals, a.vertices, a.edge_valid, b.vertices)
     separation_b, edge_b = _best_edge(b.normals, b.vertices, b.edge_valid, a.vertices)
-    flip = separation_b > separation_a + REFERENCE_FACE_TOLERANCE
+    tolerance = jnp.where(jax2d_geometry, KINETIX_REFERENCE_FACE_TOLERANCE, REFERENCE_FACE_TOLERANCE)
+    flip = separation_b > separation_a + tolerance
     ref = jax.tree_util.tree_map(lambda x, y: jnp.where(flip, y, x), a, b)
     inc = jax.tree_util.tree_map(lambda x, y: jnp.where(flip, x, y), a, b)
     ref_edge = jnp.where(flip, edge_b, edge_a)
     normal = ref.normals[ref_edge]
-    # Incident edge: the one most anti-parallel to the reference normal.
+    r1, r2 = ref.vertices[ref_edge], ref.vertices[ref.next_vertex[ref_edge]]
+    length = norm2(r2 - r1)
+    tangent = (r2 - r1) / jnp.maximum(length, DIRECTION_EPSILON)
+
+    # Ours: the incident edge most anti-parallel to the reference normal, clipped to the reference face's sides.
     inc_edge = jnp.argmin(jnp.where(inc.edge_valid, dot2(inc.normals, normal), jnp.inf))
     inc_next = inc.next_vertex[inc_edge]
-    r1, r2 = ref.vertices[ref_edge], ref.vertices[ref.next_vertex[ref_edge]]
-    tangent = (r2 - r1) / jnp.maximum(norm2(r2 - r1), DIRECTION_EPSILON)
     p1, p2, id1, id2, ok1 = _clip(
         inc.vertices[inc_edge],
         inc.vertices[inc_next],
@@ -107,19 +129,31 @@ def polygon_polygon(a: WorldGeometry, b: WorldGeometry, margin, kinetix_points=F
         MAX_POLYGON_VERTICES,
     )
     p1, p2, id1, id2, ok2 = _clip(p1, p2, id1, id2, tangent, dot2(tangent, r2), MAX_POLYGON_VERTICES + 1)
-    points = jnp.stack([p1, p2])
+
+    # Jax2D's: the two deepest vertices, each moved along the face into its extent.
+    deepest, next_deepest = _deepest_two(inc.vertices, inc.edge_valid, normal)
+    k1, moved1 = _clamp_to_face(inc.vertices[deepest], r1, tangent, length)
+    k2, moved2 = _clamp_to_face(inc.vertices[next_deepest], r1, tangent, length)
+    deepest_ids = jnp.stack(
+        [jnp.where(moved1, MAX_POLYGON_VERTICES, deepest), jnp.where(moved2, MAX_POLYGON_VERTICES + 1, next_deepest)]
+    )
+    deepest_base = ((flip.astype(jnp.int32) * MAX_POLYGON_VERTICES + ref_edge) * MAX_POLYGON_VERTICES + deepest) * 8
+
+    points = jnp.where(jax2d_geometry, jnp.stack([k1, k2]), jnp.stack([p1, p2]))
     separation = dot2(points, normal) - dot2(normal, r1)
-    valid = ok1 & ok2 & (separation < margin) & (jnp.maximum(separation_a, separation_b) < margin)
-    placed = jnp.where(kinetix_points, points, points - 0.5 * separation[:, None] * normal)
     pair_separation = jnp.maximum(separation_a, separation_b)
+    valid = (jax2d_geometry | (ok1 & ok2)) & (separation < margin) & (pair_separation < margin)
+    placed = jnp.where(kinetix_points, points, points - 0.5 * separation[:, None] * normal)
     separation = jnp.where(kinetix_points & (separation <= 0), pair_separation, separation)
     base_id = ((flip.astype(jnp.int32) * MAX_POLYGON_VERTICES + ref_edge) * MAX_POLYGON_VERTICES + inc_edge) * 8
-    feature = jnp.where(valid, base_id + jnp.stack([id1, id2]), NO_FEATURE)
+    ids = jnp.where(jax2d_geometry, deepest_base + deepest_ids, base_id + jnp.stack([id1, id2]))
+    feature = jnp.where(valid, ids, NO_FEATURE)
     return jnp.where(flip, -normal, normal), placed, separation, valid, feature
 
 
-def polygon_circle(a: WorldGeometry, b: WorldGeometry, margin, kinetix_points=False):
-    """Manifold of a polygon (a) and a circle (b); one point, on the polygon's surface with `kinetix_points`."""
+def polygon_circle(a: WorldGeometry, b: WorldGeometry, margin, kinetix_points=False, jax2d_geometry=False):
+    """Manifold of a polygon (a) and a circle (b); one point, on the polygon's surface with `kinetix_points`; a circle
+    whose centre is inside the polygon overlaps it by its radius with `jax2d_geometry`."""
     centre, radius = b.centre, b.radius
     face_distance = jnp.where(a.edge_valid, dot2(a.normals, centre - a.vertices), -jnp.inf)
     edge = jnp.argmax(face_distance)
@@ -135,6 +169,7 @@ def polygon_circle(a: WorldGeometry, b: WorldGeometry, margin, kinetix_points=Fa
     normal = jnp.where(in_corner_region, corner_normal, a.normals[edge])
     separation = jnp.where(in_corner_region, corner_distance, distance) - radius
     point = centre - (radius + jnp.where(kinetix_points, 1.0, 0.5) * separation) * normal
+    separation = jnp.where(jax2d_geometry & (distance < 0), -radius, separation)
     region = jnp.where(in_corner_region, jnp.where(before_v1, 1, 2), 0)
     valid = separation < margin
     return _one_point(normal, point, separation, valid, edge * 3 + region)
@@ -163,12 +198,20 @@ def _one_point(normal, point, separation, valid, feature):
     )
 
 
-def manifolds(geometry: WorldGeometry, layout: PairLayout, margin: jnp.ndarray, kinetix_points=False) -> Manifolds:
+def manifolds(
+    geometry: WorldGeometry, layout: PairLayout, margin: jnp.ndarray, kinetix_points=False, jax2d_geometry=False
+) -> Manifolds:
     """Manifolds of all candidate pairs in layout order; `margin` (K,) [m] is each pair's speculative distance;
-    `kinetix_points` (may be traced) places the points as Jax2D does (`engine.ContactPoints.KINETIX`)."""
+    `kinetix_points` (may be traced) places the points as Jax2D does (`engine.ContactPoints.KINETIX`),
+    `jax2d_geometry` (may be traced) picks the points of two polygons and the depth of an engulfed circle as Jax2D
+    does (`engine.CollisionRules.JAX2D`)."""
     kinds = (
-        (polygon_polygon, 0, layout.num_polygon_polygon),
-        (polygon_circle, layout.num_polygon_polygon, layout.num_polygon_circle),
+        (functools.partial(polygon_polygon, jax2d_geometry=jax2d_geometry), 0, layout.num_polygon_polygon),
+        (
+            functools.partial(polygon_circle, jax2d_geometry=jax2d_geometry),
+            layout.num_polygon_polygon,
+            layout.num_polygon_circle,
+        ),
         (circle_circle, layout.num_polygon_polygon + layout.num_polygon_circle, layout.num_circle_circle),
     )
     parts = []

@@ -58,10 +58,27 @@ class ContactPoints(enum.IntEnum):
     MIDWAY = 0
     """Midway between the two surfaces, each point with its own separation (Box2D v3)."""
     KINETIX = 1
-    """Jax2D's: on the polygon's surface (a circle on a polygon), on the first circle's surface (two circles), at
-    the incident polygon's clipped vertices (two polygons), whose overlapping points all take the pair's deepest
-    separation; a deep overlap so moves lever arms by up to its depth and pushes a shallow corner as hard as the
-    deepest."""
+    """Jax2D's: on the polygon's surface (a circle on a polygon), on the first circle's surface (two circles), on
+    the incident polygon (two polygons; which points, `CollisionRules`), the overlapping points all at the pair's
+    deepest separation; a deep overlap so moves lever arms by up to its depth and pushes a shallow corner as hard as
+    the deepest."""
+
+
+class CollisionRules(enum.IntEnum):
+    """Which points two overlapping shapes touch at and which impulses they start from, where Box2D's rules and
+    Jax2D's differ."""
+
+    BOX2D = 0
+    """Two polygons: the incident edge (the one most opposed to the reference face) clipped to the reference face's
+    sides, so a corner past the face's end leaves a point at the end; the second polygon's face becomes the reference
+    when it separates more by `engine.collision.REFERENCE_FACE_TOLERANCE`. A circle whose centre is inside a polygon
+    overlaps it by its radius plus the centre's depth."""
+    JAX2D = 1
+    """Two polygons: the incident polygon's two deepest vertices, each moved along the reference face into its extent
+    and keeping its depth (a vertex past the face's end and outside it makes no point); the second polygon's face
+    becomes the reference when it separates more by `engine.collision.KINETIX_REFERENCE_FACE_TOLERANCE`. A circle
+    whose centre is inside a polygon overlaps it by its radius. A point starts from last step's impulses of the
+    point in its slot, whatever feature that one touched at (Box2D's: of the point of the same feature)."""
 
 
 class LimitLaw(enum.IntEnum):
@@ -126,6 +143,7 @@ class SimParams:
     baumgarte_depth: float = float("inf")  # [m] SOFT: a contact point deeper than this at the step's start (a level
     # that starts with shapes inside each other) is pushed out by BAUMGARTE's law, the push kept in the velocity
     contact_points: int = ContactPoints.MIDWAY  # `ContactPoints`: where contact points lie, how deep they count
+    collision_rules: int = CollisionRules.BOX2D  # `CollisionRules`: where shapes touch, warm starts
     force_timing: int = ForceTiming.SPREAD  # `ForceTiming`: gravity and thrust spread over substeps or at step start
 
     # Safety clips applied after every step

@@ -35,7 +35,16 @@ from engine.joint_solver import (
     warm_start_joints,
 )
 from engine.pairs import pair_layout
-from engine.params import ContactLaw, ContactPoints, ForceTiming, LimitLaw, MotorLaw, SimParams, StaticSimParams
+from engine.params import (
+    CollisionRules,
+    ContactLaw,
+    ContactPoints,
+    ForceTiming,
+    LimitLaw,
+    MotorLaw,
+    SimParams,
+    StaticSimParams,
+)
 from engine.softness import Softness, make_softness
 from engine.state import NO_FEATURE, ContactCache, SimState
 from engine.sweep import SWEEPS
@@ -69,14 +78,16 @@ def _inner_radius(geometry: WorldGeometry):
     return jnp.where(geometry.edge_valid[:, 0], jnp.min(depth, -1), geometry.radius)
 
 
-def _match_warm_start(cache: ContactCache, feature):
-    """Last step's impulses for points whose feature id reappears (in either point slot)."""
+def match_warm_start(cache: ContactCache, feature, by_slot):
+    """Last step's impulses for points whose feature id reappears (in either point slot); with `by_slot` (may be
+    traced), for points whose slot held a point last step (Jax2D's)."""
 
     def pick(values):
         match0 = feature == cache.feature[:, :1]
         match1 = feature == cache.feature[:, 1:]
         found = feature >= 0
-        return jnp.where(found & match0, values[:, :1], jnp.where(found & match1, values[:, 1:], 0.0))
+        by_feature = jnp.where(found & match0, values[:, :1], jnp.where(found & match1, values[:, 1:], 0.0))
+        return jnp.where(by_slot, jnp.where(found & (cache.feature >= 0), values, 0.0), by_feature)
 
     return pick(cache.normal_impulse), pick(cache.tangent_impulse)
 
@@ -283,7 +294,14 @@ def prepare_step(
     allowed = (motion <= params.overlap_allowance * thinner) & (restitution <= 0.0)
     motion = jnp.where(allowed, 0.0, motion)
     margin = params.speculative_distance + params.speculative_reach * motion
-    manifold = manifolds(geometry, layout, margin, params.contact_points == ContactPoints.KINETIX)
+    jax2d_rules = params.collision_rules == CollisionRules.JAX2D
+    manifold = manifolds(
+        geometry,
+        layout,
+        margin,
+        params.contact_points == ContactPoints.KINETIX,
+        jax2d_rules,
+    )
     both_active = bodies.active[a] & bodies.active[b]
     modes = modes_collide(bodies.collision_mode[a], bodies.collision_mode[b])
     present = manifold.valid & both_active[:, None]
@@ -317,7 +335,7 @@ def prepare_step(
             STATIC_CONTACT_STIFFNESS_FACTOR * params.contact_hertz, params.contact_damping_ratio, substep
         ),
     )
-    normal_warm, tangent_warm = _match_warm_start(state.contacts, manifold.feature)
+    normal_warm, tangent_warm = match_warm_start(state.contacts, manifold.feature, jax2d_rules)
     warm = jnp.where(jnp.tile(point_enabled, (1, 2)), jnp.concatenate([normal_warm, tangent_warm], -1), 0.0)
     contact_impulses = to_colour_layout(
         ContactImpulses(

@@ -5,7 +5,15 @@ from __future__ import annotations
 
 import dataclasses
 
-from engine.params import ContactLaw, ContactPoints, ForceTiming, LimitLaw, SimParams, StaticSimParams
+from engine.params import (
+    CollisionRules,
+    ContactLaw,
+    ContactPoints,
+    ForceTiming,
+    LimitLaw,
+    SimParams,
+    StaticSimParams,
+)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -31,8 +39,8 @@ PHYSICS_SCHEMES = {
     # The engine's defaults: 4 substeps, soft contacts and joints; every row of the physics test plan holds.
     DEFAULT_PHYSICS_SCHEME: PhysicsScheme(),
     # Jax2D's scheme and contact geometry, the closest to Kinetix's play: one step of 10 passes, Baumgarte's push-out,
-    # gravity and thrust at the step's start, no speculative contacts, Jax2D's contact points, overlaps found a step
-    # late below twice the inner radius, joints past a limit returned at a bounded rate.
+    # gravity and thrust at the step's start, no speculative contacts, Jax2D's contact points and geometry,
+    # overlaps found a step late below twice the inner radius, joints past a limit returned at a bounded rate.
     "kinetix": PhysicsScheme(
         sim_fields=(
             ("contact_law", ContactLaw.BAUMGARTE),
@@ -40,6 +48,7 @@ PHYSICS_SCHEMES = {
             ("speculative_distance", 0.0),
             ("overlap_allowance", 2.0),
             ("contact_points", ContactPoints.KINETIX),
+            ("collision_rules", CollisionRules.JAX2D),
             ("limit_law", LimitLaw.BOUNDED_RETURN),
         ),
         solver_fields=(("num_substeps", 1), ("num_iterations", 10), ("num_relax_iterations", 0)),

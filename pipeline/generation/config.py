@@ -31,6 +31,7 @@ from engine import (
     DEFAULT_PHYSICS_SCHEME,
     KINETIX_SIZES,
     PHYSICS_SCHEMES,
+    CollisionRules,
     ContactLaw,
     ContactPoints,
     LimitLaw,
@@ -462,6 +463,7 @@ PHYSICS_ADDED_LATER = {
     "contact_slop": 0.01,
     "baumgarte_depth": math.inf,
     "contact_points": ContactPoints.MIDWAY,
+    "collision_rules": CollisionRules.BOX2D,
 }
 """Physics parameters added after datasets were first made, each with the value at which the engine plays as it did
 before the parameter existed: at that value a parameter is left out of the data definition, so those datasets keep

@@ -176,6 +176,7 @@ def test_the_kinetix_physics_scheme_plays_as_the_measured_setting_spelled_out():
         "speculative_distance": 0.0,
         "overlap_allowance": 2.0,
         "contact_points": 1.0,
+        "collision_rules": 1.0,
         "limit_law": 2.0,
     }
     solver = {"substeps": 1, "iterations": 10, "relax_iterations": 0}

@@ -11,6 +11,7 @@ from engine import (
     DEFAULT_PHYSICS_SCHEME,
     FLOOR_TOP,
     PHYSICS_SCHEMES,
+    CollisionRules,
     ContactLaw,
     ContactPoints,
     ForceTiming,
@@ -38,6 +39,7 @@ def test_the_kinetix_scheme_is_jax2ds_solver_and_contact_geometry_and_keeps_size
         LimitLaw.BOUNDED_RETURN,
     )
     assert (sim.speculative_distance, sim.overlap_allowance, sim.contact_points) == (0.0, 2.0, ContactPoints.KINETIX)
+    assert sim.collision_rules == CollisionRules.JAX2D
     assert (sim.base_friction, sim.dt) == (0.7, 1.0 / 30.0)  # what it does not set is the level's own
     static = KINETIX.static(SIZE_M)
     assert (static.num_substeps, static.num_iterations, static.num_relax_iterations) == (1, 10, 0)

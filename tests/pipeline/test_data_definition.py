@@ -32,7 +32,7 @@ def test_the_physics_from_before_the_switches_keeps_its_fingerprint(tmp_path):
         assert definition_fingerprint(data_definition(job) | {"physics": earlier_physics}) == fingerprint
         later = {"limit_law", "limit_recovery_rate", "speculative_reach", "push_touch_distance"}
         later |= {"swept_speculative_contacts", "overlap_allowance", "contact_law", "baumgarte_share", "contact_slop"}
-        later |= {"baumgarte_depth", "contact_points"}
+        later |= {"baumgarte_depth", "contact_points", "collision_rules"}
         assert not later & set(earlier_physics)
         assert earlier_physics["joint_hertz"] == 75.0  # the older parameters are all there
         assert data_definition(job)["physics"]["swept_speculative_contacts"] is True
@@ -116,6 +116,7 @@ def test_the_physics_scheme_enters_the_definition_by_its_parameters_and_the_defa
             "speculative_distance": 0.0,
             "overlap_allowance": 2.0,
             "contact_points": 1,
+            "collision_rules": 1,
             "limit_law": 2,
         }
         assert {key: definition["physics"][key] for key in scheme} == scheme
