@@ -72,8 +72,11 @@ def _bounding_radius(bodies):
 
 
 def _inner_radius(geometry: WorldGeometry):
-    """(N,) [m] the distance from a shape's centre of mass to its nearest edge line (a circle's radius)."""
-    depth = dot2(geometry.normals, geometry.vertices - geometry.centre[:, None, :])
+    """(N,) [m] the distance from a polygon's vertex centroid to its nearest edge line (a circle's radius); the
+    centroid, not the body's position, which a static body may hold outside its shape (Kinetix's walls)."""
+    count = jnp.maximum(jnp.sum(geometry.edge_valid, -1), 1)[:, None]
+    centroid = jnp.sum(jnp.where(geometry.edge_valid[..., None], geometry.vertices, 0.0), 1) / count
+    depth = dot2(geometry.normals, geometry.vertices - centroid[:, None, :])
     depth = jnp.where(geometry.edge_valid, depth, jnp.inf)
     return jnp.where(geometry.edge_valid[:, 0], jnp.min(depth, -1), geometry.radius)
 

@@ -9,6 +9,7 @@ from __future__ import annotations
 import dataclasses
 import math
 
+import jax.numpy as jnp
 import numpy as np
 import pytest
 from engine_test_helpers import (
@@ -582,6 +583,41 @@ def test_the_overlap_allowance_keeps_fast_bodies_from_tunnelling(tunnelling_swee
     measured(f"tunnelling {shape} with overlap allowance {allowance:g}", pass_throughs_per_speed=passes)
     assert all(passes[v] <= tunnelling_sweep[shape][v] for v in TUNNEL_SPEEDS)
     assert not any(passes[v] for v in TUNNEL_SPEEDS if v <= 20.0)
+
+
+def _box_shot_at_a_wall(wall_reference: tuple[float, float] | None) -> float:
+    """Zero gravity: a 0.4 m box 5 cm from a fixed 1 x 3 m wall's face moves at 7.2 m/s (12 cm a step) towards it
+    under `overlap_allowance=2` and no speculative distance. The wall's position is its centroid, or the world point
+    `wall_reference` (its shape unchanged), as Kinetix stores its walls. Returns how far the box moved in a step [m]."""
+    builder = SceneBuilder(SIZE_S, boundaries=False)
+    wall = builder.add_box((1.0, 2.0), (1.0, 3.0), static=True, slot=1)
+    box = builder.add_box((1.5 + 0.05 + 0.2, 2.0), (0.4, 0.4), velocity=(-7.2, 0.0))
+    state = zero_gravity(builder.build())
+    if wall_reference is not None:
+        bodies = state.bodies
+        shift = jnp.asarray(wall_reference, jnp.float32) - bodies.position[wall]
+        state = state.replace(
+            bodies=bodies.replace(
+                position=bodies.position.at[wall].set(bodies.position[wall] + shift),
+                vertices=bodies.vertices.at[wall].add(-shift),
+            )
+        )
+    params = SimParams(overlap_allowance=2.0, speculative_distance=0.0)
+    _, traj = run(state, SIZE_S, 1, params=params)
+    return float(traj.position[0, box, 0] - traj.position[1, box, 0])
+
+
+def test_the_overlap_allowance_measures_a_shape_from_its_centroid_not_its_stored_position():
+    """The box moves 12 cm in a step, under twice its inner radius (2 x 0.2 m), so it is found a step late, as in
+    Jax2D: it moves the whole 12 cm and ends 7 cm inside the wall. So it does when the wall's position is a corner on
+    its face (Kinetix's left wall spans x in [-5, 0] from position (0, 0)) or outside it (its right wall): measured
+    from there the wall's inner radius was 0 or negative, and the box got a speculative contact that stopped it at
+    the face (docs/fidelity.md)."""
+    free_flight = 7.2 / 60.0
+    moved = {where: _box_shot_at_a_wall(where) for where in (None, (1.5, 3.5), (3.0, 2.0))}
+    measured("box shot at a wall stored by centroid, face corner, outside point", moved=moved)
+    for distance in moved.values():
+        assert distance == pytest.approx(free_flight, abs=1e-5)
 
 
 LANDING_BOX, LANDING_TILT, LANDING_SPEED = (0.58, 0.395), 0.5, 4.0  # [m], [rad], [m/s]
