@@ -116,7 +116,7 @@ def polygon_polygon(a: WorldGeometry, b: WorldGeometry, margin, kinetix_points=F
     length = norm2(r2 - r1)
     tangent = (r2 - r1) / jnp.maximum(length, DIRECTION_EPSILON)
 
-    # Ours: the incident edge most anti-parallel to the reference normal, clipped to the reference face's sides.
+    # Box2D's: the incident edge most anti-parallel to the reference normal, clipped to the reference face's sides.
     inc_edge = jnp.argmin(jnp.where(inc.edge_valid, dot2(inc.normals, normal), jnp.inf))
     inc_next = inc.next_vertex[inc_edge]
     p1, p2, id1, id2, ok1 = _clip(
@@ -137,7 +137,6 @@ def polygon_polygon(a: WorldGeometry, b: WorldGeometry, margin, kinetix_points=F
     deepest_ids = jnp.stack(
         [jnp.where(moved1, MAX_POLYGON_VERTICES, deepest), jnp.where(moved2, MAX_POLYGON_VERTICES + 1, next_deepest)]
     )
-    deepest_base = ((flip.astype(jnp.int32) * MAX_POLYGON_VERTICES + ref_edge) * MAX_POLYGON_VERTICES + deepest) * 8
 
     points = jnp.where(jax2d_geometry, jnp.stack([k1, k2]), jnp.stack([p1, p2]))
     separation = dot2(points, normal) - dot2(normal, r1)
@@ -145,8 +144,9 @@ def polygon_polygon(a: WorldGeometry, b: WorldGeometry, margin, kinetix_points=F
     valid = (jax2d_geometry | (ok1 & ok2)) & (separation < margin) & (pair_separation < margin)
     placed = jnp.where(kinetix_points, points, points - 0.5 * separation[:, None] * normal)
     separation = jnp.where(kinetix_points & (separation <= 0), pair_separation, separation)
-    base_id = ((flip.astype(jnp.int32) * MAX_POLYGON_VERTICES + ref_edge) * MAX_POLYGON_VERTICES + inc_edge) * 8
-    ids = jnp.where(jax2d_geometry, deepest_base + deepest_ids, base_id + jnp.stack([id1, id2]))
+    incident_feature = jnp.where(jax2d_geometry, deepest, inc_edge)
+    base_id = ((flip.astype(jnp.int32) * MAX_POLYGON_VERTICES + ref_edge) * MAX_POLYGON_VERTICES + incident_feature) * 8
+    ids = base_id + jnp.where(jax2d_geometry, deepest_ids, jnp.stack([id1, id2]))
     feature = jnp.where(valid, ids, NO_FEATURE)
     return jnp.where(flip, -normal, normal), placed, separation, valid, feature
 
