@@ -298,13 +298,7 @@ def prepare_step(
     motion = jnp.where(allowed, 0.0, motion)
     margin = params.speculative_distance + params.speculative_reach * motion
     jax2d_rules = params.collision_rules == CollisionRules.JAX2D
-    manifold = manifolds(
-        geometry,
-        layout,
-        margin,
-        params.contact_points == ContactPoints.KINETIX,
-        jax2d_rules,
-    )
+    manifold = manifolds(geometry, layout, margin, params.contact_points == ContactPoints.KINETIX, jax2d_rules)
     both_active = bodies.active[a] & bodies.active[b]
     modes = modes_collide(bodies.collision_mode[a], bodies.collision_mode[b])
     present = manifold.valid & both_active[:, None]

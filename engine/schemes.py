@@ -5,15 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 
-from engine.params import (
-    CollisionRules,
-    ContactLaw,
-    ContactPoints,
-    ForceTiming,
-    LimitLaw,
-    SimParams,
-    StaticSimParams,
-)
+from engine.params import CollisionRules, ContactLaw, ContactPoints, ForceTiming, LimitLaw, SimParams, StaticSimParams
 
 
 @dataclasses.dataclass(frozen=True)
