@@ -181,6 +181,11 @@ class StaticSimParams:
             if getattr(self, name) < least:
                 raise ValueError(f"StaticSimParams.{name} must be >= {least}, got {getattr(self, name)}")
 
+    def physics_options(self) -> dict[str, int | bool]:
+        """Every setting that changes how a step plays (laws, substeps, passes), the sizes left out."""
+        sizes = {"num_polygons", "num_circles", "num_joints", "num_thrusters", "num_reserved_static"}
+        return {f.name: getattr(self, f.name) for f in dataclasses.fields(self) if f.name not in sizes}
+
     @property
     def num_bodies(self) -> int:
         """Polygons first (global index 0..P-1), then circles (P..P+C-1)."""

@@ -46,6 +46,12 @@ def test_the_kinetix_scheme_is_jax2ds_solver_and_contact_geometry_and_keeps_size
     assert (static.num_polygons, static.num_circles, static.num_joints, static.num_thrusters) == (6, 3, 2, 2)
 
 
+def test_physics_options_are_the_solver_settings_without_the_sizes():
+    options = KINETIX.static(SIZE_M).physics_options()
+    assert options["num_substeps"] == 1 and options["num_iterations"] == 10 and options["num_relax_iterations"] == 0
+    assert not {"num_polygons", "num_circles", "num_joints", "num_thrusters", "num_reserved_static"} & set(options)
+
+
 def test_an_unknown_scheme_is_refused_with_the_known_ones():
     with pytest.raises(ValueError, match=r"unknown physics scheme 'jax2d'; expected one of kforge, kinetix"):
         physics_scheme("jax2d")
