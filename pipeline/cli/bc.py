@@ -11,7 +11,7 @@ import signal
 import sys
 from collections.abc import Sequence
 
-from pipeline.cli import EXIT_INTERRUPTED, add_common_options, fail
+from pipeline.cli import EXIT_INTERRUPTED, add_common_options, fail, require_dataset
 
 
 def _terminate_as_interrupt(signum, frame):
@@ -46,6 +46,7 @@ def main(argv: Sequence[str] | None = None, prog: str | None = None) -> None:
     )
     if args.stop_after is not None and args.stop_after < 1:
         train.error(f"--stop-after must be >= 1, got {args.stop_after}")
+    require_dataset(args.dataset)
 
     from engine import use_deterministic_ops
     from pipeline.generation import ConfigError, to_yaml
@@ -65,6 +66,7 @@ def main(argv: Sequence[str] | None = None, prog: str | None = None) -> None:
             show_progress=not args.no_progress,
             report=lambda line: print(line, file=sys.stderr),
             stop_after_steps=args.stop_after,
+            verbose=args.verbose,
         )
     except TrainingInterrupted as interrupted:
         resume = shlex.join(["kforge", "bc", *(argv if argv is not None else sys.argv[2:])])

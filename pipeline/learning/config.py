@@ -26,6 +26,9 @@ RUN_CONFIG_FILE = "config.yaml"
 DEFAULT_RUN_ROOT = "outputs/bc"
 """Folder of the default run directory, `outputs/bc/<dataset folder name>-<architecture>`."""
 
+DEFAULT_BATCH_SIZE = 16
+"""[trajectories] `train.batch_size` when it is null and the dataset's training trajectories fill it."""
+
 
 @dataclasses.dataclass
 class ModelSection:
@@ -44,7 +47,7 @@ class TrainSection:
     """Optimisation; all of it defines the run's parameters except the step count, which may be raised to continue."""
 
     num_steps: int = 2000  # gradient steps in all (raise it and re-run to train on)
-    batch_size: int = 16  # trajectories (256-step windows) per gradient step; a multiple of the local device count
+    batch_size: int | None = None  # trajectories per step, a multiple of the devices; null: 16 or what the data fills
     learning_rate: float = 3.0e-4  # AdamW step size (Kinetix's offline BC: 3e-4)
     anneal: bool = True  # decay the step size linearly to 0 at num_steps
     weight_decay: float = 1.0e-4  # AdamW decoupled weight decay
@@ -145,9 +148,10 @@ def network_config(config: BCConfig) -> NetworkConfig:
 def check_bc_config(config: BCConfig) -> None:
     """Errors naming the key for values the schema's types cannot rule out."""
     network_config(config)
+    if config.train.batch_size is not None and config.train.batch_size < 1:
+        raise ConfigError(f"train.batch_size must be >= 1 or null, got {config.train.batch_size}")
     positive = (
         "train.num_steps",
-        "train.batch_size",
         "validation.every_steps",
         "validation.batch_size",
         "checkpoint.every_steps",
@@ -173,6 +177,29 @@ def check_bc_config(config: BCConfig) -> None:
         raise ConfigError(f"validation.fraction must be in [0, 1), got {config.validation.fraction}")
     if config.tracking.wandb not in TRACKING_MODES:
         raise ConfigError(f"tracking.wandb must be one of {', '.join(TRACKING_MODES)}, got {config.tracking.wandb!r}")
+
+
+def fit_batch_size(config: BCConfig, train_trajectories: int, num_devices: int) -> BCConfig:
+    """`config` with `train.batch_size` resolved for `train_trajectories` split over `num_devices`: a null batch size
+    becomes `DEFAULT_BATCH_SIZE`, or the largest multiple of `num_devices` the trajectories fill when they are fewer;
+    `ConfigError` names the value that works when a set batch size cannot be filled."""
+    fitting = train_trajectories // num_devices * num_devices
+    if fitting < 1:
+        raise ConfigError(
+            f"{config.dataset}: {train_trajectories} training trajectories cannot fill a batch over the "
+            f"{num_devices} local devices; lower validation.fraction or use a larger dataset"
+        )
+    requested = config.train.batch_size
+    if requested is None:
+        resolved = min(DEFAULT_BATCH_SIZE, fitting)
+    elif requested > train_trajectories:
+        raise ConfigError(
+            f"train.batch_size={requested} exceeds the {train_trajectories} training trajectories of "
+            f"{config.dataset}; use train.batch_size={fitting} (or leave it null)"
+        )
+    else:
+        resolved = requested
+    return dataclasses.replace(config, train=dataclasses.replace(config.train, batch_size=resolved))
 
 
 def changed_keys(stored: BCConfig, requested: BCConfig) -> list[str]:

@@ -30,8 +30,16 @@ from tqdm import tqdm
 from agents import ImitationTerms, NetworkConfig, imitation_terms, make_bc_network
 from env import EnvState, StaticEnvParams, observation_shape, observe
 from pipeline.generation import ConfigError, to_schema_object, to_yaml, tracking_mode
+from pipeline.generation.console import log_dir, start_log_file
 from pipeline.learning.checkpoints import checkpoint_steps, restore_checkpoint, save_checkpoint
-from pipeline.learning.config import RUN_CONFIG_FILE, BCConfig, changed_keys, network_config
+from pipeline.learning.config import (
+    DEFAULT_BATCH_SIZE,
+    RUN_CONFIG_FILE,
+    BCConfig,
+    changed_keys,
+    fit_batch_size,
+    network_config,
+)
 from pipeline.learning.data import kept_levels, validation_split
 from pipeline.reading import TrajectoryDatasetManager
 from pipeline.storage import DatasetError, open_dataset
@@ -171,7 +179,7 @@ def _start_wandb(config: BCConfig, run_dir: Path):
         return None
     import wandb
 
-    logs = run_dir / "logs"
+    logs = log_dir(run_dir)
     logs.mkdir(parents=True, exist_ok=True)
     os.environ.setdefault("WANDB_DISABLE_WEAVE", "true")
     return wandb.init(
@@ -186,10 +194,11 @@ def _start_wandb(config: BCConfig, run_dir: Path):
 
 
 def _prepare_run_dir(config: BCConfig) -> Path:
-    """The run directory with the config written; a re-run must agree with the stored config (`changed_keys`)."""
+    """The run directory with the config written; a re-run of a run with checkpoints must agree with the stored
+    config (`changed_keys`), while one that never checkpointed (it stopped before its first) starts afresh."""
     run_dir = Path(config.output_dir)
     stored_file = run_dir / RUN_CONFIG_FILE
-    if stored_file.exists():
+    if stored_file.exists() and checkpoint_steps(run_dir):
         stored = to_schema_object(
             OmegaConf.merge(OmegaConf.structured(BCConfig), OmegaConf.load(stored_file)), BCConfig
         )
@@ -246,10 +255,11 @@ def train_bc(
     show_progress: bool = True,
     report=print,
     stop_after_steps: int | None = None,
+    verbose: bool = False,
 ) -> TrainSummary:
     """Train (or resume) the BC run of `config`; returns its summary. `stop_after_steps` ends this invocation after
-    that many steps, checkpointed, as an interruption would (tests and time-boxed jobs)."""
-    run_dir = _prepare_run_dir(config)
+    that many steps, checkpointed, as an interruption would (tests and time-boxed jobs). Third-party logs (wandb) go
+    to <run>/logs, and to the terminal too if `verbose`."""
     levels = kept_levels(config.dataset)
     if not levels:
         raise DatasetError(f"{config.dataset}: no committed, kept trajectories to learn from")
@@ -259,9 +269,19 @@ def train_bc(
             f"{config.dataset}: train.levels={config.train.levels}, but the dataset holds {len(chosen)} kept levels"
         )
     train_ids, validation_ids = validation_split(chosen, config.validation.fraction, config.train.seed)
-    (run_dir / LEVELS_FILE).write_text(json.dumps({"train": train_ids, "validation": validation_ids}))
+    train_trajectories = sum(len(levels[level]) for level in train_ids)
+    requested_batch_size = config.train.batch_size
+    config = fit_batch_size(config, train_trajectories, len(jax.local_devices()))
+    if requested_batch_size is None and config.train.batch_size < DEFAULT_BATCH_SIZE:
+        report(
+            f"train.batch_size={config.train.batch_size} (not {DEFAULT_BATCH_SIZE}): {config.dataset} holds "
+            f"{train_trajectories} training trajectories"
+        )
     layout = open_dataset(config.dataset).layout
     learner = Learner(config, layout.static, layout.num_steps)
+    run_dir = _prepare_run_dir(config)  # after every check that can refuse the run: a refused run leaves nothing
+    (run_dir / LEVELS_FILE).write_text(json.dumps({"train": train_ids, "validation": validation_ids}))
+    start_log_file(run_dir, verbose)
     state = learner.init(config.train.seed)
     steps = checkpoint_steps(run_dir)
     if steps:

@@ -101,6 +101,29 @@ def test_a_resumed_run_refuses_a_changed_key(dataset_dir, tmp_path):
     assert raised.resumed_from == 1 and raised.steps == 2  # more steps may be asked for
 
 
+def test_a_small_dataset_fits_the_default_batch_and_a_refused_run_blocks_no_retry(dataset_dir, tmp_path):
+    """The dataset holds 8 kept trajectories of 8 levels, one held out: 7 training trajectories, fewer than 16."""
+    small = [key for key in SMALL if not key.startswith("train.batch_size")]
+    run_dir = tmp_path / "run"
+    with pytest.raises(
+        ConfigError,
+        match=r"^train.batch_size=16 exceeds the 7 training trajectories .*"
+        r"use train.batch_size=7 \(or leave it null\)$",
+    ):
+        train_bc(load_bc_config(str(dataset_dir), [f"output_dir={run_dir}", *small, "train.batch_size=16"]))
+    assert not run_dir.exists()  # refused before anything was written
+    (run_dir).mkdir()
+    (run_dir / "config.yaml").write_text("train:\n  batch_size: 3\n")  # left by a run that never checkpointed
+    lines = []
+    config = load_bc_config(str(dataset_dir), [f"output_dir={run_dir}", *small, "train.num_steps=1"])
+    assert config.train.batch_size is None
+    summary = train_bc(config, show_progress=False, report=lines.append)
+    assert summary.steps == 1 and summary.resumed_from == 0
+    assert lines == [f"train.batch_size=7 (not 16): {dataset_dir} holds 7 training trajectories"]
+    stored = load_bc_config(None, [], run_dir / "config.yaml")
+    assert stored.train.batch_size == 7  # the run directory records the batch size it trained with
+
+
 def test_evaluation_counts_the_outcomes_the_levels_force(levels):
     """Drop levels 0 and 1 end in success and level 2 in failure whatever the actions, within a few steps."""
     starts = StartSet(
