@@ -4,7 +4,8 @@ A subcommand's module is imported only when it runs, so `kforge --help` and a su
 importing JAX or Ray. Every subcommand ends with one of the exit codes below, reports errors in one line (the
 traceback only with `--debug`), and takes config overrides as positional `key=value` arguments.
 
-Public surface: the exit codes, `EXIT_CODES_HELP`, `add_common_options`, `fail` and `main`.
+Public surface: the exit codes, `EXIT_CODES_HELP`, `add_common_options`, `InputError`, `require_dataset`, `fail`
+and `main`.
 """
 
 from __future__ import annotations
@@ -13,6 +14,7 @@ import argparse
 import importlib
 import sys
 from collections.abc import Sequence
+from pathlib import Path
 
 EXIT_OK = 0
 """Success."""
@@ -54,10 +56,34 @@ OWN_PARSERS = ("pipeline.cli.",)
 """Subcommand modules whose parsers take --debug and --verbose themselves (`add_common_options`); the others
 never see these two options."""
 
-USAGE_ERRORS = ("ConfigError", "ResumeRefused", "LevelFileError", "ExportTargetExists", "OSError")
+USAGE_ERRORS = ("InputError", "ConfigError", "ResumeRefused", "LevelFileError", "ExportTargetExists", "OSError")
 """Exception classes (by name, so that this module imports nothing heavy) that are the caller's mistake: exit 2."""
 DATA_ERRORS = ("DatasetError",)
 """Exception classes that report a problem of the data: exit 1."""
+
+
+DATASET_METADATA = "data/zarr.json"
+"""The file every local dataset holds (pipeline.storage's GROUP_METADATA, named here so that checking a path imports
+nothing heavy)."""
+URL_MARK = "://"
+"""What a dataset location on object storage (s3://, gs://) holds; those are checked when opened."""
+
+
+class InputError(ValueError):
+    """An argument names something that is not there or not of the kind asked for: exit 2."""
+
+
+def require_dataset(location: str) -> str:
+    """`location`; a local path that holds no dataset ends the command with a one-line `InputError` (exit 2), before
+    anything heavy is imported. URLs are checked when opened."""
+    if URL_MARK in location:
+        return location
+    path = Path(location)
+    if not path.exists():
+        raise fail(InputError(f"{location}: no such dataset directory"))
+    if not (path / DATASET_METADATA).is_file():
+        raise fail(InputError(f"{location}: not a dataset (no {DATASET_METADATA})"))
+    return location
 
 
 def add_common_options(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:

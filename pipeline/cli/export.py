@@ -6,9 +6,7 @@ import argparse
 import json
 from collections.abc import Sequence
 
-from pipeline.cli import add_common_options, fail
-from pipeline.kinetix import DEFAULT_TRAJECTORIES_PER_SHARD, export_kinetix
-from pipeline.storage import DatasetError
+from pipeline.cli import add_common_options, fail, require_dataset
 
 READING_HINT = """How to read it:
   - with Kinetix: in a virtualenv of its own, pip install kinetix-env==3.0.2 (it brings zarr 2.18; the zarr 3 that
@@ -19,8 +17,8 @@ READING_HINT = """How to read it:
 See docs/kinetix-export.md."""
 """Printed after an export (and in docs/kinetix-export.md): how the Kinetix-format shards are read."""
 
-FORMATS = {"kinetix": export_kinetix}
-"""Format name -> exporter(dataset_dir, out_dir, seed, trajectories_per_shard, show_progress)."""
+FORMATS = ("kinetix",)
+"""Formats `--format` takes (kinetix: pipeline.kinetix.export_kinetix)."""
 
 
 def _positive_int(text: str) -> int:
@@ -35,25 +33,29 @@ def main(argv: Sequence[str] | None = None, prog: str | None = None) -> None:
     zarr v2 shards, readable by kinetix-env's TrajectoryDatasetManager (with zarr 2) and by
     pipeline.kinetix.load_kinetix_levels; prints how."""
     parser = argparse.ArgumentParser(prog=prog, description=main.__doc__)
-    parser.add_argument("--format", required=True, choices=sorted(FORMATS), help="output layout")
+    parser.add_argument("--format", required=True, choices=FORMATS, help="output layout")
     parser.add_argument("dataset", help="dataset: a directory (holds data/ and manifest/), s3:// or gs:// URL")
     parser.add_argument("out", help="output directory; the split is written to OUT/<split name>, which must be empty")
     parser.add_argument("--seed", type=int, default=0, help="seed of the trajectory shuffle across shards")
     parser.add_argument(
         "--trajectories-per-shard",
         type=_positive_int,
-        default=DEFAULT_TRAJECTORIES_PER_SHARD,
-        help="at most this many trajectories per shard (shards are filled evenly)",
+        help="at most this many trajectories per shard (shards are filled evenly; default Kinetix-Offline's)",
     )
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     parser.add_argument("--json", action="store_true", help="print the export summary as JSON (for scripts)")
     args = add_common_options(parser).parse_args(argv)
+    require_dataset(args.dataset)
+
+    from pipeline.kinetix import DEFAULT_TRAJECTORIES_PER_SHARD, export_kinetix
+    from pipeline.storage import DatasetError
+
     try:
-        summary = FORMATS[args.format](
+        summary = export_kinetix(
             args.dataset,
             args.out,
             seed=args.seed,
-            trajectories_per_shard=args.trajectories_per_shard,
+            trajectories_per_shard=args.trajectories_per_shard or DEFAULT_TRAJECTORIES_PER_SHARD,
             show_progress=not args.no_progress,
         )
     except DatasetError as error:

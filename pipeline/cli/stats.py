@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from collections.abc import Sequence
 
-from pipeline.cli import add_common_options, fail
+from pipeline.cli import add_common_options, fail, require_dataset
 
 
 def main(argv: Sequence[str] | None = None, prog: str | None = None) -> None:
@@ -17,6 +17,7 @@ def main(argv: Sequence[str] | None = None, prog: str | None = None) -> None:
     parser.add_argument("--out", help="folder or URL for card.md and card/*.png (default: DATASET)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar while reading commit records")
     args = add_common_options(parser).parse_args(argv)
+    require_dataset(args.dataset)
 
     from pipeline.reading import collect_stats, write_card
     from pipeline.storage import DatasetError

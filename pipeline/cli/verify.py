@@ -7,7 +7,7 @@ import argparse
 import sys
 from collections.abc import Sequence
 
-from pipeline.cli import EXIT_DATA, add_common_options, fail
+from pipeline.cli import EXIT_DATA, add_common_options, fail, require_dataset
 
 
 def main(argv: Sequence[str] | None = None, prog: str | None = None) -> None:
@@ -26,6 +26,7 @@ def main(argv: Sequence[str] | None = None, prog: str | None = None) -> None:
         help="withdraw the commits of level batches that fail (implies --allow-incomplete); then re-run the job",
     )
     args = add_common_options(parser).parse_args(argv)
+    require_dataset(args.dir)
 
     from pipeline.storage import (
         CONFIG_FILE,

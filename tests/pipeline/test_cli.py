@@ -8,7 +8,7 @@ import json
 import pytest
 
 from env import LevelFileError
-from pipeline.cli import EXIT_DATA, EXIT_USAGE, main
+from pipeline.cli import DATASET_METADATA, EXIT_USAGE, main
 
 pytestmark = pytest.mark.smoke
 
@@ -22,6 +22,12 @@ PIPELINE_SUBCOMMANDS = (
     ["render"],
     ["demo"],
 )
+
+
+def test_the_dataset_metadata_file_is_the_one_storage_writes():
+    from pipeline.storage.shard_store import GROUP_METADATA
+
+    assert DATASET_METADATA == GROUP_METADATA
 
 
 @pytest.mark.parametrize("subcommand", PIPELINE_SUBCOMMANDS, ids=" ".join)
@@ -62,13 +68,21 @@ def test_debug_shows_the_traceback(tmp_path):
 
 
 def test_the_same_kind_of_failure_has_the_same_code_in_every_subcommand(tmp_path, capsys):
-    not_a_dataset = str(tmp_path)
-    for argv in (
-        ["verify", not_a_dataset],
-        ["stats", not_a_dataset],
-        ["export", "--format", "kinetix", not_a_dataset, str(tmp_path / "out")],
+    """A path that is not a dataset is an input error (2), whichever subcommand is given it."""
+    not_a_dataset, missing = str(tmp_path), str(tmp_path / "missing")
+    for dataset_argv in (
+        ["verify"],
+        ["stats"],
+        ["export", "--format", "kinetix"],
+        ["bc", "train"],
     ):
-        assert "not a dataset" in _one_line_error(capsys, argv, EXIT_DATA)
+        tail = [str(tmp_path / "out")] if dataset_argv[0] == "export" else []
+        assert f"{not_a_dataset}: not a dataset (no data/zarr.json)" in _one_line_error(
+            capsys, [*dataset_argv, not_a_dataset, *tail], EXIT_USAGE
+        )
+        assert f"{missing}: no such dataset directory" in _one_line_error(
+            capsys, [*dataset_argv, missing, *tail], EXIT_USAGE
+        )
     bad_key = "split.num_levelz=3"
     for argv in (["run", "1M/s", bad_key, "--print-config"], ["levels", "export", "1M/s", "0", bad_key]):
         assert "unknown key split.num_levelz (did you mean split.num_levels?)" in _one_line_error(

@@ -105,7 +105,7 @@ def test_card_names_the_fingerprint_config_and_timings(dataset, card):
     assert open_dataset(dataset).spec.attributes["data_fingerprint"] in text
     config = _table(text, "Config")
     assert config["split.expert_budget"] == ["256"] and config["filter.noop_steps"] == ["1"]
-    assert config["scale"] == ["null"] and config["env.physics"] == ["kforge"]
+    assert config["scale"] == ["null"] and config["env.physics"] == ["kinetix"]
 
     seconds = [record.provenance["seconds"] for record in iter_records(dataset)]
     total = sum(s["total"] for s in seconds)
@@ -168,7 +168,7 @@ def test_records_without_timings_or_curves_still_give_a_card(dataset, tmp_path):
 def test_a_directory_that_is_not_a_dataset_is_refused(tmp_path, capsys):
     with pytest.raises(SystemExit) as exit_info:
         main([str(tmp_path), "--no-progress"])
-    assert exit_info.value.code == 1
+    assert exit_info.value.code == 2  # the caller's input, not damaged data
     assert re.search(rf"error: {re.escape(str(tmp_path))}: not a dataset", capsys.readouterr().err)
     assert not (tmp_path / CARD_FILE).exists()
 

@@ -74,7 +74,7 @@ def test_a_missing_record_makes_the_shard_incomplete(copy):
 def test_an_unreadable_dataset_exits_with_the_reason(tmp_path, capsys):
     with pytest.raises(SystemExit) as exit_info:
         main([str(tmp_path)], prog="kforge verify")
-    assert exit_info.value.code == 1
+    assert exit_info.value.code == 2  # the caller's input, not damaged data
     assert "not a dataset" in capsys.readouterr().err
 
 
