@@ -1,77 +1,36 @@
 """Generation of a split's dataset: job configs, level batches (sample, filter, train experts, collect windows),
 the coordinator and Ray workers, the run driver with resume, and run tracking.
 
-Public surface: what the command line, Kinetix interop, jobs and benchmarks use.
+Public surface: what the command line, Kinetix interop, jobs and benchmarks use. Each name's module is imported when
+the name is first used, so that loading and checking a job config imports neither JAX nor Ray.
 """
 
-from pipeline.generation.config import (
-    TRACKING_MODES,
-    ConfigError,
-    EnvSection,
-    JobConfig,
-    absolute_output_dir,
-    config_path,
-    data_definition,
-    data_fingerprint,
-    environment,
-    load_config,
-    load_yaml,
-    merge_layers,
-    parse_overrides,
-    ppo_config,
-    to_schema_object,
-    to_yaml,
-)
-from pipeline.generation.console import closing_summary
-from pipeline.generation.coordinator import Commit, Coordinator
-from pipeline.generation.growth import ResumeRefused
-from pipeline.generation.level_batch import (
-    KeyPurpose,
-    batches_per_shard,
-    level_key,
-    level_keys,
-    num_shards,
-    run_level_batch,
-    sample_batch,
-)
-from pipeline.generation.run import DatasetDamaged, JobInterrupted, prepare_output, run_job, summarize
-from pipeline.generation.tracking import start_tracking, tracking_mode
-from pipeline.generation.worker import Worker
+import importlib
 
-__all__ = [
-    "TRACKING_MODES",
-    "Commit",
-    "ConfigError",
-    "DatasetDamaged",
-    "Coordinator",
-    "EnvSection",
-    "JobConfig",
-    "JobInterrupted",
-    "KeyPurpose",
-    "ResumeRefused",
-    "Worker",
-    "absolute_output_dir",
-    "batches_per_shard",
-    "closing_summary",
-    "config_path",
-    "data_definition",
-    "data_fingerprint",
-    "environment",
-    "level_key",
-    "level_keys",
-    "load_config",
-    "load_yaml",
-    "merge_layers",
-    "parse_overrides",
-    "num_shards",
-    "ppo_config",
-    "prepare_output",
-    "run_job",
-    "run_level_batch",
-    "sample_batch",
-    "start_tracking",
-    "summarize",
-    "to_schema_object",
-    "to_yaml",
-    "tracking_mode",
-]
+_SOURCES = {
+    "pipeline.generation.config": (
+        "TRACKING_MODES ConfigError EnvSection JobConfig absolute_output_dir config_path data_definition "
+        "data_fingerprint environment load_config load_yaml merge_layers parse_overrides ppo_config read_config "
+        "to_schema_object to_yaml"
+    ),
+    "pipeline.generation.console": "closing_summary",
+    "pipeline.generation.coordinator": "Commit Coordinator",
+    "pipeline.generation.growth": "ResumeRefused",
+    "pipeline.generation.level_batch": (
+        "KeyPurpose batches_per_shard level_key level_keys num_shards run_level_batch sample_batch"
+    ),
+    "pipeline.generation.run": "JobInterrupted prepare_output run_job summarize",
+    "pipeline.generation.tracking": "start_tracking tracking_mode",
+    "pipeline.generation.worker": "Worker",
+}
+_MODULE_OF = {name: module for module, names in _SOURCES.items() for name in names.split()}
+"""Public name -> its module."""
+
+
+def __getattr__(name: str):
+    if name not in _MODULE_OF:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    return getattr(importlib.import_module(_MODULE_OF[name]), name)
+
+
+__all__ = sorted(_MODULE_OF)

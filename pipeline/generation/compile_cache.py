@@ -6,8 +6,6 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-import jax
-
 DEFAULT_COMPILE_CACHE_DIR = "~/.cache/kforge/jax"
 """Default folder of the cache: per user, on the machine that runs the worker."""
 
@@ -31,6 +29,8 @@ def enable_compile_cache(directory: str | None) -> Path | None:
 
     Call it before the process compiles anything: JAX opens its cache at the first compilation.
     """
+    import jax  # here, not at the top: the job config reads DEFAULT_COMPILE_CACHE_DIR without importing JAX
+
     folder = cache_folder(directory)
     if folder is None:
         return None

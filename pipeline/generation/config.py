@@ -4,6 +4,11 @@ A job composes, later layers winning: the schema defaults, a config file (e.g. a
 configs/splits/1M/s.yaml), a scale preset (configs/scales/{tiny,local,full}.yaml) and `key=value` overrides. Every
 key is documented by the comment on its line in the schema below; `to_yaml` writes the resolved config with each
 key's type and comment.
+
+Loading, merging, validating and writing a config import neither JAX nor Ray, so every config error is answered at
+once: the checks that need the training code (`check_training`, run by `load_config` after the cheap ones) and the
+functions that build the engine's and the agents' parameters (`environment`, `ppo_config`, `data_definition`) import
+it when called.
 """
 
 from __future__ import annotations
@@ -16,6 +21,7 @@ import inspect
 import io
 import json
 import math
+import sys
 import textwrap
 import tokenize
 import typing
@@ -26,28 +32,20 @@ from omegaconf import MISSING, DictConfig, OmegaConf
 from omegaconf.errors import ConfigKeyError, MissingMandatoryValue, OmegaConfBaseException, ValidationError
 
 import configs
-from agents import PPOConfig, check_segmented
-from engine import (
-    DEFAULT_PHYSICS_SCHEME,
-    KINETIX_SIZES,
-    PHYSICS_SCHEMES,
-    CollisionRules,
-    ContactLaw,
-    ContactPoints,
-    LimitLaw,
-    physics_scheme,
-)
-from env import EnvParams, StaticEnvParams, under_scheme
 from pipeline.generation.compile_cache import DEFAULT_COMPILE_CACHE_DIR
-from pipeline.storage import (
-    CONFIG_FILE,
-    DEFAULT_HEARTBEAT_S,
-    DEFAULT_STALE_AFTER_S,
-    StoreError,
-    is_remote,
-    join,
-    open_store,
-)
+
+PHYSICS_SCHEME_NAMES = ("kforge", "kinetix")
+"""Names of the engine's physics schemes (`engine.PHYSICS_SCHEMES`), the values of `env.physics`."""
+
+JOB_PHYSICS_SCHEME = "kinetix"
+"""The scheme a job plays under unless `env.physics` names another: Kinetix's play, as the data stands for Kinetix's
+(the engine's own default scheme, kforge, stays available)."""
+
+ENV_SIZES = ("s", "m", "l")
+"""Kinetix env sizes (`engine.KINETIX_SIZES`), the values of `split.size`."""
+
+DATASET_CONFIG_FILE = "config.yaml"
+"""The job config a dataset keeps at its root (`pipeline.storage.CONFIG_FILE`)."""
 
 
 @dataclasses.dataclass
@@ -81,23 +79,23 @@ class FilterConfig:
 class PPOSection:
     """Specialist PPO settings; the defaults are `agents.PPOConfig`'s (evidence for them: docs/experts.md)."""
 
-    num_envs: int = PPOConfig.num_envs  # parallel episodes per level
-    num_steps: int = PPOConfig.num_steps  # env steps per env between two updates (rollout length)
-    update_epochs: int = PPOConfig.update_epochs  # passes over each rollout
-    num_minibatches: int = PPOConfig.num_minibatches  # minibatches per epoch; must divide num_envs * num_steps
-    learning_rate: float = PPOConfig.learning_rate  # Adam step size, constant
-    adam_eps: float = PPOConfig.adam_eps  # Adam epsilon (Kinetix)
-    max_grad_norm: float = PPOConfig.max_grad_norm  # global-norm gradient clipping before Adam (Kinetix)
-    gamma: float = PPOConfig.gamma  # discount per env step (Kinetix)
-    gae_lambda: float = PPOConfig.gae_lambda  # GAE lambda (Kinetix)
-    clip_eps: float = PPOConfig.clip_eps  # PPO ratio clip, also the value-clipping range (Kinetix)
-    ent_coef: float = PPOConfig.ent_coef  # entropy bonus weight (Kinetix)
-    vf_coef: float = PPOConfig.vf_coef  # value loss weight (Kinetix)
-    hidden_size: int = PPOConfig.hidden_size  # units per hidden layer, actor and critic (Kinetix: 128)
-    num_hidden_layers: int = PPOConfig.num_hidden_layers  # tanh hidden layers of each MLP (Kinetix: 5)
-    bootstrap_truncation: bool = PPOConfig.bootstrap_truncation  # time-limit ends bootstrap from the last value
-    select_every_updates: int = PPOConfig.select_every_updates  # evaluate every this many updates and after the last
-    select_episodes: int = PPOConfig.select_episodes  # episodes per evaluation (acting as collect.greedy says)
+    num_envs: int = 16  # parallel episodes per level
+    num_steps: int = 125  # env steps per env between two updates (rollout length)
+    update_epochs: int = 4  # passes over each rollout
+    num_minibatches: int = 4  # minibatches per epoch; must divide num_envs * num_steps
+    learning_rate: float = 3e-4  # Adam step size, constant
+    adam_eps: float = 1e-5  # Adam epsilon (Kinetix)
+    max_grad_norm: float = 1.0  # global-norm gradient clipping before Adam (Kinetix)
+    gamma: float = 0.995  # discount per env step (Kinetix)
+    gae_lambda: float = 0.9  # GAE lambda (Kinetix)
+    clip_eps: float = 0.2  # PPO ratio clip, also the value-clipping range (Kinetix)
+    ent_coef: float = 0.01  # entropy bonus weight (Kinetix)
+    vf_coef: float = 0.5  # value loss weight (Kinetix)
+    hidden_size: int = 64  # units per hidden layer, actor and critic (Kinetix: 128)
+    num_hidden_layers: int = 2  # tanh hidden layers of each MLP (Kinetix: 5)
+    bootstrap_truncation: bool = False  # time-limit ends bootstrap from the last value
+    select_every_updates: int = 50  # evaluate every this many updates and after the last
+    select_episodes: int = 16  # episodes per evaluation (acting as collect.greedy says)
 
 
 @dataclasses.dataclass
@@ -123,7 +121,7 @@ class EnvSection:
     """Environment parameters of the experts' training episodes."""
 
     dense_reward_scale: float = 0.2  # shaping scale used for training (Kinetix's repository configs use 0.2)
-    physics: str = DEFAULT_PHYSICS_SCHEME  # kforge or kinetix (closest to Kinetix's play), engine.PHYSICS_SCHEMES
+    physics: str = JOB_PHYSICS_SCHEME  # kinetix (Kinetix's play) or kforge (the engine's own), engine.PHYSICS_SCHEMES
 
 
 @dataclasses.dataclass
@@ -139,10 +137,11 @@ class RayConfig:
 
 @dataclasses.dataclass
 class LeaseConfig:
-    """The job's lease on its dataset (one job per dataset, docs/object-storage.md); none of these change the data."""
+    """The job's lease on its dataset (one job per dataset, docs/object-storage.md); none of these change the data.
+    The defaults are `pipeline.storage`'s."""
 
-    stale_after_s: float = DEFAULT_STALE_AFTER_S  # [s] a lease whose heartbeat is older is taken over
-    heartbeat_s: float = DEFAULT_HEARTBEAT_S  # [s] interval between the running job's heartbeats
+    stale_after_s: float = 300.0  # [s] a lease whose heartbeat is older is taken over
+    heartbeat_s: float = 30.0  # [s] interval between the running job's heartbeats
 
 
 TRACKING_MODES = ("offline", "online", "disabled")
@@ -191,8 +190,8 @@ DATA_SECTIONS = ("split", "work", "filter", "env", "ppo", "experts", "collect")
 
 FIXED_BUDGET_MODE, STREAMED_BUDGET_MODE, ADAPTIVE_BUDGET_MODE = "fixed", "streamed", "adaptive"
 BUDGET_MODES = (FIXED_BUDGET_MODE, STREAMED_BUDGET_MODE, ADAPTIVE_BUDGET_MODE)
-"""Values of `experts.budget_mode`; a fixed-budget job's data definition leaves the `experts` section out (its data
-is the data of jobs made before the section existed)."""
+"""Values of `experts.budget_mode`; a fixed-budget job's data definition leaves the `experts` section out (no key of
+it changes a fixed-budget job's data)."""
 
 
 class ConfigError(ValueError):
@@ -208,15 +207,31 @@ OVERRIDES = "overrides"
 
 def load_config(path: str | Path | None = None, overrides: list[str] = (), scale: str | None = None) -> JobConfig:
     """The job config: schema defaults, then the YAML file `path`, then the scale preset, then `key=value` overrides
-    (later layers win), validated. `scale` is a preset name in configs/scales or a YAML path; it is recorded in the
-    config's `scale` key. Without an output_dir it is derived from split.name and the scale (`default_output_dir`).
+    (later layers win), validated (`read_config`, then `check_training`).
 
     Raises `ConfigError` naming the layer and the key (and for a wrong type, the expected type).
+    """
+    job = read_config(path, overrides, scale)
+    check_training(job)
+    return job
+
+
+def read_config(path: str | Path | None = None, overrides: list[str] = (), scale: str | None = None) -> JobConfig:
+    """The job config of `load_config` with the checks that need no training code (`check_config`); imports neither
+    JAX nor Ray. `scale` is a preset name in configs/scales or a YAML path; it is recorded in the config's `scale`
+    key. Without an output_dir it is derived from split.name and the scale (`default_output_dir`).
+
+    `path` may name a dataset in object storage, whose `config.yaml` someone else wrote: the keys that say where the
+    job runs and what it loads (`WHERE_KEYS`) are taken from the command and the schema, never from it, and its
+    output_dir is the dataset named. A notice on stderr names each such key it set to another value.
     """
     layers = []
     if path is not None:
         path = config_path(path)
-        layers.append((str(path), load_yaml(path)))
+        layer = load_yaml(path)
+        if _is_url(path):
+            layer = _without_where_keys(layer, str(path))
+        layers.append((str(path), layer))
     if scale is not None:
         layers.append((str(scale_path(scale)), load_yaml(scale_path(scale))))
     layers.append((OVERRIDES, parse_overrides(overrides)))
@@ -236,6 +251,33 @@ def load_config(path: str | Path | None = None, overrides: list[str] = (), scale
     return job
 
 
+WHERE_KEYS = ("output_dir", "ray.address", "compile_cache.dir", "tracking.dir")
+"""Keys that say where a job runs, writes or loads code from: a dataset's stored config does not set them."""
+
+
+def _without_where_keys(layer: DictConfig, where: str) -> DictConfig:
+    """A remote config layer without `WHERE_KEYS` (a dataset's `config.yaml`: its output_dir the dataset itself); a
+    notice on stderr for each key it set to a value the job will not use."""
+    values = OmegaConf.to_container(layer, resolve=False)
+    folder, _, name = where.rpartition("/")
+    dataset = folder if name == DATASET_CONFIG_FILE else None
+    defaults = OmegaConf.to_container(OmegaConf.structured(JobConfig), resolve=False)
+    for key in WHERE_KEYS:
+        section, _, name = key.rpartition(".")
+        stored, default = (values.get(section), defaults[section]) if section else (values, defaults)
+        if not isinstance(stored, dict) or name not in stored:
+            continue
+        value = stored.pop(name)
+        if value != (dataset if key == "output_dir" else default[name]):
+            print(
+                f"notice: {where} sets {key}={value!r}; ignored, a dataset does not say where a job runs",
+                file=sys.stderr,
+            )
+    if dataset is not None:
+        values["output_dir"] = dataset
+    return OmegaConf.create(values)
+
+
 def merge_layers(schema: type, layers: list[tuple[str, DictConfig]]) -> DictConfig:
     """The structured config of dataclass `schema`: its defaults, then each (where, layer) in order, later winning.
 
@@ -243,12 +285,27 @@ def merge_layers(schema: type, layers: list[tuple[str, DictConfig]]) -> DictConf
     """
     config = OmegaConf.structured(schema)
     for where, layer in layers:
-        _check_sections(OmegaConf.to_container(layer), schema, where)
+        values = OmegaConf.to_container(layer, resolve=False)
+        _check_no_interpolation(values, where)
+        _check_sections(values, schema, where)
         try:
             config = OmegaConf.merge(config, layer)
         except OmegaConfBaseException as error:
             raise _config_error(error, where, schema) from error
     return config
+
+
+def _check_no_interpolation(values, where: str, key: str = "") -> None:
+    """A layer's values are taken as written: `${...}` (which OmegaConf would resolve, environment variables
+    included) is refused, naming the key."""
+    if isinstance(values, dict):
+        for name, value in values.items():
+            _check_no_interpolation(value, where, f"{key}.{name}" if key else str(name))
+    elif isinstance(values, list):
+        for index, value in enumerate(values):
+            _check_no_interpolation(value, where, f"{key}[{index}]")
+    elif isinstance(values, str) and "${" in values:
+        raise ConfigError(f"{where}: {key}: interpolations such as {values!r} are not accepted; write the value itself")
 
 
 def to_schema_object(config: DictConfig, schema: type):
@@ -273,13 +330,15 @@ def config_path(config: str | Path) -> Path | str:
     """The job YAML of CONFIG: an existing file, a dataset (a folder, or an `s3://`, `gs://` URL, holding the
     `config.yaml` of its latest run; a URL may also name a YAML object), or a release split's name such as "1M/s"
     (`configs.split_names`)."""
-    if is_remote(config):
-        return str(config) if str(config).endswith(configs.YAML_SUFFIXES) else join(config, CONFIG_FILE)
+    if _is_url(config):
+        from pipeline.storage import join
+
+        return str(config) if str(config).endswith(configs.YAML_SUFFIXES) else join(config, DATASET_CONFIG_FILE)
     path = Path(config)
     if path.is_file():
         return path
-    if (path / CONFIG_FILE).is_file():
-        return path / CONFIG_FILE
+    if (path / DATASET_CONFIG_FILE).is_file():
+        return path / DATASET_CONFIG_FILE
     split = configs.split_path(str(config))
     if split is not None:
         return split
@@ -288,9 +347,18 @@ def config_path(config: str | Path) -> Path | str:
     )
 
 
+def _is_url(location: str | Path) -> bool:
+    """True for an object-store URL (`pipeline.storage.is_remote`)."""
+    if not isinstance(location, str) or "://" not in location:
+        return False
+    from pipeline.storage import is_remote  # the storage layer imports JAX: only for URLs
+
+    return is_remote(location)
+
+
 def absolute_output_dir(output_dir: str) -> Path | str:
     """Where a job writes, as every machine names it: a local path made absolute, an `s3://`, `gs://` URL as given."""
-    return output_dir if is_remote(output_dir) else Path(output_dir).resolve()
+    return output_dir if _is_url(output_dir) else Path(output_dir).resolve()
 
 
 def default_output_dir(split_name: str, scale: str | None) -> str:
@@ -302,9 +370,14 @@ def default_output_dir(split_name: str, scale: str | None) -> str:
 def load_yaml(path: str | Path) -> DictConfig:
     """A YAML file's mapping; `path` is a local file or an object-store URL (read through the store layer)."""
     try:
-        if is_remote(path):
+        if _is_url(path):
+            from pipeline.storage import StoreError, open_store
+
             folder, _, name = str(path).rpartition("/")
-            text = open_store(folder).read(name)
+            try:
+                text = open_store(folder).read(name)
+            except StoreError as error:
+                raise ConfigError(f"{path}: cannot read ({error})") from error
             if text is None:
                 raise FileNotFoundError(path)
             layer = OmegaConf.create(text.decode())
@@ -312,8 +385,6 @@ def load_yaml(path: str | Path) -> DictConfig:
             layer = OmegaConf.load(path)
     except FileNotFoundError as error:
         raise ConfigError(f"config file not found: {path}") from error
-    except StoreError as error:
-        raise ConfigError(f"{path}: cannot read ({error})") from error
     except yaml.YAMLError as error:
         raise ConfigError(f"{path}: not valid YAML ({str(error).splitlines()[0]})") from error
     if not isinstance(layer, DictConfig):
@@ -391,9 +462,10 @@ def _unknown_key_message(key: str, root: type) -> str:
 
 
 def check_config(job: JobConfig) -> None:
-    """Errors naming the key for values the schema's types cannot rule out."""
-    if job.split.size not in KINETIX_SIZES:
-        raise ConfigError(f"split.size must be one of {sorted(KINETIX_SIZES)}, got {job.split.size!r}")
+    """Errors naming the key for values the schema's types cannot rule out (no training code needed)."""
+    _check_finite(job)
+    if job.split.size not in ENV_SIZES:
+        raise ConfigError(f"split.size must be one of {list(ENV_SIZES)}, got {job.split.size!r}")
     for key in ("split.num_levels", "work.levels_per_shard", "work.levels_per_batch", "collect.window_steps"):
         section, name = key.split(".")
         if getattr(getattr(job, section), name) < 1:
@@ -422,10 +494,26 @@ def check_config(job: JobConfig) -> None:
         raise ConfigError(f"experts.solved_evaluations must be >= 1, got {job.experts.solved_evaluations}")
     if job.experts.give_up_env_steps < 0:
         raise ConfigError(f"experts.give_up_env_steps must be >= 0, got {job.experts.give_up_env_steps}")
-    if job.env.physics not in PHYSICS_SCHEMES:
-        raise ConfigError(f"env.physics must be one of {', '.join(PHYSICS_SCHEMES)}, got {job.env.physics!r}")
+    if job.env.physics not in PHYSICS_SCHEME_NAMES:
+        raise ConfigError(f"env.physics must be one of {', '.join(PHYSICS_SCHEME_NAMES)}, got {job.env.physics!r}")
     if job.tracking.wandb not in TRACKING_MODES:
         raise ConfigError(f"tracking.wandb must be one of {', '.join(TRACKING_MODES)}, got {job.tracking.wandb!r}")
+
+
+def _check_finite(section, prefix: str = "") -> None:
+    """No float of the config is NaN or infinite (none has a meaning there), naming the key."""
+    for field in dataclasses.fields(section):
+        value = getattr(section, field.name)
+        if dataclasses.is_dataclass(value):
+            _check_finite(value, f"{prefix}{field.name}.")
+        elif isinstance(value, float) and not math.isfinite(value):
+            raise ConfigError(f"{prefix}{field.name} must be a finite number, got {value}")
+
+
+def check_training(job: JobConfig) -> None:
+    """Errors naming the keys for PPO settings the training code cannot run (imports it: JAX)."""
+    from agents import check_segmented
+
     try:
         config = ppo_config(job)
     except ValueError as error:
@@ -437,89 +525,58 @@ def check_config(job: JobConfig) -> None:
             raise ConfigError(f"experts.budget_mode={job.experts.budget_mode}: {error}") from error
 
 
-def ppo_config(job: JobConfig) -> PPOConfig:
-    """The specialists' PPO config: the `ppo` section with the split's expert budget; experts are selected by
+def ppo_config(job: JobConfig):
+    """The specialists' `agents.PPOConfig`: the `ppo` section with the split's expert budget; experts are selected by
     episodes that act as the stored windows do (`collect.greedy`)."""
+    from agents import PPOConfig
+
     return PPOConfig(
         env_steps_per_level=job.split.expert_budget, select_greedy=job.collect.greedy, **dataclasses.asdict(job.ppo)
     )
 
 
-def environment(job: JobConfig) -> tuple[EnvParams, StaticEnvParams]:
-    """The env parameters of the job's levels: the config's reward shaping and physics scheme."""
+def environment(job: JobConfig):
+    """The env parameters (`env.EnvParams`, `env.StaticEnvParams`) of the job's levels: the config's reward shaping
+    and physics scheme."""
+    from engine import physics_scheme
+    from env import EnvParams, StaticEnvParams, under_scheme
+
     params = EnvParams(dense_reward_scale=job.env.dense_reward_scale)
     return under_scheme(physics_scheme(job.env.physics), params, StaticEnvParams.for_size(job.split.size))
 
 
-PHYSICS_ADDED_LATER = {
-    "limit_law": LimitLaw.SPECULATIVE,
-    "limit_recovery_rate": 5.0,
-    "speculative_reach": 1.0,
-    "push_touch_distance": math.inf,
-    "swept_speculative_contacts": False,
-    "overlap_allowance": 0.0,
-    "contact_law": ContactLaw.SOFT,
-    "baumgarte_share": 0.2,
-    "contact_slop": 0.01,
-    "baumgarte_depth": math.inf,
-    "contact_points": ContactPoints.MIDWAY,
-    "collision_rules": CollisionRules.BOX2D,
-}
-"""Physics parameters added after datasets were first made, each with the value at which the engine plays as it did
-before the parameter existed: at that value a parameter is left out of the data definition, so those datasets keep
-their fingerprint (and a definition holds no infinite number)."""
-
-
 def data_definition(job: JobConfig) -> dict:
-    """What defines the dataset's content: the config's data sections, and the engine's physics parameters (set by
-    the code, not the config, so that data made by code with other physics is told apart)."""
+    """What defines the dataset's content, as JSON values: the config's data sections (`experts` only where a budget
+    mode reads it), and the physics the levels play under: the scheme's name, every engine parameter of a step and
+    every solver setting (set by the code, not the config, so that data made by code with other physics is told
+    apart)."""
     sections = [name for name in DATA_SECTIONS if name != "experts" or job.experts.budget_mode != FIXED_BUDGET_MODE]
     data = {section: dataclasses.asdict(getattr(job, section)) for section in sections}
-    data["env"] = {key: value for key, value in data["env"].items() if key not in ENV_DEFINED_BY_PHYSICS}
-    if "experts" in data:
-        adaptive = job.experts.budget_mode == ADAPTIVE_BUDGET_MODE
-        data["experts"] = {
-            key: value
-            for key, value in data["experts"].items()
-            if key not in EXPERTS_ADDED_LATER or (adaptive and value != EXPERTS_ADDED_LATER[key])
-        }
     params, static = environment(job)
-    return data | {"physics": physics_definition(params.sim, static.sim)}
+    return data | {"physics": physics_definition(job.env.physics, params.sim, static.sim)}
 
 
-ENV_DEFINED_BY_PHYSICS = ("physics",)
-"""Keys of the env section that enter the data definition through what they set, in its physics entry (the scheme's
-parameters), not by name: datasets made before the key keep their fingerprint, and two names for the same physics
-would be one dataset."""
+def physics_definition(scheme: str, sim, static_sim) -> dict:
+    """The physics entry of the data definition: `{"scheme": scheme, **every field of sim (engine.SimParams),
+    **static_sim.physics_options() (engine.StaticSimParams)}`, as JSON values (`json_value`)."""
+    fields = {"scheme": scheme, **dataclasses.asdict(sim), **static_sim.physics_options()}
+    return {key: json_value(value) for key, value in fields.items()}
 
 
-EXPERTS_ADDED_LATER = {"solved_window": False}
-"""Keys of the experts section added after budget modes, with the value that plays as before them: at that value,
-and in any mode but adaptive (the only one they change), they stay out of the data definition, so datasets made
-before them keep their fingerprint."""
+NON_FINITE_FLOATS = {math.inf: "inf", -math.inf: "-inf"}
+"""How infinite parameters are written in a data definition (JSON has no infinity)."""
 
 
-SOLVER_SCHEME_BEFORE = {
-    "num_substeps": 4,
-    "num_iterations": 1,
-    "num_relax_iterations": 1,
-    "block_contacts": False,
-    "relax_contacts": True,
-}
-"""The solver's scheme (`engine.StaticSimParams`) with which datasets were first made: a setting that differs enters
-the physics definition, so data made with another solver scheme is told apart."""
-
-
-def physics_definition(sim, static_sim=None) -> dict:
-    """The physics parameters `sim` (`engine.SimParams`) as they enter the data definition: every field, but those of
-    PHYSICS_ADDED_LATER at their earlier-physics value; and the solver settings of `static_sim`
-    (`engine.StaticSimParams`) that differ from SOLVER_SCHEME_BEFORE."""
-    fields = dataclasses.asdict(sim)
-    physics = {k: v for k, v in fields.items() if k not in PHYSICS_ADDED_LATER or v != PHYSICS_ADDED_LATER[k]}
-    if static_sim is not None:
-        counts = {key: getattr(static_sim, key) for key in SOLVER_SCHEME_BEFORE}
-        physics |= {key: count for key, count in counts.items() if count != SOLVER_SCHEME_BEFORE[key]}
-    return physics
+def json_value(value):
+    """A parameter as a plain JSON value: enums as their ints, infinite floats as "inf" / "-inf"; NaN is refused."""
+    if isinstance(value, bool) or isinstance(value, str):
+        return value
+    if isinstance(value, int):
+        return int(value)
+    value = float(value)
+    if math.isnan(value):
+        raise ValueError("a physics parameter is NaN; a data definition holds numbers only")
+    return NON_FINITE_FLOATS.get(value, value)
 
 
 GROWABLE_KEY = ("split", "num_levels")
@@ -537,17 +594,7 @@ def definition_fingerprint(definition: dict) -> str:
     """The data fingerprint of a stored `data_definition` (`data_config` among a dataset's attributes)."""
     section, key = GROWABLE_KEY
     countless = definition | {section: {k: v for k, v in definition.get(section, {}).items() if k != key}}
-    return _hash(countless)
-
-
-def legacy_fingerprint(definition: dict) -> str:
-    """The fingerprint datasets made before they could grow carry: the hash of the whole definition, level count
-    included."""
-    return _hash(definition)
-
-
-def _hash(value: dict) -> str:
-    return hashlib.sha256(json.dumps(value, sort_keys=True).encode()).hexdigest()[:16]
+    return hashlib.sha256(json.dumps(countless, sort_keys=True, allow_nan=False).encode()).hexdigest()[:16]
 
 
 def field_docs(section: type) -> dict[str, str]:

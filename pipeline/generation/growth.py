@@ -4,14 +4,11 @@ Level i is the same level whatever the split's level count (its keys derive from
 appends levels: the dataset's arrays get the new shards' slots and every existing commit stays valid, except the
 level batches holding padding slots that become levels, whose commits are withdrawn so the run regenerates them.
 The grown dataset equals one generated at the larger count from the start. Lowering the count is refused.
-
-Datasets made before they could grow carry a fingerprint that covers the level count (`legacy_fingerprint`);
-they are accepted when their stored definition matches, and get the current fingerprint on their first resume.
 """
 
 from __future__ import annotations
 
-from pipeline.generation.config import GROWABLE_KEY, definition_fingerprint, legacy_fingerprint
+from pipeline.generation.config import GROWABLE_KEY, definition_fingerprint
 from pipeline.storage import DatasetSpec, committed_batches, grow_dataset, open_dataset, withdraw_commit
 
 
@@ -30,11 +27,7 @@ def reconcile_dataset(root: str, spec: DatasetSpec) -> list[tuple[int, int]]:
     differ, or both level counts if the job has fewer levels."""
     stored = open_dataset(root).spec
     old, new = stored.attributes.get(DEFINITION, {}), spec.attributes[DEFINITION]
-    fingerprint = stored.attributes.get(FINGERPRINT)
-    same_data = fingerprint == definition_fingerprint(new) or (
-        fingerprint == legacy_fingerprint(old) and definition_fingerprint(old) == definition_fingerprint(new)
-    )
-    if not same_data:
+    if stored.attributes.get(FINGERPRINT) != definition_fingerprint(new):
         changed = [key for key in changed_keys(old, new) if not key.startswith(".".join(GROWABLE_KEY) + " ")]
         raise ResumeRefused(
             f"{root} holds a dataset generated with a different config; these keys would change the data: "

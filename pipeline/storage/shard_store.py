@@ -31,10 +31,11 @@ from pipeline.storage.layout import DONE, VALID, DatasetError, FieldSpec, Layout
 from pipeline.storage.state_codec import decode_arrays, encode_arrays, is_coded, stored_dtype
 from pipeline.storage.store import Store, StoreError, open_store
 
-FORMAT_VERSION = 2
+FORMAT_VERSION = 3
 """Version of the on-disk format written by this code; a dataset of another version is refused.
 
-2: per-step state fields stored as prediction residuals (`pipeline.storage.state_codec`)."""
+2: per-step state fields stored as prediction residuals (`pipeline.storage.state_codec`).
+3: the data definition's physics entry names its scheme and holds every physics parameter and solver setting."""
 
 DATA_DIR = "data"
 GROUP_METADATA = f"{DATA_DIR}/zarr.json"

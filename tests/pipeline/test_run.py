@@ -31,13 +31,12 @@ from pipeline_test_helpers import (
     tiny_job,
 )
 
-import pipeline.generation.config
 import pipeline.generation.worker
 from engine import SimParams
 from env import EnvParams
 from pipeline.cli import EXIT_DATA, EXIT_INTERRUPTED
 from pipeline.cli.verify import main as verify_main
-from pipeline.generation.config import data_fingerprint, legacy_fingerprint, load_config, to_yaml
+from pipeline.generation.config import data_fingerprint, load_config, to_yaml
 from pipeline.generation.growth import ResumeRefused
 from pipeline.generation.level_batch import run_level_batch
 from pipeline.generation.run import DatasetDamaged, prepare_output, run_job
@@ -128,25 +127,25 @@ def test_a_dataset_made_with_other_physics_is_refused(tmp_path, monkeypatch):
     prepare_output(tiny_job(tmp_path))
     stiffer = dataclasses.replace(SimParams(), joint_hertz=SimParams().joint_hertz + 15.0)
     other_code = lambda **kwargs: EnvParams(sim=stiffer, **kwargs)  # noqa: E731
-    monkeypatch.setattr(pipeline.generation.config, "EnvParams", other_code)
+    monkeypatch.setattr("env.EnvParams", other_code)
     with pytest.raises(ResumeRefused, match=r"physics\.joint_hertz \("):
         prepare_output(tiny_job(tmp_path))
 
 
 def test_a_dataset_resumed_under_another_physics_scheme_is_refused(tmp_path):
     prepare_output(tiny_job(tmp_path))
-    prepare_output(tiny_job(tmp_path, "env.physics=kforge"))  # the default, named
-    with pytest.raises(ResumeRefused, match=r"physics\.num_substeps"):
-        prepare_output(tiny_job(tmp_path, "env.physics=kinetix"))
+    prepare_output(tiny_job(tmp_path, "env.physics=kinetix"))  # the default, named
+    with pytest.raises(ResumeRefused, match=r"physics\.num_substeps \(1 -> 4\)"):
+        prepare_output(tiny_job(tmp_path, "env.physics=kforge"))
 
 
 @pytest.mark.slow  # the tiny job's programs compiled for another solver scheme (minutes)
-def test_a_job_under_the_kinetix_physics_scheme_makes_a_dataset_of_its_own_that_verifies(tmp_path, uninterrupted):
-    job = tiny_job(tmp_path, "env.physics=kinetix")
+def test_a_job_under_the_kforge_physics_scheme_makes_a_dataset_of_its_own_that_verifies(tmp_path, uninterrupted):
+    job = tiny_job(tmp_path, "env.physics=kforge")
     assert run_in_process(job)["committed_batches"] == 4
     attributes = open_dataset(tmp_path).spec.attributes
     physics = attributes["data_config"]["physics"]
-    assert (physics["num_substeps"], physics["num_iterations"], physics["contact_points"]) == (1, 10, 1)
+    assert (physics["scheme"], physics["num_substeps"], physics["num_iterations"]) == ("kforge", 4, 1)
     assert attributes["data_fingerprint"] == data_fingerprint(job)
     assert attributes["data_fingerprint"] != open_dataset(uninterrupted).spec.attributes["data_fingerprint"]
     verify_main([str(tmp_path)])  # exits non-zero on any problem
@@ -280,20 +279,6 @@ def test_an_interrupted_growth_leaves_a_dataset_that_opens_and_growing_again_fin
     assert dataset.read(["done"], range(0, 4))["done"].shape == (4, 24)
     prepare_output(tiny_job(tmp_path))
     assert open_dataset(tmp_path).geometry.num_shards == 2
-
-
-def test_a_dataset_with_a_fingerprint_of_the_level_count_is_still_resumed(tmp_path):
-    prepare_output(tiny_job(tmp_path))
-    group_path = tmp_path / "data" / "zarr.json"
-    group = json.loads(group_path.read_text())
-    attributes = group["attributes"]["kforge_dataset"]["attributes"]
-    attributes["data_fingerprint"] = legacy_fingerprint(attributes["data_config"])  # made before datasets grew
-    group_path.write_text(json.dumps(group))
-    with pytest.raises(ResumeRefused, match=r"split\.seed \(0 -> 1\)"):
-        prepare_output(tiny_job(tmp_path, "split.seed=1"))
-    prepare_output(tiny_job(tmp_path))
-    assert open_dataset(tmp_path).spec.attributes["data_fingerprint"] == data_fingerprint(tiny_job(tmp_path))
-    assert data_fingerprint(tiny_job(tmp_path)) == data_fingerprint(tiny_job(tmp_path, "split.num_levels=99"))
 
 
 def test_the_config_is_written_atomically(tmp_path):

@@ -221,7 +221,7 @@ def test_opening_a_bad_or_mismatching_dataset_names_the_problem(tmp_path):
         open_dataset(root)
     meta["attributes"]["kforge_dataset"]["format_version"] = 99
     meta_path.write_text(json.dumps(meta))
-    with pytest.raises(DatasetError, match=r"ds: dataset format version 99; this code reads version 2$"):
+    with pytest.raises(DatasetError, match=r"ds: dataset format version 99; this code reads version 3$"):
         open_dataset(root)
 
 
