@@ -30,7 +30,6 @@ from tqdm import tqdm
 from agents import ImitationTerms, NetworkConfig, imitation_terms, make_bc_network
 from env import EnvState, StaticEnvParams, observation_shape, observe
 from pipeline.generation import ConfigError, to_schema_object, to_yaml, tracking_mode
-from pipeline.generation.console import log_dir, start_log_file
 from pipeline.learning.checkpoints import checkpoint_steps, restore_checkpoint, save_checkpoint
 from pipeline.learning.config import (
     DEFAULT_BATCH_SIZE,
@@ -172,14 +171,15 @@ class TrainSummary:
     transitions_per_s: float  # trained transitions per second of wall time
 
 
-def _start_wandb(config: BCConfig, run_dir: Path):
-    """A wandb run of the BC run (None when disabled); its files under <run>/logs."""
+def _start_wandb(config: BCConfig, run_dir: Path, verbose: bool):
+    """A wandb run of the BC run (None when disabled); its files under <run>/logs, its banner and closing summary on
+    the terminal only if `verbose`."""
     mode = tracking_mode(config)
     if mode == "disabled":
         return None
     import wandb
 
-    logs = log_dir(run_dir)
+    logs = run_dir / "logs"
     logs.mkdir(parents=True, exist_ok=True)
     os.environ.setdefault("WANDB_DISABLE_WEAVE", "true")
     return wandb.init(
@@ -189,7 +189,7 @@ def _start_wandb(config: BCConfig, run_dir: Path):
         dir=str(logs),
         job_type="bc",
         config=dataclasses.asdict(config),
-        settings=wandb.Settings(console="off", save_code=False, disable_git=True),
+        settings=wandb.Settings(console="off", save_code=False, disable_git=True, silent=not verbose),
     )
 
 
@@ -258,8 +258,8 @@ def train_bc(
     verbose: bool = False,
 ) -> TrainSummary:
     """Train (or resume) the BC run of `config`; returns its summary. `stop_after_steps` ends this invocation after
-    that many steps, checkpointed, as an interruption would (tests and time-boxed jobs). Third-party logs (wandb) go
-    to <run>/logs, and to the terminal too if `verbose`."""
+    that many steps, checkpointed, as an interruption would (tests and time-boxed jobs). wandb's files go to
+    <run>/logs, its terminal output only if `verbose`."""
     levels = kept_levels(config.dataset)
     if not levels:
         raise DatasetError(f"{config.dataset}: no committed, kept trajectories to learn from")
@@ -281,7 +281,6 @@ def train_bc(
     learner = Learner(config, layout.static, layout.num_steps)
     run_dir = _prepare_run_dir(config)  # after every check that can refuse the run: a refused run leaves nothing
     (run_dir / LEVELS_FILE).write_text(json.dumps({"train": train_ids, "validation": validation_ids}))
-    start_log_file(run_dir, verbose)
     state = learner.init(config.train.seed)
     steps = checkpoint_steps(run_dir)
     if steps:
@@ -301,7 +300,7 @@ def train_bc(
         start_batch=start,
         cache_bytes=int(train.cache_gb * BYTES_PER_GIB),
     )
-    tracking = _start_wandb(config, run_dir)
+    tracking = _start_wandb(config, run_dir, verbose)
     end = train.num_steps if stop_after_steps is None else min(train.num_steps, start + stop_after_steps)
     bar = tqdm(total=train.num_steps, initial=start, disable=not show_progress, unit="step", dynamic_ncols=True)
     wait = 0.0
