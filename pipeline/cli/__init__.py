@@ -47,7 +47,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
         "success rates of a BC policy beside no-op and random on seen, unseen and hand levels",
         "pipeline.cli.evaluate",
     ),
-    "render": ("play a Kinetix level with a simple policy and write a GIF", "env.play"),
+    "render": ("play a Kinetix level with a simple policy and write a GIF", "pipeline.cli.render"),
     "demo": ("simulate a small engine scene and write it as a GIF", "engine.demo"),
 }
 """Subcommand name -> (help line, module whose `main(argv, prog)` parses the remaining arguments)."""
@@ -61,6 +61,16 @@ USAGE_ERRORS = ("InputError", "ConfigError", "ResumeRefused", "LevelFileError", 
 DATA_ERRORS = ("DatasetError",)
 """Exception classes that report a problem of the data: exit 1."""
 
+
+ENV_SIZES = ("s", "m", "l")
+"""Kinetix's env sizes (engine.KINETIX_SIZES, env.BUNDLED_SIZES), named here so that parsing imports nothing heavy."""
+PHYSICS_SCHEME_NAMES = ("kforge", "kinetix")
+"""The engine's physics schemes (engine.PHYSICS_SCHEMES), the values of --physics."""
+PLAY_PHYSICS_SCHEME = "kinetix"
+"""The scheme `render` and `levels preview` play under unless --physics names another: Kinetix's play, as the data
+and its evaluation (the engine's API default, kforge, stays a choice)."""
+POLICY_NAMES = ("noop", "uniform_random")
+"""The simple policies a level can be played with (env.Policy's values), the first the default."""
 
 DATASET_METADATA = "data/zarr.json"
 """The file every local dataset holds (pipeline.storage's GROUP_METADATA, named here so that checking a path imports

@@ -17,10 +17,12 @@ def test_render_command_writes_one_frame_per_state(levels_dir, tmp_path, capsys)
 
 def test_render_plays_under_the_physics_scheme_named(levels_dir, tmp_path, capsys):
     level = str(levels_dir / "s" / "h0_weak_thrust.json")
-    default, kinetix = tmp_path / "kforge.gif", tmp_path / "kinetix.gif"
-    main(["render", level, "--steps", "40", "--out", str(default)])
+    kforge, kinetix, default = tmp_path / "kforge.gif", tmp_path / "kinetix.gif", tmp_path / "default.gif"
+    main(["render", level, "--steps", "40", "--out", str(kforge), "--physics", "kforge"])
     main(["render", level, "--steps", "40", "--out", str(kinetix), "--physics", "kinetix"])
-    a, b = iio.imread(default, index=None), iio.imread(kinetix, index=None)
+    main(["render", level, "--steps", "40", "--out", str(default)])
+    a, b = iio.imread(kforge, index=None), iio.imread(kinetix, index=None)
+    assert (iio.imread(default, index=None) == b).all()  # Kinetix's play unless --physics names another
     assert (a[0] == b[0]).all()  # the level's start does not depend on the physics
     assert (a[1] != b[1]).any()  # one env step of free fall: four substeps against one step of Jax2D's scheme
     assert "failure at step" in capsys.readouterr().out.split("\n")[-2]  # the ball still lands on the red floor
