@@ -259,8 +259,8 @@ def _without_where_keys(layer: DictConfig, where: str) -> DictConfig:
     """A remote config layer without `WHERE_KEYS` (a dataset's `config.yaml`: its output_dir the dataset itself); a
     notice on stderr for each key it set to a value the job will not use."""
     values = OmegaConf.to_container(layer, resolve=False)
-    folder, _, name = where.rpartition("/")
-    dataset = folder if name == DATASET_CONFIG_FILE else None
+    folder, _, file_name = where.rpartition("/")
+    dataset = folder if file_name == DATASET_CONFIG_FILE else None
     defaults = OmegaConf.to_container(OmegaConf.structured(JobConfig), resolve=False)
     for key in WHERE_KEYS:
         section, _, name = key.rpartition(".")
