@@ -5,32 +5,24 @@ Public surface: what the command line, Kinetix interop, jobs and benchmarks use.
 the name is first used, so that loading and checking a job config imports neither JAX nor Ray.
 """
 
-import importlib
+from pipeline.lazy import lazy_surface
 
-_SOURCES = {
-    "pipeline.generation.config": (
-        "TRACKING_MODES ConfigError EnvSection JobConfig absolute_output_dir config_path data_definition "
-        "data_fingerprint environment load_config load_yaml merge_layers parse_overrides ppo_config read_config "
-        "to_schema_object to_yaml"
-    ),
-    "pipeline.generation.console": "closing_summary",
-    "pipeline.generation.coordinator": "Commit Coordinator",
-    "pipeline.generation.growth": "ResumeRefused",
-    "pipeline.generation.level_batch": (
-        "KeyPurpose batches_per_shard level_key level_keys num_shards run_level_batch sample_batch"
-    ),
-    "pipeline.generation.run": "JobInterrupted prepare_output run_job summarize",
-    "pipeline.generation.tracking": "start_tracking tracking_mode",
-    "pipeline.generation.worker": "Worker",
-}
-_MODULE_OF = {name: module for module, names in _SOURCES.items() for name in names.split()}
-"""Public name -> its module."""
-
-
-def __getattr__(name: str):
-    if name not in _MODULE_OF:
-        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-    return getattr(importlib.import_module(_MODULE_OF[name]), name)
-
-
-__all__ = sorted(_MODULE_OF)
+__getattr__, __all__ = lazy_surface(
+    __name__,
+    {
+        "pipeline.generation.config": (
+            "TRACKING_MODES ConfigError EnvSection JobConfig absolute_output_dir config_path data_definition "
+            "data_fingerprint environment load_config load_yaml merge_layers parse_overrides ppo_config read_config "
+            "to_schema_object to_yaml"
+        ),
+        "pipeline.generation.console": "closing_summary",
+        "pipeline.generation.coordinator": "Commit Coordinator",
+        "pipeline.generation.growth": "ResumeRefused",
+        "pipeline.generation.level_batch": (
+            "KeyPurpose batches_per_shard level_key level_keys num_shards run_level_batch sample_batch"
+        ),
+        "pipeline.generation.run": "JobInterrupted prepare_output run_job summarize",
+        "pipeline.generation.tracking": "start_tracking tracking_mode",
+        "pipeline.generation.worker": "Worker",
+    },
+)
