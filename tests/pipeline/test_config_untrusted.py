@@ -11,9 +11,10 @@ import sys
 import typing
 
 import pytest
+from pipeline_test_helpers import environment
 
 from pipeline.generation.config import ConfigError, JobConfig, read_config, to_yaml
-from tests.pipeline.test_object_storage import BUCKET, s3  # noqa: F401 (s3: the moto server fixture)
+from tests.pipeline.test_object_storage import BUCKET, S3_ENV
 
 EXIT_USAGE = 2
 SECRET = "not-to-be-leaked-1f2e"
@@ -29,6 +30,23 @@ def float_keys(schema: type = JobConfig, prefix: str = "") -> list[str]:
         elif hint is float or float in typing.get_args(hint):
             keys.append(f"{prefix}{name}")
     return keys
+
+
+@pytest.fixture
+def s3():
+    """A moto S3 server on 127.0.0.1 with one bucket, the AWS_* environment pointing at it for this test only (a
+    session's server of another module keeps its own)."""
+    import boto3
+    from moto.server import ThreadedMotoServer
+
+    server = ThreadedMotoServer(ip_address="127.0.0.1", port=0, verbose=False)
+    server.start()
+    endpoint = "http://{}:{}".format(*server.get_host_and_port())
+    with environment(**S3_ENV, AWS_ENDPOINT_URL=endpoint):
+        client = boto3.client("s3", endpoint_url=endpoint, region_name=S3_ENV["AWS_REGION"])
+        client.create_bucket(Bucket=BUCKET)
+        yield client
+    server.stop()
 
 
 def run_cli(*argv: str, cwd, **env) -> subprocess.CompletedProcess:
@@ -75,7 +93,7 @@ def test_nan_in_a_config_file_is_refused_by_the_cli(tmp_path):
     assert list(tmp_path.iterdir()) == [job_file]
 
 
-def test_a_remote_dataset_does_not_say_where_the_job_runs(s3, tmp_path, capsys):  # noqa: F811
+def test_a_remote_dataset_does_not_say_where_the_job_runs(s3, tmp_path, capsys):
     job = read_config("1M/s", ["output_dir=s3://elsewhere/ds"], scale="tiny")
     planted = dataclasses.replace(
         job,
@@ -108,7 +126,7 @@ def test_a_remote_dataset_does_not_say_where_the_job_runs(s3, tmp_path, capsys):
     assert (chosen.ray.address, chosen.tracking.dir) == ("auto", "/mine")
 
 
-def test_a_remote_dataset_of_defaults_continues_without_a_notice(s3, capsys):  # noqa: F811
+def test_a_remote_dataset_of_defaults_continues_without_a_notice(s3, capsys):
     url = f"s3://{BUCKET}/plain"
     s3.put_object(Bucket=BUCKET, Key="plain/config.yaml", Body=to_yaml(read_config("1M/s", [f"output_dir={url}"])))
     assert read_config(url).output_dir == url
