@@ -223,18 +223,18 @@ def read_config(path: str | Path | None = None, overrides: list[str] = (), scale
 
     `path` may name a dataset in object storage, whose `config.yaml` someone else wrote: the keys that say where the
     job runs and what it loads (`WHERE_KEYS`) are taken from the command and the schema, never from it, and its
-    output_dir is the dataset named. A notice on stderr names each such key it set to another value.
+    output_dir is the dataset named. A notice on stderr names each such key it set to another value that neither the
+    scale nor an override sets.
     """
     layers = []
     if path is not None:
         path = config_path(path)
-        layer = load_yaml(path)
-        if _is_url(path):
-            layer = _without_where_keys(layer, str(path))
-        layers.append((str(path), layer))
+        layers.append((str(path), load_yaml(path)))
     if scale is not None:
         layers.append((str(scale_path(scale)), load_yaml(scale_path(scale))))
     layers.append((OVERRIDES, parse_overrides(overrides)))
+    if path is not None and _is_url(path):
+        layers[0] = (str(path), _without_where_keys(layers[0][1], str(path), [layer for _, layer in layers[1:]]))
     for index, (where, layer) in enumerate(layers):
         if "scale" in layer and not (index == 0 and path is not None):
             raise ConfigError(f"{where}: scale: a scale preset is applied with --scale NAME, not set as a key")
@@ -255,20 +255,21 @@ WHERE_KEYS = ("output_dir", "ray.address", "compile_cache.dir", "tracking.dir")
 """Keys that say where a job runs, writes or loads code from: a dataset's stored config does not set them."""
 
 
-def _without_where_keys(layer: DictConfig, where: str) -> DictConfig:
+def _without_where_keys(layer: DictConfig, where: str, later_layers: list[DictConfig]) -> DictConfig:
     """A remote config layer without `WHERE_KEYS` (a dataset's `config.yaml`: its output_dir the dataset itself); a
-    notice on stderr for each key it set to a value the job will not use."""
+    notice on stderr for each key it set to a value the job will not use, unless a later layer sets the key."""
     values = OmegaConf.to_container(layer, resolve=False)
+    later = [OmegaConf.to_container(later_layer, resolve=False) for later_layer in later_layers]
     folder, _, file_name = where.rpartition("/")
     dataset = folder if file_name == DATASET_CONFIG_FILE else None
     defaults = OmegaConf.to_container(OmegaConf.structured(JobConfig), resolve=False)
     for key in WHERE_KEYS:
         section, _, name = key.rpartition(".")
-        stored, default = (values.get(section), defaults[section]) if section else (values, defaults)
-        if not isinstance(stored, dict) or name not in stored:
+        if not _sets(values, section, name):
             continue
-        value = stored.pop(name)
-        if value != (dataset if key == "output_dir" else default[name]):
+        value = (values[section] if section else values).pop(name)
+        default = dataset if key == "output_dir" else (defaults[section] if section else defaults)[name]
+        if value != default and not any(_sets(later_values, section, name) for later_values in later):
             print(
                 f"notice: {where} sets {key}={value!r}; ignored, a dataset does not say where a job runs",
                 file=sys.stderr,
@@ -276,6 +277,12 @@ def _without_where_keys(layer: DictConfig, where: str) -> DictConfig:
     if dataset is not None:
         values["output_dir"] = dataset
     return OmegaConf.create(values)
+
+
+def _sets(values: dict, section: str, name: str) -> bool:
+    """Whether a layer's `values` set key `name` of `section` ("" for the top level)."""
+    holder = values.get(section) if section else values
+    return isinstance(holder, dict) and name in holder
 
 
 def merge_layers(schema: type, layers: list[tuple[str, DictConfig]]) -> DictConfig:

@@ -122,8 +122,12 @@ def test_a_remote_dataset_does_not_say_where_the_job_runs(s3, tmp_path, capsys):
         f"notice: {where} sets tracking.dir='/shared/planted-tracking'; ignored, a dataset does not say where a job "
         "runs",
     ]
-    chosen = read_config(url, ["ray.address=auto", "tracking.dir=/mine"])  # the user's command still sets them
-    assert (chosen.ray.address, chosen.tracking.dir) == ("auto", "/mine")
+    chosen = read_config(url, ["ray.address=auto", "tracking.dir=/mine"], scale="full")  # the command sets them
+    assert (chosen.ray.address, chosen.tracking.dir, chosen.work.levels_per_batch) == ("auto", "/mine", 128)
+    assert [line.split(" sets ")[1].split("=")[0] for line in capsys.readouterr().err.splitlines()] == [
+        "output_dir",
+        "compile_cache.dir",
+    ]  # no notice for a key the command sets
 
 
 def test_a_remote_dataset_of_defaults_continues_without_a_notice(s3, capsys):
