@@ -14,6 +14,7 @@ from pipeline.generation.config import (
     data_fingerprint,
     definition_fingerprint,
     load_config,
+    physics_definition,
 )
 from pipeline.generation.run import prepare_output
 from pipeline.storage import DatasetError
@@ -87,6 +88,13 @@ def test_the_definition_is_plain_json_with_infinity_written_as_a_string_and_laws
     assert physics["baumgarte_depth"] == "inf" and physics["push_touch_distance"] == "inf"
     assert type(physics["contact_law"]) is int and type(physics["block_contacts"]) is bool
     assert "Infinity" not in text and "NaN" not in text
+
+
+def test_a_physics_parameter_that_is_nan_has_no_definition_and_minus_infinity_is_written_out():
+    with pytest.raises(ValueError, match="^a physics parameter is NaN"):
+        physics_definition("kforge", SimParams(joint_hertz=float("nan")), StaticSimParams())
+    physics = physics_definition("kforge", SimParams(baumgarte_depth=-float("inf")), StaticSimParams())
+    assert physics["baumgarte_depth"] == "-inf"
 
 
 def test_the_fingerprint_is_the_hash_of_the_sorted_json_without_the_level_count():
