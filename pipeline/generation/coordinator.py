@@ -1,7 +1,10 @@
 """The coordinator: hands out shards, receives commit records and writes the manifest (the truth for resume).
 
-It runs as a named Ray actor, but its state is only a cache of the manifest on disk: a restarted coordinator
-(or a re-run job) rebuilds it from the records, so nothing is lost when the actor or the job dies.
+It runs as a Ray actor, but its state is only a cache of the manifest: a restarted coordinator (Ray restarts it,
+`max_restarts`) or a re-run job rebuilds it from the records, so its death loses no committed work. Every claim and
+commit names the worker and is refused (`ShardNotHeld`) unless that worker holds the shard, so a worker that was
+replaced cannot write beside its successor; every commit is fenced by the job's lease (`require_lease`) and
+creates its record only if none exists (`commit_record`).
 """
 
 from __future__ import annotations
@@ -9,7 +12,7 @@ from __future__ import annotations
 import dataclasses
 import os
 
-from pipeline.storage import all_committed, read_record, record_exists, write_record
+from pipeline.storage import DatasetError, all_committed, commit_record, read_record, require_lease
 
 COMPILING = "compiling"
 """State of a claimed level batch before its first training report, while its worker has committed nothing in this
@@ -26,6 +29,10 @@ class Commit:
     shard_complete: bool  # with it, every level batch of the record's shard is committed
 
 
+class ShardNotHeld(DatasetError):
+    """A worker claimed or committed a level batch of a shard that is not (or no longer) leased to it."""
+
+
 class Coordinator:
     """Shard leases and commits for one dataset directory."""
 
@@ -36,11 +43,14 @@ class Coordinator:
         batches_per_shard: int,
         max_batches: int | None = None,
         job_id: str | None = None,
+        max_lease_age_s: float | None = None,
     ):
         """`max_batches` caps the level batches handed out in this run (None: all), e.g. for time-boxed allocations;
-        `job_id` names the job whose lease on the dataset the workers write under."""
+        `job_id` names the job whose lease on the dataset the workers write under: every commit first checks that it
+        holds the lease with a heartbeat at most `max_lease_age_s` old (`lease.commit_age_limit`)."""
         self._root = root
         self._job_id = job_id
+        self._max_lease_age_s = max_lease_age_s
         self._batches_per_shard = batches_per_shard
         committed = all_committed(root)
         self._committed = {shard: set(committed.get(shard, ())) for shard in range(num_shards)}
@@ -63,8 +73,11 @@ class Coordinator:
                 return shard
         return None
 
-    def release(self, shard: int) -> None:
-        """Give a shard back (its worker finished or failed); its uncommitted batches may be claimed again."""
+    def release(self, shard: int, worker: str | None = None) -> None:
+        """Give a shard back (its worker finished or failed); its uncommitted batches may be claimed again. With
+        `worker`, only if that worker still holds it (a shard handed on to another worker stays with it)."""
+        if worker is not None and self._leased.get(shard) != worker:
+            return
         self._leased.pop(shard, None)
         self._claimed = {(s, b) for s, b in self._claimed if s != shard}
         self._training = {key: share for key, share in self._training.items() if key[0] != shard}
@@ -73,9 +86,17 @@ class Coordinator:
         """Hand `shard` out no more in this run (its workers keep failing); a later run retries it."""
         self._abandoned.add(shard)
 
-    def claim_batch(self, shard: int) -> int | None:
-        """The next uncommitted, unclaimed level batch of a leased shard, in order; None when none is left or the
-        run's batch budget is spent."""
+    def _require_holder(self, shard: int, worker: str) -> None:
+        holder = self._leased.get(shard)
+        if holder != worker:
+            raise ShardNotHeld(
+                f"shard {shard} is leased to {holder or 'no worker'}, not {worker}: {worker} must write nothing more"
+            )
+
+    def claim_batch(self, shard: int, worker: str) -> int | None:
+        """The next uncommitted, unclaimed level batch of a shard leased to `worker`, in order; None when none is
+        left or the run's batch budget is spent; `ShardNotHeld` if the shard is not leased to `worker`."""
+        self._require_holder(shard, worker)
         if not self._within_budget():
             return None
         for batch in range(self._batches_per_shard):
@@ -92,14 +113,19 @@ class Coordinator:
         in_flight = sum(1 for shard, batch in self._claimed if batch not in self._committed[shard])
         return self._committed_in_run + in_flight < self._budget
 
-    def commit(self, shard: int, batch: int, record: dict) -> bool:
-        """Write the record that commits a level batch whose data files are written; False if already committed.
+    def commit(self, shard: int, batch: int, record: dict, worker: str) -> bool:
+        """Write the record that commits a level batch whose data files `worker` wrote; False if already committed.
 
-        Idempotent: a retried commit of the same batch changes nothing.
+        Refused with `ShardNotHeld` unless `worker` holds the shard, and with `LeaseLost` unless the job still holds
+        the dataset's lease. Idempotent: a retried commit of the same batch changes nothing.
         """
-        if batch in self._committed[shard] and record_exists(self._root, shard, batch):
+        self._require_holder(shard, worker)
+        if self._job_id is not None:
+            require_lease(self._root, self._job_id, self._max_lease_age_s)
+        stored = commit_record(self._root, shard, batch, record)
+        if stored is None:
+            self._committed[shard].add(batch)
             return False
-        stored = write_record(self._root, shard, batch, record)
         self._committed[shard].add(batch)
         self._committed_in_run += 1
         if shard in self._leased:

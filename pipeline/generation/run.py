@@ -21,29 +21,35 @@ from pipeline.generation.config import (
     to_yaml,
 )
 from pipeline.generation.console import ProgressBar, resume_line, start_log_file
-from pipeline.generation.coordinator import Coordinator
+from pipeline.generation.coordinator import Coordinator, ShardNotHeld
 from pipeline.generation.growth import reconcile_dataset
 from pipeline.generation.level_batch import batches_per_shard, num_shards
 from pipeline.generation.tracking import start_tracking
 from pipeline.generation.worker import Worker
 from pipeline.storage import (
     CONFIG_FILE,
-    DatasetError,
+    DatasetDamaged,  # noqa: F401 (raised by `run_job` through `require_intact`; callers catch it from here)
     DatasetSpec,
     Geometry,
     Lease,
     LeaseLost,
     Outcome,
+    commit_age_limit,
     committed_batches,
     create_dataset,
-    damaged_commits,
     iter_records,
     make_layout,
     open_store,
+    require_intact,
 )
 
 RAY_NAMESPACE = "kforge"
 PROGRESS_POLL_SECONDS = 2.0
+COORDINATOR_RESTARTS = -1
+"""Ray restarts a dead coordinator actor (and retries the calls to it) without limit: it rebuilds its state from the
+commit records, so a restart costs no committed work."""
+COORDINATOR_ACTOR = "kforge-coordinator-{job_id}"
+"""Name of a job's coordinator actor in its Ray namespace (an operator or a test finds it with `ray.get_actor`)."""
 MAX_SHARD_ATTEMPTS = 3
 """A shard whose worker fails this many times in one run is abandoned for the run (committed batches stay)."""
 IN_PROCESS = 0
@@ -108,12 +114,7 @@ def run_job(
 def _run_leased(job: JobConfig, lease: Lease, max_batches: int | None, show_progress: bool, verbose: bool, report):
     """`run_job` while holding the dataset's lease."""
     withdrawn = prepare_output(job)
-    damaged = damaged_commits(job.output_dir)
-    if damaged:
-        raise DatasetDamaged(
-            f"{job.output_dir}: {len(damaged)} committed level batches have missing, unreadable or damaged files "
-            f"({damaged[0]}); run `kforge verify --repair {job.output_dir}`, then this command again"
-        )
+    require_intact(job.output_dir, then="this command again", read_objects=False)  # records and a listing
     total = num_shards(job) * batches_per_shard(job)
     found = _committed_count(job)
     if (line := resume_line(found, total, len(withdrawn))) is not None:
@@ -128,7 +129,15 @@ def _run_leased(job: JobConfig, lease: Lease, max_batches: int | None, show_prog
     tracker = None
     try:
         tracker = start_tracking(job)
-        shards = (job.output_dir, num_shards(job), batches_per_shard(job), max_batches, lease.holder.job_id)
+        max_lease_age_s = commit_age_limit(job.lease.stale_after_s, job.lease.heartbeat_s)
+        shards = (
+            job.output_dir,
+            num_shards(job),
+            batches_per_shard(job),
+            max_batches,
+            lease.holder.job_id,
+            max_lease_age_s,
+        )
         bar = ProgressBar(found, total, enabled=show_progress)
         try:
             if job.ray.num_workers == IN_PROCESS:
@@ -157,7 +166,9 @@ def _run_leased(job: JobConfig, lease: Lease, max_batches: int | None, show_prog
 def _work_on_ray(job, shards: tuple, lease, tracker, bar, failures, attempts, verbose, sigterm_handler) -> None:
     """Run the coordinator (`Coordinator(*shards)`) as an actor and `ray.num_workers` worker actors until no shard
     is left: a failed shard is recorded in `failures` and handed out again, up to `MAX_SHARD_ATTEMPTS` times; a dead
-    worker is replaced."""
+    or unreachable worker is killed (`ray.kill`: one unreachable but alive must not write beside its successor) and
+    replaced. Ray restarts a dead coordinator, which rebuilds its state from the commit records. The actors are
+    killed when the run ends, also when the caller started Ray (an interrupt leaves no worker writing)."""
     import ray
 
     for name, value in RAY_QUIET_ENV.items():
@@ -167,10 +178,23 @@ def _work_on_ray(job, shards: tuple, lease, tracker, bar, failures, attempts, ve
         _init_ray(job, verbose)
         if sigterm_handler is not None:  # Ray's own SIGTERM handler (a crash report) replaced ours
             signal.signal(signal.SIGTERM, _terminate_as_interrupt)
+    actors = []
     try:
-        actor = ray.remote(Coordinator).options(num_cpus=0).remote(*shards)
+        coordinator_class = ray.remote(Coordinator).options(
+            name=COORDINATOR_ACTOR.format(job_id=lease.holder.job_id),
+            num_cpus=0,
+            max_restarts=COORDINATOR_RESTARTS,
+            max_task_retries=COORDINATOR_RESTARTS,
+        )
+        actor = coordinator_class.remote(*shards)
+        actors.append(actor)
         worker_class = ray.remote(Worker).options(num_cpus=job.ray.cpus_per_worker, num_gpus=job.ray.gpus_per_worker)
         in_flight = {}
+
+        def start_worker(name):
+            worker = worker_class.remote(job, name)
+            actors.append(worker)
+            return worker
 
         def assign(worker, name):
             shard = ray.get(actor.next_shard.remote(name))
@@ -178,29 +202,39 @@ def _work_on_ray(job, shards: tuple, lease, tracker, bar, failures, attempts, ve
                 in_flight[worker.run_shard.remote(actor, shard)] = (worker, name, shard)
 
         for i in range(job.ray.num_workers):
-            assign(worker_class.remote(job, f"worker-{i}"), f"worker-{i}")
+            assign(start_worker(f"worker-{i}"), f"worker-{i}")
         while in_flight:
             lease.check()
             ready, _ = ray.wait(list(in_flight), timeout=PROGRESS_POLL_SECONDS)
             for ref in ready:
                 worker, name, shard = in_flight.pop(ref)
+                error = None
                 try:
                     ray.get(ref)
-                except ray.exceptions.RayError as error:
-                    attempts[shard] += 1
-                    failures.append({"shard": shard, "worker": name, "error": str(error).splitlines()[0]})
-                    if attempts[shard] >= MAX_SHARD_ATTEMPTS:
-                        ray.get(actor.abandon.remote(shard))  # a poison shard: left for a later run
-                    if isinstance(error, ray.exceptions.RayActorError):  # the worker process died: replace it
-                        name = f"{name}-restart{attempts.total()}"
-                        worker = worker_class.remote(job, name)
-                ray.get(actor.release.remote(shard))
+                except ray.exceptions.RayError as raised:
+                    error = raised
+                    cause = getattr(error, "cause", None)
+                    if isinstance(cause, LeaseLost):
+                        lease.fence()  # raises if another job took the lease; else the worker saw an old heartbeat
+                    if not isinstance(cause, LeaseLost | ShardNotHeld):  # not the shard's fault: not an attempt
+                        attempts[shard] += 1
+                        failures.append({"shard": shard, "worker": name, "error": str(error).splitlines()[0]})
+                        if attempts[shard] >= MAX_SHARD_ATTEMPTS:
+                            ray.get(actor.abandon.remote(shard))  # a poison shard: left for a later run
+                ray.get(actor.release.remote(shard, name))
+                if isinstance(error, ray.exceptions.RayActorError):  # dead, or unreachable and maybe alive
+                    ray.kill(worker, no_restart=True)
+                    name = f"{name.partition('-restart')[0]}-restart{len(actors)}"
+                    worker = start_worker(name)
                 assign(worker, name)
             tracker.log_commits(ray.get(actor.take_commits.remote()))
             bar.show(ray.get(actor.progress.remote())[0], ray.get(actor.in_flight.remote()))
     finally:
         if started_ray:
             ray.shutdown()
+        else:
+            for started in actors:
+                ray.kill(started, no_restart=True)
 
 
 def _work_in_process(job: JobConfig, coordinator: _Observed, failures: list, attempts: collections.Counter) -> None:
@@ -218,7 +252,7 @@ def _work_in_process(job: JobConfig, coordinator: _Observed, failures: list, att
             failures.append({"shard": shard, "worker": IN_PROCESS_WORKER, "error": message})
             if attempts[shard] >= MAX_SHARD_ATTEMPTS:
                 coordinator.abandon(shard)
-        coordinator.release(shard)
+        coordinator.release(shard, IN_PROCESS_WORKER)
 
 
 class _Observed:
@@ -233,9 +267,9 @@ class _Observed:
         self.claim_batch = coordinator.claim_batch
         self.job_id = coordinator.job_id
 
-    def commit(self, shard: int, batch: int, record: dict) -> bool:
-        self._lease.check()
-        committed = self._coordinator.commit(shard, batch, record)
+    def commit(self, shard: int, batch: int, record: dict, worker: str) -> bool:
+        self._lease.fence()
+        committed = self._coordinator.commit(shard, batch, record, worker)
         self._tracker.log_commits(self._coordinator.take_commits())
         self._show()
         return committed
@@ -268,10 +302,6 @@ class JobInterrupted(Exception):
         super().__init__(f"interrupted: {committed} of {total} level batches committed in {output_dir}")
         self.output_dir, self.committed, self.total = output_dir, committed, total
         self.committed_in_run = committed_in_run
-
-
-class DatasetDamaged(DatasetError):
-    """Committed level batches of the output directory have missing, unreadable or damaged files."""
 
 
 def _committed_count(job: JobConfig) -> int:

@@ -13,7 +13,14 @@ from pipeline.generation.adaptive import streamed_level_batches
 from pipeline.generation.compile_cache import enable_compile_cache
 from pipeline.generation.config import FIXED_BUDGET_MODE, JobConfig
 from pipeline.generation.level_batch import run_level_batch
-from pipeline.storage import PROVENANCE, BatchTrajectories, clean_uncommitted, open_dataset, stage_level_batch
+from pipeline.storage import (
+    PROVENANCE,
+    BatchTrajectories,
+    clean_uncommitted,
+    commit_age_limit,
+    open_dataset,
+    stage_level_batch,
+)
 
 FAULT_INJECTION_ENV = "KFORGE_WORKER_FAULT"
 """Fault drill: "N:PATH" makes the first worker that finds no file at PATH create it and kill its own process
@@ -51,7 +58,8 @@ class Worker:
         """
         dataset = open_dataset(self._job.output_dir)
         # Safe under the job's lease on the dataset; the coordinator's shard lease makes this worker its only writer.
-        clean_uncommitted(dataset.store, shard, _call(coordinator.job_id))
+        max_lease_age_s = commit_age_limit(self._job.lease.stale_after_s, self._job.lease.heartbeat_s)
+        clean_uncommitted(dataset.store, shard, _call(coordinator.job_id), max_lease_age_s)
         summaries = []
         started = time.perf_counter()
         for batch, result in self._batches(coordinator, shard):
@@ -63,7 +71,7 @@ class Worker:
             provenance["worker"] = self._name
             self._staged += 1
             _maybe_inject_fault(self._staged)
-            _call(coordinator.commit, shard, batch, record)
+            _call(coordinator.commit, shard, batch, record, self._name)
             summaries.append(
                 {
                     "shard": shard,
@@ -78,7 +86,7 @@ class Worker:
 
     def _batches(self, coordinator, shard: int) -> Iterator[tuple[int, BatchTrajectories]]:
         """(batch, its data) for each level batch of `shard` the coordinator hands out, as each is done."""
-        claim = functools.partial(_call, coordinator.claim_batch, shard)
+        claim = functools.partial(_call, coordinator.claim_batch, shard, self._name)
         if self._job.experts.budget_mode != FIXED_BUDGET_MODE:
             report = functools.partial(_notify, coordinator.report_training, shard)
             yield from streamed_level_batches(self._job, shard, claim, on_progress=report)

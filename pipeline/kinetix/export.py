@@ -39,6 +39,7 @@ from pipeline.storage import (
     is_remote,
     iter_records,
     open_dataset,
+    require_intact,
     static_to_json,
 )
 
@@ -149,10 +150,12 @@ def export_kinetix(
 ) -> ExportSummary:
     """Write the dataset's kept trajectories to `<out_dir>/<split>` in the Kinetix-Offline layout (module doc).
 
-    Raises `DatasetError` naming the problem if the dataset is missing or corrupt, holds no committed trajectory, or
-    the split's folder already exists and is not empty.
+    Raises `DatasetError` naming the problem if the dataset is missing or corrupt (`DatasetDamaged` if a committed
+    level batch's data files are missing or differ from their recorded sha256: checked before anything is read),
+    holds no committed trajectory, or the split's folder already exists and is not empty.
     """
     dataset = open_dataset(dataset_dir)
+    require_intact(dataset_dir)
     layout, split = dataset.layout, dataset.spec.split
     kept = kept_trajectories(dataset_dir)
     if not kept:

@@ -7,11 +7,13 @@ import math
 
 import numpy as np
 
-from pipeline.storage import iter_records, open_dataset
+from pipeline.storage import iter_records, open_dataset, require_intact
 
 
 def kept_levels(dataset: str) -> dict[int, list[int]]:
-    """Level id -> the global slots of its committed, kept trajectories."""
+    """Level id -> the global slots of its committed, kept trajectories; `DatasetDamaged` if a committed level
+    batch's data files are missing or differ from their recorded sha256 (a learner reads nothing unchecked)."""
+    require_intact(dataset)
     levels: dict[int, list[int]] = {}
     for record in iter_records(open_dataset(dataset).store):
         for level in record.levels:

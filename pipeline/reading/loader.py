@@ -23,12 +23,14 @@ from env import EnvState, StaticEnvParams
 from pipeline.storage import (
     ACTION,
     ACTION_MASK,
+    DATA_DIR,
     DONE,
     VALID,
     BatchRecord,
     DatasetError,
     iter_records,
     open_dataset,
+    shard_name,
     unflatten_state,
 )
 
@@ -65,6 +67,9 @@ class TrajectoryDatasetManager:
     trajectory by its own range requests); the batches are the same either way. With `cache_bytes`, the reader's
     trajectories are read once into host memory when their decoded size fits (`cached` says whether they did), and
     batches are gathered from there: the same batches, without storage reads.
+    The reader fails closed: opening it checks that every object the commit records name for the fields it reads
+    exists (and, in a local folder, has its recorded size), so a lost object is a `DatasetError` naming its level
+    batch and array rather than fill values; a read that does not decode names them too.
     """
 
     def __init__(
@@ -108,6 +113,7 @@ class TrajectoryDatasetManager:
             ),
             np.int64,
         )
+        self._check_objects([record for record in records if self._holds_wanted(record, wanted)])
         self._whole = self._whole_objects(records, whole_object_bytes)
         self.length = len(self.slots) // total_shard_count
         """Trajectories this reader sees per epoch."""
@@ -146,6 +152,34 @@ class TrajectoryDatasetManager:
 
     def _field_names(self) -> list[str]:
         return [ACTION, ACTION_MASK, DONE, VALID] + [spec.name for spec in self.dataset.layout.state_fields]
+
+    @staticmethod
+    def _holds_wanted(record: BatchRecord, wanted: set[int] | None) -> bool:
+        return any(level.kept and (wanted is None or level.level_id in wanted) for level in record.levels)
+
+    def _check_objects(self, records: list[BatchRecord]) -> None:
+        """Fail closed: `DatasetError` naming the level batch and the array if a read field's object that a record
+        commits is absent (a missing object would read as fill values: zeros, False) or, in a local folder, not of
+        its recorded size (truncated). One listing of the data objects; checksums are `require_intact`'s."""
+        store, root = self.dataset.store, self.dataset.root
+        present = set(store.list(f"{DATA_DIR}/"))
+        for record in records:
+            where = f"{root}: {shard_name(record.shard)} batch {record.batch}"
+            for name in self._field_names():
+                entry = record.arrays.get(name)
+                if entry is None:
+                    raise DatasetError(f"{where}: array {name} is not in its commit record; run `kforge verify {root}`")
+                if entry.file is None:
+                    continue
+                if entry.file not in present:
+                    raise DatasetError(
+                        f"{where}: array {name}: committed object {entry.file} is missing; run `kforge verify {root}`"
+                    )
+                if store.is_local and entry.size is not None and (size := store.size(entry.file)) != entry.size:
+                    raise DatasetError(
+                        f"{where}: array {name}: committed object {entry.file} is {size} bytes, its record says "
+                        f"{entry.size} (truncated?); run `kforge verify {root}`"
+                    )
 
     def _whole_objects(self, records: list[BatchRecord], max_bytes: int) -> dict[str, np.ndarray]:
         """Field -> bool per level batch: the per-step shard objects read whole (object stores only; sizes from the
@@ -208,7 +242,15 @@ class TrajectoryDatasetManager:
     def _read_stored(self, slots: np.ndarray) -> dict[str, np.ndarray]:
         """Decoded arrays of the given slots as stored, checked to be committed."""
         slots = np.asarray(slots)
-        arrays = self.dataset.read(self._field_names(), slots, self._whole)
+        try:
+            arrays = self.dataset.read(self._field_names(), slots, self._whole)
+        except DatasetError as error:  # a chunk that does not decode (crc32c): name the level batches read
+            geometry = self.dataset.geometry
+            batches = sorted({int(slot) // geometry.levels_per_batch for slot in slots})
+            named = ", ".join(
+                f"{shard_name(g // geometry.batches_per_shard)} batch {g % geometry.batches_per_shard}" for g in batches
+            )
+            raise DatasetError(f"{named}: {error}") from error
         empty = slots[~arrays[VALID]]
         if len(empty):
             raise DatasetError(

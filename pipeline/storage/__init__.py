@@ -31,10 +31,13 @@ from pipeline.storage.lease import (
     LeaseHeld,
     LeaseHolder,
     LeaseLost,
+    commit_age_limit,
     read_holder,
+    require_lease,
 )
 from pipeline.storage.manifest import (
     all_committed,
+    commit_record,
     committed_batches,
     iter_records,
     read_record,
@@ -58,7 +61,14 @@ from pipeline.storage.records import (
     LevelRecord,
     Outcome,
 )
-from pipeline.storage.repair import Withdrawal, damaged_commits, withdraw_bad_batches, withdraw_commit
+from pipeline.storage.repair import (
+    DatasetDamaged,
+    Withdrawal,
+    damaged_commits,
+    require_intact,
+    withdraw_bad_batches,
+    withdraw_commit,
+)
 from pipeline.storage.shard_store import (
     BLOSC_LEVEL,
     CONFIG_FILE,
@@ -100,7 +110,9 @@ __all__ = [
     "is_remote",
     "join",
     "open_store",
+    "commit_age_limit",
     "read_holder",
+    "require_lease",
     "ACTION",
     "ACTION_MASK",
     "BLOSC_LEVEL",
@@ -125,6 +137,7 @@ __all__ = [
     "Withdrawal",
     "BatchTrajectories",
     "Dataset",
+    "DatasetDamaged",
     "DatasetError",
     "DatasetSpec",
     "FieldSpec",
@@ -134,6 +147,7 @@ __all__ = [
     "ShardReport",
     "clean_uncommitted",
     "all_committed",
+    "commit_record",
     "committed_batches",
     "create_dataset",
     "damaged_commits",
@@ -151,6 +165,7 @@ __all__ = [
     "record_exists",
     "record_key",
     "recorded_shards",
+    "require_intact",
     "shard_name",
     "stage_level_batch",
     "static_to_json",

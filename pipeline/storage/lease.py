@@ -5,6 +5,14 @@ background thread, and deletes it when it ends. A second job on the same dataset
 fresh and takes the lease over (with a message) once it is older than the stale limit, so a crashed job's dataset
 resumes without a manual step. Renewal and take-over are conditional on the generation last seen, so of two jobs that
 race for a stale lease one wins and the other is refused. Readers take no lease.
+
+Fencing: a job that lost its lease must not change the dataset. Before every commit and every deletion the writer
+proves it still holds the lease: the driver by a conditional renewal (`Lease.fence`, a compare-and-swap on the
+generation it last wrote, so it fails once another job took over, however long this process was paused), a
+coordinator or worker in another process by reading the lease (`require_lease`: this job's id, and a heartbeat
+younger than the stale limit less one heartbeat interval, so no other job can take over before the write lands).
+`Lease.check` compares the last heartbeat with the clock as well as the heartbeat thread's flag, so a process
+resumed after a pause longer than the stale limit fences before it goes on.
 """
 
 from __future__ import annotations
@@ -74,21 +82,39 @@ def read_holder(root: str | os.PathLike | Store) -> LeaseHolder | None:
     return None if data is None else LeaseHolder.from_bytes(data, store.url(LEASE_KEY))
 
 
-def require_lease(root: str | os.PathLike | Store, job_id: str) -> None:
-    """Raise `LeaseLost` unless job `job_id` holds the dataset's lease (writers that delete data check this)."""
-    holder = read_holder(root)
+def require_lease(root: str | os.PathLike | Store, job_id: str, max_age_s: float | None = None) -> None:
+    """Raise `LeaseLost` unless job `job_id` holds the dataset's lease and, with `max_age_s`, its last heartbeat is
+    at most that old (what a coordinator or worker checks before it commits or deletes, see the module doc)."""
+    store = open_store(root)
+    try:
+        holder = read_holder(store)
+    except DatasetError as error:
+        raise LeaseLost(f"{store.url(LEASE_KEY)}: job {job_id} cannot prove it holds the lease ({error})") from error
+    now = time.time()
     if holder is None or holder.job_id != job_id:
-        who = "no job" if holder is None else holder.describe(time.time())
-        raise LeaseLost(f"{open_store(root).url(LEASE_KEY)}: job {job_id} does not hold the lease ({who} does)")
+        who = "no job" if holder is None else holder.describe(now)
+        raise LeaseLost(f"{store.url(LEASE_KEY)}: job {job_id} does not hold the lease ({who} does)")
+    if max_age_s is not None and now - holder.heartbeat > max_age_s:
+        raise LeaseLost(
+            f"{store.url(LEASE_KEY)}: job {job_id}'s last heartbeat is {now - holder.heartbeat:.0f} s old (more than "
+            f"{max_age_s:.0f} s): another job may take the lease over, so this one writes nothing more"
+        )
+
+
+def commit_age_limit(stale_after_s: float, heartbeat_s: float) -> float:
+    """[s] The oldest heartbeat under which another process of the job may still commit (`require_lease`): the stale
+    limit less one heartbeat interval, the margin for the write and for clocks that differ between hosts."""
+    return stale_after_s - heartbeat_s
 
 
 class Lease:
     """A held lease: `acquire` it, `release` it in a `finally` (or use it as a context manager)."""
 
-    def __init__(self, store: Store, holder: LeaseHolder, generation: bytes, heartbeat_s: float):
+    def __init__(self, store: Store, holder: LeaseHolder, generation: bytes, heartbeat_s: float, stale_after_s: float):
         self.store, self.holder = store, holder
         self._generation = generation
         self._heartbeat_s = heartbeat_s
+        self._stale_after_s = stale_after_s
         self._lock = threading.Lock()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
@@ -128,7 +154,7 @@ class Lease:
                 log(f"{store.location}: taking over the stale lease of {other.describe(now)}")
         if generation is None:
             raise LeaseHeld(f"{store.location}: another job took the dataset's lease at the same moment")
-        lease = cls(store, holder, generation, heartbeat_s)
+        lease = cls(store, holder, generation, heartbeat_s, stale_after_s)
         lease._confirm()
         lease._thread = threading.Thread(target=lease._beat, name="lease-heartbeat", daemon=True)
         lease._thread.start()
@@ -152,19 +178,37 @@ class Lease:
         with self._lock:
             if self.lost is not None or self._stop.is_set():
                 return
-            holder = dataclasses.replace(self.holder, heartbeat=time.time())
-            generation = self.store.replace(LEASE_KEY, holder.to_bytes(), self._generation)
-            if generation is None:
+            self._renew_locked()
+
+    def _renew_locked(self) -> None:
+        holder = dataclasses.replace(self.holder, heartbeat=time.time())
+        generation = self.store.replace(LEASE_KEY, holder.to_bytes(), self._generation)
+        if generation is None:
+            try:
                 current = read_holder(self.store)
                 taker = "removed" if current is None else f"taken over by {current.describe(time.time())}"
-                self.lost = f"{self.store.location}: this job's lease was {taker}"
-                return
-            self.holder, self._generation = holder, generation
+            except DatasetError:
+                taker = "overwritten by an unreadable lease"
+            self.lost = f"{self.store.location}: this job's lease was {taker}"
+            return
+        self.holder, self._generation = holder, generation
+
+    def fence(self) -> None:
+        """Prove that this job holds the lease now, or raise `LeaseLost`: a conditional renewal (compare-and-swap on
+        the generation this job wrote last), which fails once another job took the lease over or removed it. Call it
+        right before a write that commits or deletes."""
+        with self._lock:
+            if self.lost is None:
+                self._renew_locked()
+        self.check()
 
     def check(self) -> None:
-        """Raise `LeaseLost` if the lease was taken over or removed."""
+        """Raise `LeaseLost` if the lease was taken over or removed, or, when the last heartbeat is older than the
+        stale limit by the clock (this process was paused, or its heartbeats failed), unless a `fence` succeeds."""
         if self.lost is not None:
             raise LeaseLost(self.lost)
+        if time.time() - self.holder.heartbeat > self._stale_after_s:
+            self.fence()
 
     def release(self) -> None:
         """Stop heartbeats and delete the lease if it is still ours."""

@@ -48,14 +48,26 @@ def write_record(root: Location, shard: int, batch: int, record: dict | BatchRec
     return record
 
 
+def commit_record(root: Location, shard: int, batch: int, record: dict | BatchRecord) -> dict | None:
+    """Commit a level batch only if it is not committed: its record is created, never written over (a conditional
+    create), so a job can never replace another job's commit. Returns the JSON as stored, or None if a record
+    exists."""
+    if isinstance(record, BatchRecord):
+        record = record.to_json()
+    record = {"record_version": RECORD_VERSION, **record}
+    data = json.dumps(record, indent=1, sort_keys=True).encode()
+    return record if open_store(root).create_exclusive(record_key(shard, batch), data) is not None else None
+
+
 def remove_record(root: Location, shard: int, batch: int) -> bool:
-    """Uncommit a level batch (before it is rewritten); True if a record existed."""
+    """Uncommit a level batch; True if a record existed and was removed. The removal is conditional on the record
+    read just before (its generation), so a record that another writer replaced meanwhile stays."""
     store = open_store(root)
     key = record_key(shard, batch)
-    if not store.exists(key):
+    data, generation = store.read_versioned(key)
+    if data is None:
         return False
-    store.delete(key)
-    return True
+    return store.replace(key, None, generation) is not None
 
 
 def record_exists(root: Location, shard: int, batch: int) -> bool:

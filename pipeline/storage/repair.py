@@ -13,12 +13,16 @@ from collections.abc import Sequence
 
 from pipeline.storage.layout import DatasetError
 from pipeline.storage.manifest import committed_batches, read_record, remove_record, shard_name
-from pipeline.storage.shard_store import object_digest, open_dataset
-from pipeline.storage.store import Location
+from pipeline.storage.shard_store import CONFIG_FILE, DATA_DIR, object_digest, open_dataset
+from pipeline.storage.store import Location, Store, join
 from pipeline.storage.verify import ShardReport
 
 HASH_THREADS = 4
 """Objects read and hashed at once by `damaged_commits` (I/O and hashlib release the GIL)."""
+
+
+class DatasetDamaged(DatasetError):
+    """Committed level batches of a dataset have missing, unreadable or damaged files."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -55,10 +59,11 @@ def withdraw_bad_batches(root: Location, reports: Sequence[ShardReport]) -> list
     return withdrawn
 
 
-def damaged_commits(root: Location) -> list[str]:
+def damaged_commits(root: Location, read_objects: bool = True) -> list[str]:
     """Committed level batches whose record does not read, or whose recorded data files are missing or differ from
     their recorded sha256 (a flipped byte), one line each ("shard-000001 batch 1: file data/done/c/3/0 missing");
-    empty for an intact dataset. Reads every data object once (in parallel); decoding and content checks are
+    empty for an intact dataset. Reads every data object once (in parallel); with `read_objects=False` only the
+    records and one listing of the data objects (missing files, not their bytes). Decoding and content checks are
     `kforge verify`'s."""
     dataset = open_dataset(root)
     geometry = dataset.geometry
@@ -83,8 +88,12 @@ def damaged_commits(root: Location) -> list[str]:
             for spec in dataset.layout.fields:
                 if arrays[spec.name].sha256 is not None:
                     expected.append((where, dataset.batch_key(spec.name, global_batch), arrays[spec.name].sha256))
-    with concurrent.futures.ThreadPoolExecutor(HASH_THREADS) as pool:
-        digests = list(pool.map(lambda key: object_digest(dataset.store, key), [key for _, key, _ in expected]))
+    if read_objects:
+        with concurrent.futures.ThreadPoolExecutor(HASH_THREADS) as pool:
+            digests = list(pool.map(lambda key: object_digest(dataset.store, key), [key for _, key, _ in expected]))
+    else:
+        present = set(dataset.store.list(f"{DATA_DIR}/"))
+        digests = [recorded if key in present else None for _, key, recorded in expected]
     bad_batches = set()
     for (where, key, recorded), digest in zip(expected, digests, strict=True):
         if digest != recorded and where not in bad_batches:
@@ -92,3 +101,19 @@ def damaged_commits(root: Location) -> list[str]:
             what = "missing" if digest is None else "sha256 mismatch"
             damaged.append(f"{where}: file {key} {what}")
     return damaged
+
+
+def require_intact(root: Location, then: str | None = None, read_objects: bool = True) -> None:
+    """Raise `DatasetDamaged` (one line: how many batches, the first problem, the command that repairs them, then
+    `then`, by default the run that regenerates them) unless every committed level batch's record reads and its data
+    files exist with their recorded sha256 (`damaged_commits`; with `read_objects=False` their existence only). What
+    the readers that export or learn from a dataset (`kforge export`, `kforge bc train`) check before they read, and,
+    without reading objects, what a job checks before it resumes."""
+    damaged = damaged_commits(root, read_objects)
+    if damaged:
+        location = root.location if isinstance(root, Store) else str(root)
+        then = then or f"`kforge run {join(location, CONFIG_FILE)}` to regenerate them"
+        raise DatasetDamaged(
+            f"{location}: {len(damaged)} committed level batches have missing, unreadable or damaged files "
+            f"({damaged[0]}); run `kforge verify --repair {location}`, then {then}"
+        )

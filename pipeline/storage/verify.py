@@ -75,6 +75,11 @@ def verify_shard(dataset: Dataset, shard: int, allow_incomplete: bool = False) -
             if store.partial_writes(key):
                 report.notes.append(f"batch {batch}: stale lock file beside {key}")
     for batch in report.committed:
+        if batch >= geometry.batches_per_shard:  # a record past the geometry: withdrawn by --repair
+            problem = f"record outside the dataset's {geometry.batches_per_shard} level batches per shard"
+            report.problems.append(f"batch {batch}: {problem}")
+            report.bad_batches[batch] = [problem]
+            continue
         try:
             problems, num_kept = _verify_batch(dataset, shard, batch)
         except DatasetError as error:

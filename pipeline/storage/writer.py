@@ -29,7 +29,14 @@ from pipeline.storage.layout import (
     unflatten_state,
 )
 from pipeline.storage.lease import require_lease
-from pipeline.storage.manifest import committed_batches, remove_record, temp_records, write_record
+from pipeline.storage.manifest import (
+    committed_batches,
+    record_exists,
+    remove_record,
+    shard_name,
+    temp_records,
+    write_record,
+)
 from pipeline.storage.records import KEPT, ArrayEntry, BatchRecord, LevelRecord, Outcome
 from pipeline.storage.shard_store import Dataset, array_digest, open_dataset
 from pipeline.storage.store import Store
@@ -190,6 +197,7 @@ def _json_number(value) -> float | None:
 
 def write_level_batch(dataset: Dataset, shard: int, batch: int, result: BatchTrajectories) -> dict:
     """Store and commit level batch `batch` of `shard`; returns its commit record."""
+    remove_record(dataset.root, shard, batch)
     record = stage_level_batch(dataset, shard, batch, result)
     return write_record(dataset.root, shard, batch, record)
 
@@ -197,14 +205,16 @@ def write_level_batch(dataset: Dataset, shard: int, batch: int, result: BatchTra
 def stage_level_batch(dataset: Dataset, shard: int, batch: int, result: BatchTrajectories) -> dict:
     """Write the data files of level batch `batch` of `shard` and return the record that commits them.
 
-    Order: check, uncommit any earlier attempt, write the data files (each replaced atomically by tensorstore).
-    The batch counts as committed only once the returned record is written (`manifest.write_record`, by the
-    coordinator); rerunning after any interruption overwrites the same files.
+    Order: check, refuse a committed batch (`DatasetError`: a committed batch's files are never rewritten, so a
+    writer that lost its shard or lease cannot change a commit of another), write the data files (each replaced
+    atomically by tensorstore). The batch counts as committed only once the returned record is written
+    (`manifest.commit_record`, by the coordinator); rerunning after any interruption overwrites the same files.
     """
     geometry, layout = dataset.geometry, dataset.layout
     global_batch = geometry.global_batch(shard, batch)
     arrays = stored_arrays(layout, geometry.levels_per_batch, result)
-    remove_record(dataset.root, shard, batch)
+    if record_exists(dataset.store, shard, batch):
+        raise DatasetError(f"{shard_name(shard)} batch {batch}: already committed; its files are not rewritten")
     dataset.write_batch(global_batch, arrays)
 
     files = {}
@@ -247,15 +257,19 @@ def stage_level_batch(dataset: Dataset, shard: int, batch: int, result: BatchTra
     return record.to_json()
 
 
-def clean_uncommitted(root: str | os.PathLike | Store, shard: int, job_id: str) -> list[str]:
+def clean_uncommitted(
+    root: str | os.PathLike | Store, shard: int, job_id: str, max_lease_age_s: float | None = None
+) -> list[str]:
     """Remove what a crash left in `shard`: data objects of level batches without a record, half-done local writes
     (tensorstore lock files) and half-written records. Returns the removed keys.
 
     Only the shard's single writer may call it, under its job's lease (`LeaseLost` if job `job_id` does not hold the
-    dataset's lease): a second job's worker would otherwise delete data another job is about to commit.
+    dataset's lease, or its heartbeat is older than `max_lease_age_s`): a job that lost its lease would otherwise
+    delete data the job that took over is about to commit. What it removes was staged by this job's earlier
+    attempt or by a job that lost the lease, which can commit nothing any more (`lease` module doc: fencing).
     """
     dataset = open_dataset(root)
-    require_lease(dataset.store, job_id)
+    require_lease(dataset.store, job_id, max_lease_age_s)
     store = dataset.store
     committed = set(committed_batches(store, shard))
     removed = list(temp_records(store, shard))

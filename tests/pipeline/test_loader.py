@@ -13,6 +13,7 @@ from env import ObservationType, StaticEnvParams, observe
 from pipeline.reading.loader import TrajectoryDatasetManager
 from pipeline.storage.layout import DatasetError
 from pipeline.storage.shard_store import open_dataset
+from pipeline.storage.verify import verify_dataset
 
 pytestmark = pytest.mark.smoke
 
@@ -134,16 +135,47 @@ def test_a_missing_or_corrupt_data_file_is_a_named_error(dataset_dir, tmp_path):
     root = tmp_path / "ds"
     shutil.copytree(dataset_dir, root)
     dataset = open_dataset(root)
-    batch_file(dataset, "meta/valid", 0).unlink()
-    with pytest.raises(DatasetError, match=r"committed slots \[0\] read as empty .*kforge verify"):
-        TrajectoryDatasetManager(root, batch_size=1).load_slots(np.array([0]))
     path = batch_file(dataset, "action", 1)
     data = bytearray(path.read_bytes())
     data[50] ^= 0xFF
     path.write_bytes(bytes(data))
     # tensorstore reports the chunk's crc32c mismatch or, for most bytes, Blosc's own check failing first
-    with pytest.raises(DatasetError, match="cannot read action: .*([Dd]igest mismatch|[Bb]losc)"):
+    with pytest.raises(
+        DatasetError, match="^shard-000000 batch 1: .*cannot read action: .*([Dd]igest mismatch|[Bb]losc)"
+    ):
         TrajectoryDatasetManager(root, batch_size=1).load_slots(np.array([3]))
+
+
+@pytest.mark.parametrize("name", ["done", "meta/valid", "env_state/sim/bodies/position", "env_state/timestep"])
+@pytest.mark.parametrize("damage", ["missing", "truncated"])
+def test_a_missing_or_truncated_object_in_any_array_fails_the_reader_and_verify_names_it(
+    dataset_dir, tmp_path, name, damage
+):
+    """A lost `done` or state object would otherwise read as fill values (False, zeros) and decode silently wrong."""
+    root = tmp_path / "ds"
+    shutil.copytree(dataset_dir, root)
+    path = batch_file(open_dataset(root), name, 2)  # global batch 2: shard 1, batch 0
+    if damage == "missing":
+        path.unlink()
+        expected = f"shard-000001 batch 0: array {name}: committed object .* is missing"
+    else:
+        path.write_bytes(path.read_bytes()[:-7])
+        expected = f"shard-000001 batch 0: array {name}: committed object .* bytes, its record says"
+    with pytest.raises(DatasetError, match=expected) as error:
+        TrajectoryDatasetManager(root, batch_size=1)
+    assert "\n" not in str(error.value)
+    reports = verify_dataset(root)
+    assert [report.ok for report in reports] == [True, False]
+    assert list(reports[1].bad_batches) == [0]
+    assert any(f"{name}: file" in problem for problem in reports[1].bad_batches[0])
+
+
+def test_a_reader_of_other_levels_ignores_a_damaged_batch(dataset_dir, tmp_path):
+    root = tmp_path / "ds"
+    shutil.copytree(dataset_dir, root)
+    batch_file(open_dataset(root), "done", 2).unlink()  # levels 20, 21, 22
+    reader = TrajectoryDatasetManager(root, batch_size=1, level_ids=[0, 1, 10, 11])
+    assert sorted(reader.slots.tolist()) == [0, 1, 3, 4]
 
 
 def test_a_cached_reader_gives_the_batches_of_a_streaming_one(dataset_dir):

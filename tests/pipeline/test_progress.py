@@ -30,11 +30,11 @@ def test_the_coordinator_keeps_reports_of_claimed_batches_until_commit_or_releas
     coordinator.report_training(0, 0, 5, 10)  # not claimed: ignored
     assert coordinator.training() == {}
     shard = coordinator.next_shard("w")
-    first, second = coordinator.claim_batch(shard), coordinator.claim_batch(shard)
+    first, second = coordinator.claim_batch(shard, "w"), coordinator.claim_batch(shard, "w")
     coordinator.report_training(shard, first, 5, 10)
     coordinator.report_training(shard, second, 1, 4)
     assert coordinator.training() == {(shard, first): 0.5, (shard, second): 0.25}
-    coordinator.commit(shard, first, {"levels": []})
+    coordinator.commit(shard, first, {"levels": []}, "w")
     coordinator.report_training(shard, first, 10, 10)  # arrived after its commit: ignored
     assert coordinator.training() == {(shard, second): 0.25}
     coordinator.release(shard)  # the worker failed: its batch is no longer in flight
@@ -44,12 +44,12 @@ def test_the_coordinator_keeps_reports_of_claimed_batches_until_commit_or_releas
 def test_batches_in_flight_are_compiling_until_their_worker_reports_or_has_committed(tmp_path):
     coordinator = _coordinator(tmp_path)
     a, b = coordinator.next_shard("a"), coordinator.next_shard("b")
-    coordinator.claim_batch(a), coordinator.claim_batch(b)
+    coordinator.claim_batch(a, "a"), coordinator.claim_batch(b, "b")
     assert coordinator.in_flight() == {(0, 0): "compiling", (1, 0): "compiling"}
     coordinator.report_training(a, 0, 2, 8)
     assert coordinator.in_flight() == {(0, 0): 0.25, (1, 0): "compiling"}
-    coordinator.commit(a, 0, {"levels": []})
-    coordinator.claim_batch(a)  # worker a's programs are compiled: its next batch is only starting
+    coordinator.commit(a, 0, {"levels": []}, "a")
+    coordinator.claim_batch(a, "a")  # worker a's programs are compiled: its next batch is only starting
     assert coordinator.in_flight() == {(0, 1): "starting", (1, 0): "compiling"}
 
 
@@ -82,13 +82,13 @@ def test_a_resumed_run_says_what_it_found():
 def test_max_batches_counts_commits_so_a_failed_claim_does_not_use_up_the_budget(tmp_path):
     coordinator = _coordinator(tmp_path, max_batches=2)
     shard = coordinator.next_shard("w")
-    assert coordinator.claim_batch(shard) == 0
+    assert coordinator.claim_batch(shard, "w") == 0
     coordinator.release(shard)  # the worker died before committing
     shard = coordinator.next_shard("w2")
-    assert (coordinator.claim_batch(shard), coordinator.claim_batch(shard)) == (0, 1)
-    assert coordinator.claim_batch(shard) is None  # two in flight: the budget is reached
-    coordinator.commit(shard, 0, {"levels": []})
-    coordinator.commit(shard, 1, {"levels": []})
+    assert (coordinator.claim_batch(shard, "w2"), coordinator.claim_batch(shard, "w2")) == (0, 1)
+    assert coordinator.claim_batch(shard, "w2") is None  # two in flight: the budget is reached
+    coordinator.commit(shard, 0, {"levels": []}, "w2")
+    coordinator.commit(shard, 1, {"levels": []}, "w2")
     coordinator.release(shard)
     assert coordinator.next_shard("w2") is None  # exactly two committed
     assert coordinator.progress() == (2, 4)

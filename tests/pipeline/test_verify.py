@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import json
 import shutil
 
 import numpy as np
@@ -11,6 +12,7 @@ from pipeline_test_helpers import GEOMETRY, batch_file, batch_result
 
 from pipeline.cli.verify import main
 from pipeline.storage import Lease
+from pipeline.storage.manifest import record_key
 from pipeline.storage.repair import damaged_commits
 from pipeline.storage.shard_store import open_dataset
 from pipeline.storage.verify import verify_dataset
@@ -132,3 +134,17 @@ def test_the_check_a_resumed_run_makes_finds_missing_and_damaged_files(dataset_d
         "shard-000000 batch 1: file data/done/c/1/0 missing",
         "shard-000001 batch 0: file data/action/c/2/0/0 sha256 mismatch",
     ]
+    # A resumed run reads no data object: it finds the missing file, not the flipped byte (verify and readers do).
+    assert damaged_commits(copy, read_objects=False) == ["shard-000000 batch 1: file data/done/c/1/0 missing"]
+
+
+def test_repair_withdraws_a_record_past_the_dataset_s_batches_per_shard(copy, capsys):
+    stray = json.loads((copy / record_key(0, 1)).read_text()) | {"batch": GEOMETRY.batches_per_shard}
+    (copy / record_key(0, GEOMETRY.batches_per_shard)).write_text(json.dumps(stray))
+    with pytest.raises(SystemExit):
+        main([str(copy)])
+    assert "batch 2: record outside the dataset's 2 level batches per shard" in capsys.readouterr().out
+    main([str(copy), "--repair"])
+    assert "withdrew the commit of shard-000000 batch 2: record outside" in capsys.readouterr().out
+    assert not (copy / record_key(0, GEOMETRY.batches_per_shard)).exists()
+    assert all(report.ok for report in verify_dataset(copy))

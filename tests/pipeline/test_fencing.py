@@ -1,0 +1,153 @@
+"""Fencing: a job that lost its dataset's lease cannot change the dataset. A holder paused (SIGSTOP) past the stale
+limit, whose lease another job took over meanwhile, raises `LeaseLost` at its next step and commits, uncommits and
+deletes nothing; a garbage lease is a lost lease; commits never overwrite a record; a worker that does not hold a
+shard can neither claim nor commit its batches."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+
+from pipeline.generation.coordinator import Coordinator, ShardNotHeld
+from pipeline.storage import (
+    LEASE_KEY,
+    Lease,
+    LeaseLost,
+    commit_age_limit,
+    commit_record,
+    read_holder,
+    read_record_json,
+    record_key,
+)
+from pipeline.storage.manifest import remove_record
+from pipeline.storage.verify import verify_dataset
+
+STALE_AFTER_S = 1.5  # [s] the lease's stale limit in these tests
+HEARTBEAT_S = 0.2  # [s]
+NUM_SHARDS, BATCHES_PER_SHARD = 2, 2  # the shared test dataset's geometry
+
+PAUSED_JOB = """
+import json, sys
+from pipeline.generation.coordinator import Coordinator
+from pipeline.storage import Lease, LeaseLost, commit_age_limit, read_record_json
+from pipeline.storage.manifest import remove_record
+from pipeline.storage.writer import clean_uncommitted
+
+root, stale, beat = sys.argv[1], float(sys.argv[2]), float(sys.argv[3])
+records = json.loads(sys.argv[4])
+lease = Lease.acquire(root, stale_after_s=stale, heartbeat_s=beat, job_id="paused")
+coordinator = Coordinator(root, 2, 2, None, "paused", commit_age_limit(stale, beat))
+shard = coordinator.next_shard("w")
+print("holding", flush=True)
+sys.stdin.readline()  # the test stops this process here, lets the lease go stale, then continues it
+outcomes = {}
+steps = {
+    "check": lease.check,
+    "commit": lambda: coordinator.commit(0, 1, records["0/1"], "w"),
+    "clean": lambda: clean_uncommitted(root, 0, "paused", commit_age_limit(stale, beat)),
+    "fence": lease.fence,
+}
+for name, step in steps.items():
+    try:
+        step()
+        outcomes[name] = "done"
+    except LeaseLost as error:
+        outcomes[name] = "LeaseLost: " + str(error)
+lease.release()
+print(json.dumps(outcomes), flush=True)
+"""
+"""A job that holds the lease, is paused, and on resuming tries to check its lease, commit, clean up and fence."""
+
+
+def _uncommitted_copy(dataset_dir, tmp_path):
+    """A copy of the shared dataset with shard 0's two records removed (their data files stay: staged, uncommitted)
+    and the records, keyed "shard/batch"."""
+    root = tmp_path / "ds"
+    shutil.copytree(dataset_dir, root)
+    records = {f"0/{batch}": read_record_json(root, 0, batch) for batch in range(BATCHES_PER_SHARD)}
+    for batch in range(BATCHES_PER_SHARD):
+        (root / record_key(0, batch)).unlink()
+    return root, records
+
+
+def test_a_paused_holder_whose_lease_was_taken_over_changes_nothing(dataset_dir, tmp_path):
+    root, records = _uncommitted_copy(dataset_dir, tmp_path)
+    paused = subprocess.Popen(
+        [sys.executable, "-c", PAUSED_JOB, str(root), str(STALE_AFTER_S), str(HEARTBEAT_S), json.dumps(records)],
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        assert paused.stdout.readline().strip() == "holding"
+        paused.send_signal(signal.SIGSTOP)
+        time.sleep(STALE_AFTER_S + 1.0)  # its heartbeat goes stale
+        with Lease.acquire(root, stale_after_s=STALE_AFTER_S, heartbeat_s=HEARTBEAT_S, job_id="new") as lease:
+            coordinator = Coordinator(root, NUM_SHARDS, BATCHES_PER_SHARD, None, "new", commit_age_limit(10, 1))
+            shard = coordinator.next_shard("w")
+            assert shard == 0 and coordinator.claim_batch(shard, "w") == 0
+            lease.fence()
+            assert coordinator.commit(0, 0, records["0/0"], "w")
+            paused.send_signal(signal.SIGCONT)
+            paused.stdin.write("go\n")
+            paused.stdin.flush()
+            outcomes = json.loads(paused.stdout.readline())
+            assert read_holder(root).job_id == "new"
+    finally:
+        paused.kill()
+        paused.wait()
+    assert set(outcomes) == {"check", "commit", "clean", "fence"}
+    for step, outcome in outcomes.items():
+        assert outcome.startswith("LeaseLost: ") and "\n" not in outcome, (step, outcome)
+    assert "this job's lease was taken over by job new" in outcomes["check"]
+    assert "does not hold the lease (job new" in outcomes["commit"]
+    assert not (root / record_key(0, 1)).exists()  # the paused job committed nothing
+    assert json.loads((root / record_key(0, 0)).read_text()) == records["0/0"]  # nor uncommitted the new job's
+    reports = verify_dataset(root, allow_incomplete=True)
+    assert all(report.ok for report in reports) and reports[0].committed == [0]
+
+
+def test_a_garbage_lease_is_a_lost_lease(tmp_path):
+    with Lease.acquire(tmp_path, job_id="mine", heartbeat_s=0.05) as lease:
+        (tmp_path / LEASE_KEY).write_bytes(b"\x00 not a lease")
+        deadline = time.monotonic() + 10
+        while lease.lost is None and time.monotonic() < deadline:
+            time.sleep(0.02)
+        with pytest.raises(LeaseLost, match="lease was overwritten by an unreadable lease"):
+            lease.check()
+        coordinator = Coordinator(tmp_path, 1, 1, None, "mine")
+        coordinator.next_shard("w")
+        with pytest.raises(LeaseLost, match="job mine cannot prove it holds the lease .*unreadable lease"):
+            coordinator.commit(0, 0, {"shard": 0, "batch": 0}, "w")
+    assert (tmp_path / LEASE_KEY).read_bytes() == b"\x00 not a lease"  # a lost lease is not deleted on release
+
+
+def test_a_commit_never_overwrites_a_record_and_an_uncommit_removes_only_what_it_read(tmp_path):
+    first = {"shard": 0, "batch": 1, "by": "first"}
+    assert commit_record(tmp_path, 0, 1, first) == {"record_version": 1, **first}
+    assert commit_record(tmp_path, 0, 1, {"shard": 0, "batch": 1, "by": "second"}) is None
+    assert json.loads((tmp_path / record_key(0, 1)).read_text())["by"] == "first"
+    assert remove_record(tmp_path, 0, 1) and not remove_record(tmp_path, 0, 1)
+
+
+def test_only_the_worker_holding_a_shard_claims_and_commits_its_batches(tmp_path):
+    coordinator = Coordinator(tmp_path, NUM_SHARDS, BATCHES_PER_SHARD)
+    shard = coordinator.next_shard("old")
+    assert coordinator.claim_batch(shard, "old") == 0
+    with pytest.raises(ShardNotHeld, match="shard 0 is leased to old, not new"):
+        coordinator.claim_batch(shard, "new")
+    coordinator.release(shard)  # the old worker was presumed dead and killed; its successor takes the shard
+    assert coordinator.next_shard("new") == shard
+    with pytest.raises(ShardNotHeld, match="shard 0 is leased to new, not old: old must write nothing more"):
+        coordinator.commit(shard, 0, {"shard": 0, "batch": 0}, "old")
+    with pytest.raises(ShardNotHeld, match="leased to new, not old"):
+        coordinator.claim_batch(shard, "old")
+    assert not (tmp_path / record_key(0, 0)).exists()
+    assert coordinator.claim_batch(shard, "new") == 0
+    assert coordinator.commit(shard, 0, {"shard": 0, "batch": 0}, "new")
