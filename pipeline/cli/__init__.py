@@ -4,8 +4,8 @@ A subcommand's module is imported only when it runs, so `kforge --help` and a su
 importing JAX or Ray. Every subcommand ends with one of the exit codes below, reports errors in one line (the
 traceback only with `--debug`), and takes config overrides as positional `key=value` arguments.
 
-Public surface: the exit codes, `EXIT_CODES_HELP`, `add_common_options`, `InputError`, `require_dataset`, `fail`
-and `main`.
+Public surface: the exit codes, `EXIT_CODES_HELP`, `add_common_options`, `InputError`, `require_dataset`,
+`load_config_or_exit`, `fail` and `main`.
 """
 
 from __future__ import annotations
@@ -13,8 +13,11 @@ from __future__ import annotations
 import argparse
 import importlib
 import sys
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
+from typing import TypeVar
+
+Config = TypeVar("Config")
 
 EXIT_OK = 0
 """Success."""
@@ -94,6 +97,19 @@ def require_dataset(location: str) -> str:
     if not (path / DATASET_METADATA).is_file():
         raise fail(InputError(f"{location}: not a dataset (no {DATASET_METADATA})"))
     return location
+
+
+def load_config_or_exit(load: Callable[[], Config], debug: bool) -> Config:
+    """`load()`'s config; its `ConfigError` ends the command in one line with exit 2 (raised as is with --debug).
+    Loading and checking a config imports nothing heavy, so these errors come before JAX is imported."""
+    from pipeline.generation import ConfigError
+
+    try:
+        return load()
+    except ConfigError as error:
+        if debug:
+            raise
+        raise fail(error) from error
 
 
 def add_common_options(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:

@@ -44,17 +44,24 @@ def main(argv: Sequence[str] | None = None, prog: str | None = None) -> None:
     if args.max_levels is not None and args.max_levels < 1:
         parser.error(f"--max-levels must be >= 1, got {args.max_levels}")
 
-    from engine import use_deterministic_ops
-    from pipeline.learning import LEVEL_SETS, evaluate_policy, load_policy, report_table
-    from pipeline.storage import DatasetError
-
-    use_deterministic_ops()  # before the first computation: repeatable on GPUs too
+    from pipeline.learning import LEVEL_SETS, run_config_file
 
     unknown = [name for name in sets if name not in LEVEL_SETS]
     if unknown or not sets:
         parser.error(
             f"--on: unknown level set {unknown[0] if unknown else args.on!r}; choose among {', '.join(LEVEL_SETS)}"
         )
+    try:
+        run_config_file(args.policy)
+    except FileNotFoundError as error:
+        raise fail(error) from None
+
+    from engine import use_deterministic_ops
+    from pipeline.learning import evaluate_policy, load_policy, report_table
+    from pipeline.storage import DatasetError
+
+    use_deterministic_ops()  # before the first computation: repeatable on GPUs too
+
     try:
         policy = load_policy(args.policy, args.step)
         result = evaluate_policy(

@@ -37,7 +37,7 @@ from env import (
     under_scheme,
     write_state_gif,
 )
-from pipeline.generation import ConfigError, EnvSection, KeyPurpose, environment, level_keys, load_config, sample_batch
+from pipeline.generation import EnvSection, KeyPurpose, environment, level_keys, sample_batch
 
 LEVELS_DIR = Path("outputs") / "levels"
 """Default parent folder of written levels and previews."""
@@ -101,13 +101,7 @@ def sample_command(args: argparse.Namespace) -> None:
 
 def export_command(args: argparse.Namespace) -> None:
     """`levels export`: the job's config, its ids checked against split.num_levels, sampled batch by batch."""
-    job = load_config(args.config, args.overrides, scale=args.scale)
-    level_ids = args.level_ids
-    outside = [level_id for level_id in level_ids if not 0 <= level_id < job.split.num_levels]
-    if outside:
-        raise ConfigError(
-            f"level ids {outside} are outside split {job.split.name} (split.num_levels = {job.split.num_levels})"
-        )
+    job, level_ids = args.job, args.level_ids
     params, static = environment(job)
     levels = _sampled_levels(
         sorted(set(level_ids)),

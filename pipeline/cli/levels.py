@@ -22,11 +22,13 @@ from pathlib import Path
 from pipeline.cli import (
     ENV_SIZES,
     EXIT_CODES_HELP,
+    EXIT_USAGE,
     PHYSICS_SCHEME_NAMES,
     PLAY_PHYSICS_SCHEME,
     POLICY_NAMES,
     InputError,
     add_common_options,
+    exit_code,
     fail,
 )
 
@@ -134,8 +136,8 @@ def _parser(prog: str | None) -> tuple[argparse.ArgumentParser, dict[str, argpar
 
 
 def _check(args: argparse.Namespace, chosen: argparse.ArgumentParser) -> None:
-    """Refuse, before anything heavy is imported, what the arguments alone show to be wrong (exit 2); `chosen` is the
-    subcommand's parser."""
+    """Refuse, before anything heavy is imported, what the arguments alone show to be wrong (exit 2), and load
+    `export`'s job config (`ConfigError`); `chosen` is the subcommand's parser."""
     if args.command == "sample" and (args.num < 1 or args.start < 0):
         chosen.error(f"--num must be >= 1 and --start >= 0, got --num {args.num} --start {args.start}")
     if args.command == "preview":
@@ -157,21 +159,27 @@ def _check(args: argparse.Namespace, chosen: argparse.ArgumentParser) -> None:
         if not numbers:
             raise fail(InputError("no level ids given (e.g. kforge levels export 1M/s 0 1 2)"))
         args.level_ids = [int(item) for item in numbers]
+        from pipeline.generation import ConfigError, load_config
+
+        args.job = load_config(args.config, args.overrides, scale=args.scale)
+        split = args.job.split
+        outside = [level_id for level_id in args.level_ids if not 0 <= level_id < split.num_levels]
+        if outside:
+            raise ConfigError(
+                f"level ids {outside} are outside split {split.name} (split.num_levels = {split.num_levels})"
+            )
 
 
 def main(argv: Sequence[str] | None = None, prog: str | None = None) -> None:
     """`kforge levels <subcommand> ...`; `kforge levels <subcommand> --help` explains each."""
     parser, subcommands = _parser(prog)
     args = parser.parse_args(argv)
-    _check(args, subcommands[args.command])
-
-    from env import LevelFileError
-    from pipeline.cli import level_commands
-    from pipeline.generation import ConfigError
-
     try:
+        _check(args, subcommands[args.command])
+        from pipeline.cli import level_commands
+
         getattr(level_commands, f"{args.command}_command")(args)
-    except (LevelFileError, ConfigError, OSError) as error:
-        if args.debug:
+    except Exception as error:  # the caller's mistakes (a level file, a config) end here in one line; others go up
+        if args.debug or exit_code(error) != EXIT_USAGE:
             raise
         raise fail(error) from error

@@ -10,7 +10,7 @@ import sys
 from collections.abc import Sequence
 
 import configs
-from pipeline.cli import EXIT_DATA, EXIT_INTERRUPTED, add_common_options, fail
+from pipeline.cli import EXIT_DATA, EXIT_INTERRUPTED, add_common_options, fail, load_config_or_exit
 
 
 def main(argv: Sequence[str] | None = None, prog: str | None = None) -> None:
@@ -37,22 +37,17 @@ def main(argv: Sequence[str] | None = None, prog: str | None = None) -> None:
     if args.max_batches is not None and args.max_batches < 1:
         parser.error(f"--max-batches must be >= 1, got {args.max_batches}")
 
-    from pipeline.generation import (
-        ConfigError,
-        JobInterrupted,
-        ResumeRefused,
-        closing_summary,
-        load_config,
-        run_job,
-        to_yaml,
-    )
+    from pipeline.generation import load_config, to_yaml
+
+    job = load_config_or_exit(lambda: load_config(args.config, args.overrides, scale=args.scale), args.debug)
+    if args.print_config:
+        print(to_yaml(job), end="")
+        return
+
+    from pipeline.generation import JobInterrupted, ResumeRefused, closing_summary, run_job
     from pipeline.storage import DatasetError
 
     try:
-        job = load_config(args.config, args.overrides, scale=args.scale)
-        if args.print_config:
-            print(to_yaml(job), end="")
-            return
         summary = run_job(
             job,
             max_batches=args.max_batches,
@@ -67,7 +62,7 @@ def main(argv: Sequence[str] | None = None, prog: str | None = None) -> None:
             file=sys.stderr,
         )
         raise SystemExit(EXIT_INTERRUPTED) from None
-    except (ConfigError, ResumeRefused, DatasetError) as error:
+    except (ResumeRefused, DatasetError) as error:
         if args.debug:
             raise
         raise fail(error) from error

@@ -10,7 +10,6 @@ from pathlib import Path
 from omegaconf import MISSING, OmegaConf
 
 import configs
-from agents import Architecture, NetworkConfig
 from pipeline.generation import (
     TRACKING_MODES,
     ConfigError,
@@ -25,6 +24,12 @@ RUN_CONFIG_FILE = "config.yaml"
 
 DEFAULT_RUN_ROOT = "outputs/bc"
 """Folder of the default run directory, `outputs/bc/<dataset folder name>-<architecture>`."""
+
+LEVEL_SETS = ("train", "validation", "unseen", "hand")
+"""Level sets `kforge evaluate` plays (pipeline/learning/evaluation.py)."""
+
+ARCHITECTURES = ("mlp", "transformer")
+"""Values of `model.architecture` (agents.Architecture's), named here so that checking a config imports no JAX."""
 
 DEFAULT_BATCH_SIZE = 16
 """[trajectories] `train.batch_size` when it is null and the dataset's training trajectories fill it."""
@@ -124,17 +129,24 @@ def load_bc_config(dataset: str | None, overrides: list[str] = (), path: str | P
     return bc
 
 
-def network_config(config: BCConfig) -> NetworkConfig:
-    """The network of the `model` section."""
+def run_config_file(run_dir: str | Path) -> Path:
+    """The config file of a BC run directory; `FileNotFoundError` naming the directory when it holds none."""
+    path = Path(run_dir) / RUN_CONFIG_FILE
+    if not path.is_file():
+        raise FileNotFoundError(
+            f"{run_dir}: not a BC run directory (no {RUN_CONFIG_FILE}); train one with kforge bc train"
+        )
+    return path
+
+
+def network_config(config: BCConfig):
+    """The network (`agents.NetworkConfig`) of the `model` section, checked by `check_bc_config`."""
+    from agents import Architecture, NetworkConfig
+
     model = config.model
     try:
-        architecture = Architecture(model.architecture)
-    except ValueError:
-        names = ", ".join(a.value for a in Architecture)
-        raise ConfigError(f"model.architecture must be one of {names}, got {model.architecture!r}") from None
-    try:
         return NetworkConfig(
-            architecture=architecture,
+            architecture=Architecture(model.architecture),
             hidden_size=model.hidden_size,
             num_hidden_layers=model.num_hidden_layers,
             embed_size=model.embed_size,
@@ -146,8 +158,16 @@ def network_config(config: BCConfig) -> NetworkConfig:
 
 
 def check_bc_config(config: BCConfig) -> None:
-    """Errors naming the key for values the schema's types cannot rule out."""
-    network_config(config)
+    """Errors naming the key for values the schema's types cannot rule out (the network's sizes as
+    `agents.NetworkConfig` checks them)."""
+    model = config.model
+    if model.architecture not in ARCHITECTURES:
+        raise ConfigError(f"model.architecture must be one of {', '.join(ARCHITECTURES)}, got {model.architecture!r}")
+    for name in ("hidden_size", "num_hidden_layers", "embed_size", "num_heads", "num_layers"):
+        if getattr(model, name) < 1:
+            raise ConfigError(f"model.{name} must be >= 1, got {getattr(model, name)}")
+    if model.embed_size % model.num_heads:
+        raise ConfigError(f"model.num_heads ({model.num_heads}) must divide model.embed_size ({model.embed_size})")
     if config.train.batch_size is not None and config.train.batch_size < 1:
         raise ConfigError(f"train.batch_size must be >= 1 or null, got {config.train.batch_size}")
     positive = (

@@ -25,7 +25,7 @@ import numpy as np
 from omegaconf import OmegaConf
 
 from agents import NetworkConfig, make_bc_network, network_actor, run_episode
-from engine import DEFAULT_PHYSICS_SCHEME, PHYSICS_SCHEMES, PhysicsScheme, physics_scheme
+from engine import PHYSICS_SCHEMES, PhysicsScheme, physics_scheme
 from env import (
     ActionType,
     EnvParams,
@@ -41,17 +41,15 @@ from env import (
     under_scheme,
 )
 from pipeline.generation import JobConfig, environment, merge_layers, sample_batch, to_schema_object
+from pipeline.generation.config import JOB_PHYSICS_SCHEME
 from pipeline.learning.checkpoints import checkpoint_steps, restore_checkpoint
-from pipeline.learning.config import RUN_CONFIG_FILE, BCConfig, network_config
+from pipeline.learning.config import LEVEL_SETS, BCConfig, network_config, run_config_file
 from pipeline.learning.data import kept_levels
 from pipeline.learning.train import LEVELS_FILE, Learner
 from pipeline.reading import TrajectoryDatasetManager
 from pipeline.storage import CONFIG_FILE, DatasetError, iter_records, open_dataset
 
 ACTION_TYPE = ActionType.MULTI_DISCRETE
-
-LEVEL_SETS = ("train", "validation", "unseen", "hand")
-"""Level sets `evaluate` plays (see the module docstring)."""
 
 STORED_STARTS_PER_TRAJECTORY = 4
 """Mid-trajectory start states drawn from each stored expert trajectory (states with timestep > 0)."""
@@ -84,12 +82,8 @@ class TrainedPolicy:
 
 def load_policy(run_dir: str | Path, step: int | None = None) -> TrainedPolicy:
     """The policy of a BC run directory at its latest checkpoint (or at `step`)."""
-    run_dir = Path(run_dir)
-    config_file = run_dir / RUN_CONFIG_FILE
-    if not config_file.is_file():
-        raise FileNotFoundError(
-            f"{run_dir}: not a BC run directory (no {RUN_CONFIG_FILE}); train one with kforge bc train"
-        )
+    config_file = run_config_file(run_dir)
+    run_dir = config_file.parent
     config = to_schema_object(merge_layers(BCConfig, [(str(config_file), OmegaConf.load(config_file))]), BCConfig)
     steps = checkpoint_steps(run_dir)
     if not steps:
@@ -264,14 +258,18 @@ def unseen_starts(job: JobConfig, count: int) -> StartSet:
     return StartSet(jax.vmap(reset)(stacked), jax.vmap(action_mask)(stacked), _broadcast(env_params, count), kept_ids)
 
 
-def hand_starts(static: StaticEnvParams, scheme: PhysicsScheme = PHYSICS_SCHEMES[DEFAULT_PHYSICS_SCHEME]) -> StartSet:
-    """Start states of the bundled hand-designed Kinetix levels of the dataset's size, each with its own params under
-    the dataset's physics `scheme` (which `static` was made with)."""
+def hand_starts(
+    static: StaticEnvParams,
+    scheme: PhysicsScheme = PHYSICS_SCHEMES[JOB_PHYSICS_SCHEME],
+    max_levels: int | None = None,
+) -> StartSet:
+    """Start states of the bundled hand-designed Kinetix levels of the dataset's size (the first `max_levels` by
+    name), each with its own params under the dataset's physics `scheme` (which `static` was made with)."""
     sizes = {name: under_scheme(scheme, EnvParams(), StaticEnvParams.for_size(name))[1] for name in ("s", "m", "l")}
     size = next((name for name, sized in sizes.items() if sized == static), None)
     if size is None:
         raise DatasetError(f"the dataset's static parameters {static} are none of Kinetix's s, m and l in its scheme")
-    names = list_levels(size)
+    names = list_levels(size)[:max_levels]
     loaded = [load_level(name) for name in names]
     stacked = jax.tree.map(lambda *xs: jnp.stack(xs), *(entry.level for entry in loaded))
     own = [under_scheme(scheme, entry.params, static)[0] for entry in loaded]
@@ -300,6 +298,14 @@ def _play_all(policy, starts, static, episodes, seed, greedy) -> tuple[dict, dic
     return rates, per_start
 
 
+def play_physics(job: JobConfig | None, static: StaticEnvParams) -> tuple[str, EnvParams]:
+    """(scheme name, env params) evaluation plays the dataset's levels under: its job's `env.physics` (Kinetix's play
+    unless the job named another), Kinetix's play for data made without a job config."""
+    if job is not None:
+        return job.env.physics, environment(job)[0]
+    return JOB_PHYSICS_SCHEME, under_scheme(physics_scheme(JOB_PHYSICS_SCHEME), EnvParams(), static)[0]
+
+
 def evaluate_policy(
     policy: TrainedPolicy,
     level_sets: tuple[str, ...] = ("train", "unseen", "hand"),
@@ -319,9 +325,11 @@ def evaluate_policy(
         raise ValueError(f"episodes must be >= 1, got {episodes}")
     dataset = policy.config.dataset
     job = dataset_job(dataset)
-    env_params = EnvParams() if job is None else environment(job)[0]
+    scheme_name, env_params = play_physics(job, policy.static)
+    scheme = physics_scheme(scheme_name)
     result = {
         "policy": str(policy.run_dir),
+        "physics": scheme_name,
         "step": policy.step,
         "dataset": dataset,
         "episodes": episodes,
@@ -363,8 +371,7 @@ def evaluate_policy(
                 "per_level": {str(i): float(s) for i, s in zip(starts.level_ids, per_start["bc"], strict=True)},
             }
         else:
-            scheme = physics_scheme(DEFAULT_PHYSICS_SCHEME if job is None else job.env.physics)
-            starts = hand_starts(policy.static, scheme)
+            starts = hand_starts(policy.static, scheme, max_levels)
             from_start, per_start = _play_all(policy, starts, policy.static, episodes, seed, greedy)
             result["sets"][name] = {
                 "levels": len(starts.level_ids),

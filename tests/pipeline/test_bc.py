@@ -249,4 +249,4 @@ def test_hand_levels_are_played_under_the_datasets_physics_scheme():
     own = np.array([load_level(name).params.sim.base_friction for name in names], np.float32)
     assert np.array_equal(np.asarray(starts.params.sim.base_friction), own)
     with pytest.raises(DatasetError, match="none of Kinetix's s, m and l"):
-        hand_starts(static)  # the default scheme's size s has 4 substeps
+        hand_starts(StaticEnvParams.for_size("s"))  # the engine's own scheme's size s (4 substeps) under kinetix

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from pipeline.cli import ENV_SIZES, PHYSICS_SCHEME_NAMES, PLAY_PHYSICS_SCHEME, POLICY_NAMES
+from pipeline.cli import DATASET_METADATA, ENV_SIZES, PHYSICS_SCHEME_NAMES, PLAY_PHYSICS_SCHEME, POLICY_NAMES
 
 pytestmark = pytest.mark.smoke
 
@@ -21,6 +21,10 @@ HEAVY_MODULES = ("jax", "ray", "tensorstore", "zarr", "wandb")
 def argument_errors(tmp: Path) -> list[list[str]]:
     """Commands whose arguments alone are wrong: each must exit 2 before a heavy import."""
     missing, level = str(tmp / "missing"), str(tmp / "level.json")
+    looks_like_a_dataset = tmp / "dataset"
+    (looks_like_a_dataset / "data").mkdir(parents=True)
+    (looks_like_a_dataset / DATASET_METADATA).write_text("{}")  # passes the path check; never opened
+    dataset = str(looks_like_a_dataset)
     return [
         ["levels", "sample", "--size", "x", "--seed", "0", "--num", "1"],
         ["levels", "sample", "--size", "s", "--seed", "0", "--num", "0"],
@@ -37,9 +41,17 @@ def argument_errors(tmp: Path) -> list[list[str]]:
         ["export", "--format", "zarr2", missing, str(tmp / "out")],
         ["bc", "train", missing],
         ["bc", "train", missing, "--stop-after", "0"],
+        ["bc", "train", dataset, "train.batch_size=x"],
+        ["bc", "train", dataset, "model.architecture=cnn"],
+        ["bc", "train", dataset, "model.embed_size=30"],
+        ["evaluate", missing],
         ["evaluate", missing, "--episodes", "0"],
         ["evaluate", missing, "--max-levels", "0"],
+        ["evaluate", missing, "--on", "seen"],
         ["run", "1M/s", "--max-batches", "x"],
+        ["run", "1M/s", "--scale", "huge"],
+        ["run", "1M/s", "split.num_levelz=3"],
+        ["levels", "export", "1M/s", "0", "split.num_levelz=3"],
     ]
 
 
@@ -65,6 +77,17 @@ def test_the_names_parsed_are_the_engines_and_envs():
     assert ENV_SIZES == tuple(KINETIX_SIZES) == tuple(BUNDLED_SIZES)
     assert set(PHYSICS_SCHEME_NAMES) == set(PHYSICS_SCHEMES) and PLAY_PHYSICS_SCHEME in PHYSICS_SCHEMES
     assert POLICY_NAMES == tuple(policy.value for policy in Policy) and POLICY_NAMES[0] == Policy.NOOP.value
+
+
+def test_the_bc_names_checked_without_jax_are_the_networks_and_evaluations():
+    from agents import Architecture
+    from pipeline.learning import evaluate_policy
+    from pipeline.learning.config import ARCHITECTURES, LEVEL_SETS
+
+    assert ARCHITECTURES == tuple(architecture.value for architecture in Architecture)
+    with pytest.raises(ValueError, match="unknown level set 'seen'; expected some of train, validation, unseen, hand"):
+        evaluate_policy(None, ("seen",))
+    assert LEVEL_SETS == ("train", "validation", "unseen", "hand")
 
 
 def test_render_and_preview_play_kinetix_unless_told_otherwise():
