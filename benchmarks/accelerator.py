@@ -5,7 +5,7 @@ Measures, on the default JAX backend (a GPU or TPU when one is installed, else t
 
 - engine: physics steps/s of ours and, where the `bench` extra is installed, of Jax2D in the same run (timed calls
   alternate), at batches 4,096-65,536 for sizes s, m and l, with Jax2D's published peaks beside them; ours with the
-  solver's loops in the form `engine.set_batching` picks for the backend and, where `--engine-solver-loops` names
+  solver's loops in the form `engine.Batching`'s "auto" picks for the backend and, where `--engine-solver-loops` names
   others, in those side by side, so that one run says which form the backend should use;
 - env: env steps/s of our env (step, auto-reset, symbolic observation) at large batches;
 - PPO: training env steps/s of `agents.train_levels` at pipeline-sized level batches (configs/ppo_specialist.yaml,
@@ -219,30 +219,30 @@ def compile_engine_programs(
     programs, or the error that stopped one of them."""
     from benchmarks import jax2d_baseline
     from benchmarks.engine import compile_rollout_ours
-    from engine import current_batching, set_batching
+    from engine import Batching
 
-    batching = current_batching()
+    batching = Batching().resolved()
     forms = list(dict.fromkeys((batching.solver_loops, *plan.engine_solver_loops)))
-    compiled = {}
-    try:
-        for index, form in enumerate(forms):  # the form is read while tracing: one form's programs at a time
-            set_batching(batching.mode, batching.chunk_limit, form)
-            builders = {
-                (size, index): functools.partial(
-                    _timed, functools.partial(compile_rollout_ours, size, batch, plan.engine_steps)
-                )
-                for size in sizes
-            }
-            if index == 0 and with_jax2d:
-                builders |= {
-                    (size, len(forms)): functools.partial(
-                        jax2d_baseline.compile_rollout, size, batch, plan.engine_steps
-                    )
-                    for size in sizes
-                }
-            compiled |= compile_concurrently(builders, threads)
-    finally:
-        set_batching()
+    builders = {
+        (size, index): functools.partial(
+            _timed,
+            functools.partial(
+                compile_rollout_ours,
+                size,
+                batch,
+                plan.engine_steps,
+                batching=Batching(batching.mode, batching.chunk_limit, form),
+            ),
+        )
+        for index, form in enumerate(forms)
+        for size in sizes
+    }
+    if with_jax2d:
+        builders |= {
+            (size, len(forms)): functools.partial(jax2d_baseline.compile_rollout, size, batch, plan.engine_steps)
+            for size in sizes
+        }
+    compiled = compile_concurrently(builders, threads)
     programs: dict[str, EnginePrograms | Exception] = {}
     for size in sizes:
         results = [compiled[(size, index)] for index in range(len(forms) + with_jax2d)]

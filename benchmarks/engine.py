@@ -6,9 +6,12 @@ the speed-up; the two engines' timed calls then alternate, so both see the same 
 one JSON document instead. On a GPU it also measures large batches and prints Jax2D's published peak throughputs
 next to ours.
 
+`--physics NAME` runs ours under a named physics scheme (default "kforge"); `--vs-physics NAME` also times ours under
+another, alternating call by call with the first (and with Jax2D's if asked), with the speed-ups of both over Jax2D.
+
 `--kernels` instead counts the kernels that one physics step and one env step run in sequence, for ours (under
-the current batching, as one whole vmap with the solver's loops looped, and as a GPU or TPU runs it: one whole
-vmap with the solver's loops unrolled) and for Jax2D's physics step, at each batch, with the ratios ours / Jax2D.
+the backend's "auto" batching, as one whole vmap with the solver's loops looped, and as a GPU or TPU runs it: one
+whole vmap with the solver's loops unrolled) and for Jax2D's physics step, at each batch, with the ratios ours / Jax2D.
 On a GPU each kernel launch costs microseconds whatever the batch, so this count bounds the step rate at large
 batch. Method (`benchmarks.kernels`): compile the vmapped step with `jax.jit(...).lower(...).compile()` and count,
 in the optimized HLO, the instructions that do work (fusions, custom calls, unfused operations) in the entry
@@ -17,20 +20,23 @@ computation, with `while` bodies multiplied by XLA's `known_trip_count`.
     python benchmarks/engine.py --vs jax2d
     python benchmarks/engine.py --sizes s --batches 256 --json
     python benchmarks/engine.py --kernels --batches 1 256
+    python benchmarks/engine.py --sizes s m l --batches 256 --vs-physics kinetix --vs jax2d --json
     python benchmarks/engine.py --sizes s --batches 256 --repeats 7 --vs-sim swept_speculative_contacts=0
     python benchmarks/engine.py --sizes s m --batches 1 256 --repeats 15 --vs-substeps 2
     python benchmarks/engine.py --sizes s m l --batches 1 256 --repeats 9 --vs-substeps 1 --vs-iterations 10 \
         --vs-relax-iterations 0 --vs-sim contact_law=1 --vs-sim force_timing=1 --vs-sim speculative_distance=0 \
         --vs-sim overlap_allowance=1
 
-`--vs-sim KEY=VALUE` also times ours with those `SimParams`, compiled in as constants and called alternately with the
-defaults, and prints the ratio: what a physics option costs. `--vs-substeps N` does the same for N solver substeps
-per step (alone or with `--vs-sim`), `--vs-iterations` and `--vs-relax-iterations` for the passes per substep.
+`--vs-sim KEY=VALUE` also times ours with those `SimParams` (compiled in as constants) or `StaticSimParams` laws,
+called alternately with the defaults, and prints the ratio: what a physics option costs. `--vs-substeps N` does the
+same for N solver substeps per step (alone or with `--vs-sim`), `--vs-iterations` and `--vs-relax-iterations` for the
+passes per substep.
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import sys
@@ -45,9 +51,14 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 from benchmarks.kernels import count_kernels  # noqa: E402
 from benchmarks.machine import describe_machine  # noqa: E402
 from benchmarks.scenes import build_scene  # noqa: E402
-from benchmarks.sim_overrides import sim_override, solver_count_errors, with_solver_scheme  # noqa: E402
+from benchmarks.sim_overrides import (  # noqa: E402
+    sim_override,
+    solver_count_errors,
+    with_sim_overrides,
+    with_solver_scheme,
+)
 from benchmarks.timing import best_time, best_times_interleaved  # noqa: E402
-from engine import SimParams, current_batching, set_batching, step  # noqa: E402
+from engine import DEFAULT_PHYSICS_SCHEME, PHYSICS_SCHEMES, Batching, SimParams, physics_scheme, step  # noqa: E402
 
 DISTINCT_SCENES = 16
 """Scenes with different jitter seeds, tiled to fill a batch (building thousands on the host is slow)."""
@@ -70,14 +81,24 @@ SCHEME_FIELDS = ("substeps", "iterations", "relax_iterations")
 """Solver counts that `--vs-substeps`, `--vs-iterations`, `--vs-relax-iterations` set (SOLVER_SCHEME_FIELDS)."""
 
 
-def compile_rollout_ours(size: str, batch: int, n_steps: int, params: SimParams | None = None, scheme=None):
-    """`call()` running `n_steps` vmapped steps inside one compiled scan (motors at +1, thrusters on), with `params`
-    (default `SimParams()`) compiled in as constants, so that a switched-off option costs nothing, and the solver
-    counts of `scheme` (keys of SCHEME_FIELDS; the engine's where absent)."""
-    static = build_scene(size, 0)[1]
+def scheme_params(size: str, physics: str = DEFAULT_PHYSICS_SCHEME, overrides=(), scheme=None, batching=None):
+    """`SimParams` and `StaticSimParams` of the benchmark scene of `size` under the named physics scheme, then the
+    `sim_override` pairs `overrides`, the solver counts of `scheme` (keys of SCHEME_FIELDS) and `batching` (default:
+    the engine's "auto")."""
+    named = physics_scheme(physics)
+    static = named.static(build_scene(size, 0)[1])
+    params, static = with_sim_overrides(named.sim(SimParams()), static, overrides)
     static = with_solver_scheme(static, scheme or {})
+    return params, static if batching is None else dataclasses.replace(static, batching=batching)
+
+
+def compile_rollout_ours(
+    size: str, batch: int, n_steps: int, physics=DEFAULT_PHYSICS_SCHEME, overrides=(), scheme=None, batching=None
+):
+    """`call()` running `n_steps` vmapped steps inside one compiled scan (motors at +1, thrusters on) under
+    `scheme_params`, its `SimParams` compiled in as constants."""
+    params, static = scheme_params(size, physics, overrides, scheme, batching)
     states = _batched_states(size, batch)
-    params = SimParams() if params is None else params
     motors, thrusters = jnp.ones(static.num_joints), jnp.ones(static.num_thrusters)
     batched = jax.vmap(lambda s: step(s, params, motors, thrusters, static=static)[0])
 
@@ -88,10 +109,10 @@ def compile_rollout_ours(size: str, batch: int, n_steps: int, params: SimParams 
     return lambda: compiled(states)
 
 
-def compile_ours(size: str) -> float:
-    """Seconds to trace and compile one (unbatched) step."""
-    state, static = build_scene(size, 0)
-    params = SimParams()
+def compile_ours(size: str, physics: str = DEFAULT_PHYSICS_SCHEME, overrides=(), scheme=None) -> float:
+    """Seconds to trace and compile one (unbatched) step under `scheme_params`."""
+    state = build_scene(size, 0)[0]
+    params, static = scheme_params(size, physics, overrides, scheme)
     start = time.perf_counter()
     jax.jit(step, static_argnames="static").lower(
         state, params, jnp.ones(static.num_joints), jnp.ones(static.num_thrusters), static=static
@@ -114,27 +135,40 @@ def compile_jax2d(size: str) -> float:
 
 
 def run(
-    sizes, batches, n_steps: int, repeats: int, versus_jax2d: bool, log=print, sim_overrides=(), scheme=None
+    sizes,
+    batches,
+    n_steps: int,
+    repeats: int,
+    versus_jax2d: bool,
+    log=print,
+    sim_overrides=(),
+    scheme=None,
+    physics: str = DEFAULT_PHYSICS_SCHEME,
+    versus_physics: str | None = None,
 ) -> dict:
-    """Measure every (size, batch); `log` receives one human-readable line per figure. With `sim_overrides` and/or
-    solver counts in `scheme` (`compile_rollout_ours`), ours is also timed with those (`ours_sim`), alternating call
-    by call with the defaults."""
+    """Measure every (size, batch) of ours under the named `physics`; `log` receives one human-readable line per
+    figure. With `sim_overrides`, solver counts in `scheme` (`scheme_params`) and/or another named physics
+    `versus_physics`, ours is also timed with those (`ours_sim`), alternating call by call with the first."""
     scheme = {key: count for key, count in (scheme or {}).items() if count is not None}
+    versus_physics = physics if versus_physics is None else versus_physics
     on_gpu = jax.default_backend() == "gpu"
     sim_overrides = list(sim_overrides)
-    variant = bool(sim_overrides) or bool(scheme)
+    variant = bool(sim_overrides) or bool(scheme) or versus_physics != physics
     engines = ["ours"] + (["ours_sim"] if variant else []) + (["jax2d"] if versus_jax2d else [])
     report = {
         "machine": describe_machine(),
+        "physics": physics,
         "steps_per_timed_call": n_steps,
         "steps_per_second": {engine: {} for engine in engines},
-        "compile_seconds": {engine: {} for engine in engines if engine != "ours_sim"},
+        "compile_seconds": {engine: {} for engine in engines},
     }
-    switched = SimParams().replace(**dict(sim_overrides))
     variant_text = ",".join(
-        ([_overrides_text(sim_overrides)] if sim_overrides else []) + [f"{k}={v}" for k, v in scheme.items()]
+        ([f"physics={versus_physics}"] if versus_physics != physics else [])
+        + ([_overrides_text(sim_overrides)] if sim_overrides else [])
+        + [f"{k}={v}" for k, v in scheme.items()]
     )
     if variant:
+        report["sim_physics"] = versus_physics
         report["sim_overrides"] = dict(sim_overrides)
         report |= {key: scheme.get(key) for key in SCHEME_FIELDS}
         report["sim_vs_default"] = {}
@@ -142,17 +176,22 @@ def run(
         from benchmarks import jax2d_baseline
 
         report["speedup_vs_jax2d"] = {}
+        if variant:
+            report["sim_speedup_vs_jax2d"] = {}
     for size in sizes:
-        report["compile_seconds"]["ours"][size] = compile_ours(size)
+        report["compile_seconds"]["ours"][size] = compile_ours(size, physics)
         line = f"size={size} compile one step: ours {report['compile_seconds']['ours'][size]:.1f} s"
+        if variant:
+            report["compile_seconds"]["ours_sim"][size] = compile_ours(size, versus_physics, sim_overrides, scheme)
+            line += f", with {variant_text} {report['compile_seconds']['ours_sim'][size]:.1f} s"
         if versus_jax2d:
             report["compile_seconds"]["jax2d"][size] = compile_jax2d(size)
             line += f", jax2d {report['compile_seconds']['jax2d'][size]:.1f} s"
         log(line)
         for batch in list(batches) + (list(GPU_BATCHES) if on_gpu else []):
-            calls = [compile_rollout_ours(size, batch, n_steps)]
+            calls = [compile_rollout_ours(size, batch, n_steps, physics)]
             if variant:
-                calls.append(compile_rollout_ours(size, batch, n_steps, switched, scheme))
+                calls.append(compile_rollout_ours(size, batch, n_steps, versus_physics, sim_overrides, scheme))
             if versus_jax2d:
                 calls.append(jax2d_baseline.compile_rollout(size, batch, n_steps)[0])
             seconds = best_times_interleaved(calls, repeats) if len(calls) > 1 else [best_time(calls[0], repeats)[0]]
@@ -167,6 +206,10 @@ def run(
             if versus_jax2d:
                 report["speedup_vs_jax2d"].setdefault(size, {})[str(batch)] = rates["ours"] / rates["jax2d"]
                 line += f"  jax2d={rates['jax2d']:>12,.0f} steps/s  speedup={rates['ours'] / rates['jax2d']:6.2f}x"
+                if variant:
+                    speedup = rates["ours_sim"] / rates["jax2d"]
+                    report["sim_speedup_vs_jax2d"].setdefault(size, {})[str(batch)] = speedup
+                    line += f" (with {variant_text} {speedup:6.2f}x)"
             if on_gpu and batch in GPU_BATCHES:
                 line += f"  (jax2d published peak {JAX2D_PUBLISHED_PEAK_STEPS_PER_SECOND[size]:,.0f})"
             log(line)
@@ -177,26 +220,33 @@ def _overrides_text(overrides) -> str:
     return ",".join(f"{key}={value:g}" for key, value in overrides)
 
 
-def physics_step_kernels(size: str, batch: int) -> int:
-    """Kernels one vmapped physics step of ours runs at `batch` scenes, under the current batching."""
-    static = build_scene(size, 0)[1]
-    params = SimParams()
+def physics_step_kernels(
+    size: str, batch: int, physics: str = DEFAULT_PHYSICS_SCHEME, batching: Batching | None = None
+) -> int:
+    """Kernels one vmapped physics step of ours runs at `batch` scenes under the named physics scheme and `batching`
+    (default: the engine's "auto")."""
+    params, static = scheme_params(size, physics, batching=batching)
     motors, thrusters = jnp.ones(static.num_joints), jnp.ones(static.num_thrusters)
     one_step = jax.vmap(lambda s: step(s, params, motors, thrusters, static=static)[0])
     return _known(count_kernels(one_step, _batched_states(size, batch)))
 
 
-def env_step_kernels(size: str, batch: int) -> int:
-    """Kernels one vmapped env step of ours (step, auto-reset and observation) runs at `batch` levels."""
+def env_step_kernels(
+    size: str, batch: int, physics: str = DEFAULT_PHYSICS_SCHEME, batching: Batching | None = None
+) -> int:
+    """Kernels one vmapped env step of ours (step, auto-reset and observation) runs at `batch` levels under the named
+    physics scheme and `batching` (default: the engine's "auto")."""
     from benchmarks.env import _env_step
-    from env import EnvParams, StaticEnvParams, reset
+    from env import EnvParams, StaticEnvParams, reset, under_scheme
     from env.actions import MULTI_DISCRETE_SIZES
     from env.sampler import sample_levels
 
-    static = StaticEnvParams.for_size(size)
+    params, static = under_scheme(physics_scheme(physics), EnvParams(), StaticEnvParams.for_size(size))
+    if batching is not None:
+        static = dataclasses.replace(static, sim=dataclasses.replace(static.sim, batching=batching))
     levels = jax.jit(lambda keys: sample_levels(keys, static))(jax.random.split(jax.random.key(1), batch))
     actions = jnp.zeros((batch, len(MULTI_DISCRETE_SIZES)), jnp.int32)
-    return _known(count_kernels(jax.vmap(_env_step(static, EnvParams())), jax.vmap(reset)(levels), actions, levels))
+    return _known(count_kernels(jax.vmap(_env_step(static, params)), jax.vmap(reset)(levels), actions, levels))
 
 
 def jax2d_physics_step_kernels(size: str, batch: int) -> int:
@@ -219,32 +269,32 @@ def _known(count) -> int:
     return count.kernels
 
 
-ACCELERATOR_BATCHING = ("whole", "unrolled")
-"""The batching mode and form of the solver's loops that `engine.set_batching`'s "auto" picks on a GPU or TPU."""
+ACCELERATOR_BATCHING = Batching("whole", solver_loops="unrolled")
+"""The batching mode and form of the solver's loops that `engine.Batching`'s "auto" picks on a GPU or TPU."""
 
 
-def count_all_kernels(sizes, batches, log=print) -> dict:
-    """Kernel counts per size and batch: ours under the current batching, as one whole vmap with the solver's loops
-    looped, and as an accelerator runs it (`ACCELERATOR_BATCHING`); our env step (current; accelerator's); Jax2D's
-    physics step; and the ratios to Jax2D."""
-    batching = current_batching()
+def count_all_kernels(sizes, batches, log=print, physics: str = DEFAULT_PHYSICS_SCHEME) -> dict:
+    """Kernel counts per size and batch under the named physics scheme: ours under the backend's "auto" batching, as
+    one whole vmap with the solver's loops looped, and as an accelerator runs it (`ACCELERATOR_BATCHING`); our env
+    step (auto; accelerator's); Jax2D's physics step; and the ratios to Jax2D."""
+    batching = Batching().resolved()
     report = {
         "machine": describe_machine(),
+        "physics": physics,
         "batching": batching.mode,
         "chunk_limit": batching.chunk_limit,
         "solver_loops": batching.solver_loops,
     }
+    whole_looped = Batching("whole", batching.chunk_limit, "looped")
     for size in sizes:
         for batch in batches:
-            row = {"physics_step": physics_step_kernels(size, batch), "env_step": env_step_kernels(size, batch)}
-            try:
-                set_batching("whole", batching.chunk_limit, "looped")
-                row["physics_step_whole_looped"] = physics_step_kernels(size, batch)
-                set_batching(ACCELERATOR_BATCHING[0], batching.chunk_limit, ACCELERATOR_BATCHING[1])
-                row["physics_step_accelerator"] = physics_step_kernels(size, batch)
-                row["env_step_accelerator"] = env_step_kernels(size, batch)
-            finally:
-                set_batching(batching.mode, batching.chunk_limit, batching.solver_loops)
+            row = {
+                "physics_step": physics_step_kernels(size, batch, physics),
+                "env_step": env_step_kernels(size, batch, physics),
+                "physics_step_whole_looped": physics_step_kernels(size, batch, physics, whole_looped),
+                "physics_step_accelerator": physics_step_kernels(size, batch, physics, ACCELERATOR_BATCHING),
+                "env_step_accelerator": env_step_kernels(size, batch, physics, ACCELERATOR_BATCHING),
+            }
             jax2d = row["jax2d_physics_step"] = jax2d_physics_step_kernels(size, batch)
             for form in ("physics_step", "physics_step_whole_looped", "physics_step_accelerator"):
                 row[f"{form}_ratio_vs_jax2d"] = row[form] / jax2d
@@ -271,12 +321,20 @@ def main(argv=None) -> None:
     parser.add_argument("--json", action="store_true", help="print one JSON document with every figure")
     parser.add_argument("--kernels", action="store_true", help="count kernels per step instead of timing steps")
     parser.add_argument(
+        "--physics", choices=list(PHYSICS_SCHEMES), default=DEFAULT_PHYSICS_SCHEME, help="ours' physics scheme"
+    )
+    parser.add_argument(
+        "--vs-physics",
+        choices=list(PHYSICS_SCHEMES),
+        help="also time ours under this physics scheme (with any --vs-sim), alternating with --physics",
+    )
+    parser.add_argument(
         "--vs-sim",
         type=sim_override,
         action="append",
         default=[],
         metavar="KEY=VALUE",
-        help="also time ours with these SimParams overrides, alternating with the defaults (repeatable)",
+        help="also time ours with these SimParams or law overrides, alternating with the defaults (repeatable)",
     )
     parser.add_argument(
         "--vs-substeps",
@@ -298,11 +356,22 @@ def main(argv=None) -> None:
         (lambda line: print(line, file=sys.stderr, flush=True)) if args.json else (lambda line: print(line, flush=True))
     )
     if args.kernels:
-        report = count_all_kernels(args.sizes, args.batches, log)
+        report = count_all_kernels(args.sizes, args.batches, log, args.physics)
         if args.json:
             print(json.dumps(report, indent=2))
         return
-    report = run(args.sizes, args.batches, args.steps, args.repeats, args.vs == "jax2d", log, args.vs_sim, scheme)
+    report = run(
+        args.sizes,
+        args.batches,
+        args.steps,
+        args.repeats,
+        args.vs == "jax2d",
+        log,
+        args.vs_sim,
+        scheme,
+        args.physics,
+        args.vs_physics,
+    )
     if args.json:
         print(json.dumps(report, indent=2))
 

@@ -43,7 +43,13 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from benchmarks.env import DEFAULT_KINETIX_VENV, kinetix_python  # noqa: E402
 from benchmarks.kinetix_variants import parse_variant, variant_label  # noqa: E402
 from benchmarks.machine import describe_machine  # noqa: E402
-from benchmarks.sim_overrides import add_physics_option, add_solver_scheme_options, sim_override, solver_scheme  # noqa: E402
+from benchmarks.sim_overrides import (  # noqa: E402
+    add_physics_option,
+    add_solver_scheme_options,
+    sim_override,
+    solver_scheme,
+    split_sim_overrides,
+)
 from benchmarks.sim_overrides import with_solver_scheme as with_sim_scheme  # noqa: E402
 from engine import DEFAULT_PHYSICS_SCHEME, physics_scheme  # noqa: E402
 from env import (  # noqa: E402
@@ -95,12 +101,14 @@ def play_ours(
     """Per level name: the no-op outcome and the random policy's outcome counts, in kforge under the named `physics`
     scheme, then with the solver scheme's counts in `scheme`, if given (`with_solver_scheme`), and `sim_overrides`."""
     named = physics_scheme(physics)
+    constants, laws = split_sim_overrides(sim_overrides)
     params = EnvParams(dense_reward_scale=0.0)
-    params = params.replace(sim=dataclasses.replace(named.sim(params.sim), **sim_overrides))
+    params = params.replace(sim=dataclasses.replace(named.sim(params.sim), **constants))
     groups: dict = {}
     for name, path in paths.items():
         loaded = load_level(path)
         _, static = under_scheme(named, EnvParams(), loaded.static)
+        static = dataclasses.replace(static, sim=dataclasses.replace(static.sim, **laws))
         groups.setdefault(with_solver_scheme(static, scheme or {}), []).append((name, loaded))
     report = {}
     for static, members in groups.items():
@@ -296,7 +304,9 @@ def main(argv=None) -> None:
     parser.add_argument("--episodes", type=int, default=280, help="random-policy episodes per level")
     parser.add_argument("--seed", type=int, default=0, help="seed of Kinetix's level sampler and of the actions")
     add_physics_option(parser)
-    parser.add_argument("--sim", type=sim_override, action="append", default=[], help="SimParams KEY=VALUE of ours")
+    parser.add_argument(
+        "--sim", type=sim_override, action="append", default=[], help="SimParams or law KEY=VALUE of ours"
+    )
     add_solver_scheme_options(parser)
     parser.add_argument(
         "--kinetix-variant",

@@ -43,6 +43,7 @@ from benchmarks.sim_overrides import (
     add_solver_scheme_options,
     sim_override,
     solver_scheme,
+    with_sim_overrides,
     with_solver_scheme,
 )  # noqa: E402
 from engine import DEFAULT_PHYSICS_SCHEME, physics_scheme  # noqa: E402
@@ -95,8 +96,9 @@ def trace_ours(
     the solver scheme's settings in `scheme` if given (`benchmarks.sim_overrides.with_solver_scheme`) and
     `sim_overrides`: TRACED fields, reward sign and done per env step."""
     params, static = under_scheme(physics_scheme(physics), EnvParams(dense_reward_scale=0.0), loaded.static)
-    params = params.replace(sim=dataclasses.replace(params.sim, **sim_overrides))
-    static = dataclasses.replace(static, sim=with_solver_scheme(static.sim, scheme or {}))
+    sim, static_sim = with_sim_overrides(params.sim, static.sim, sim_overrides)
+    params = params.replace(sim=sim)
+    static = dataclasses.replace(static, sim=with_solver_scheme(static_sim, scheme or {}))
 
     def episode(episode_actions):
         def body(state, action):
@@ -198,7 +200,9 @@ def main(argv=None) -> None:
     parser.add_argument("--noop", action="store_true", help="play the no-op policy (one episode) instead")
     parser.add_argument("--seed", type=int, default=0, help="seed of the random actions")
     add_physics_option(parser)
-    parser.add_argument("--sim", type=sim_override, action="append", default=[], help="SimParams KEY=VALUE of ours")
+    parser.add_argument(
+        "--sim", type=sim_override, action="append", default=[], help="SimParams or law KEY=VALUE of ours"
+    )
     add_solver_scheme_options(parser)
     parser.add_argument("--tolerance", type=float, default=0.01, help="[m] positions closer than this agree")
     parser.add_argument("--kinetix-venv", type=Path, default=DEFAULT_KINETIX_VENV)

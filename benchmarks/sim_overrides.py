@@ -1,5 +1,5 @@
-"""Options that switch our engine for a measurement (fidelity, engine speed): `KEY=VALUE` for one `SimParams` field,
-and the solver scheme's settings in `StaticSimParams`."""
+"""Options that switch our engine for a measurement (fidelity, engine speed): `KEY=VALUE` for one `SimParams` field
+or one law of `StaticSimParams`, and the solver scheme's settings in `StaticSimParams`."""
 
 from __future__ import annotations
 
@@ -7,6 +7,11 @@ import argparse
 import dataclasses
 
 from engine import DEFAULT_PHYSICS_SCHEME, PHYSICS_SCHEMES, SimParams, StaticSimParams
+from engine.params import LAW_FIELDS
+
+STATIC_SWITCHES = (*LAW_FIELDS, "swept_speculative_contacts")
+"""`StaticSimParams` fields that `KEY=VALUE` also sets: the laws (VALUE an enum's number) and the swept contacts switch
+(VALUE 0 or 1)."""
 
 SOLVER_SCHEME_FIELDS = {
     "substeps": "num_substeps",
@@ -20,18 +25,47 @@ SOLVER_COUNT_LEAST = {"substeps": 1, "iterations": 1, "relax_iterations": 0}
 """The least value of each solver count option."""
 
 
-def sim_override(text: str) -> tuple[str, float]:
-    """Parse `KEY=VALUE` for argparse: KEY a `SimParams` field, VALUE a number (booleans and enums as 0, 1, ...)."""
+def sim_override(text: str) -> tuple[str, float | int | bool]:
+    """Parse `KEY=VALUE` for argparse: KEY a `SimParams` field (VALUE a number) or one of `STATIC_SWITCHES` (VALUE
+    the law's number, or 0/1)."""
     key, _, value = text.partition("=")
     if not value:
         raise argparse.ArgumentTypeError(f"expected KEY=VALUE, got {text!r}")
     fields = sorted(SimParams.__dataclass_fields__)
-    if key not in fields:
-        raise argparse.ArgumentTypeError(f"{key!r} is not a SimParams field (fields: {', '.join(fields)})")
+    if key not in fields and key not in STATIC_SWITCHES:
+        known = ", ".join(fields + sorted(STATIC_SWITCHES))
+        raise argparse.ArgumentTypeError(f"{key!r} is neither a SimParams field nor a law (known: {known})")
     try:
-        return key, float(value)
+        number = float(value)
     except ValueError:
         raise argparse.ArgumentTypeError(f"{key}={value!r}: the value is not a number") from None
+    if key in fields:
+        return key, number
+    if key in LAW_FIELDS:
+        try:
+            return key, LAW_FIELDS[key](number)
+        except ValueError as error:
+            raise argparse.ArgumentTypeError(f"{key}={value!r}: {error}") from None
+    if number not in (0.0, 1.0):
+        raise argparse.ArgumentTypeError(f"{key}={value!r}: the value is not 0 or 1")
+    return key, bool(number)
+
+
+def split_sim_overrides(overrides) -> tuple[dict, dict]:
+    """The `(KEY, VALUE)` pairs of `sim_override` (or a dict of them) as `SimParams` fields and `StaticSimParams`
+    laws."""
+    overrides = dict(overrides)
+    constants = {key: value for key, value in overrides.items() if key not in STATIC_SWITCHES}
+    return constants, {key: value for key, value in overrides.items() if key in STATIC_SWITCHES}
+
+
+def with_sim_overrides(params: SimParams, static: StaticSimParams, overrides) -> tuple[SimParams, StaticSimParams]:
+    """`params` and `static` with the `(KEY, VALUE)` pairs of `sim_override`, each in the one it belongs to."""
+    constants, laws = split_sim_overrides(overrides)
+    return (
+        params.replace(**constants) if constants else params,
+        dataclasses.replace(static, **laws) if laws else static,
+    )
 
 
 def solver_count_errors(scheme: dict, option_prefix: str = "--") -> list[str]:

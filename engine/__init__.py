@@ -1,8 +1,8 @@
 """Rigid-body 2D physics in JAX: fixed-shape scenes of convex polygons and circles, joints and thrusters.
 
 Public surface: state and parameter types, the scene builder, `step`, how batched steps and the solver's loops run
-per backend (`set_batching`), named physics schemes (`physics_scheme`), and bitwise-repeatable GPU execution
-(`use_deterministic_ops`).
+(`Batching`, a static option of each step: `StaticSimParams.batching`), named physics schemes (`physics_scheme`),
+and bitwise-repeatable GPU execution (`use_deterministic_ops`).
 """
 
 from engine.batch_last import (
@@ -10,8 +10,6 @@ from engine.batch_last import (
     SOLVER_LOOP_FORMS,
     SOLVER_LOOP_MODES,
     Batching,
-    current_batching,
-    set_batching,
 )
 from engine.collision import manifolds, world_geometry
 from engine.collision_filter import joint_collision_matrix, modes_collide
@@ -77,7 +75,6 @@ __all__ = [
     "Thrusters",
     "circle_mass_properties",
     "cross2",
-    "current_batching",
     "empty_state",
     "joint_collision_matrix",
     "manifolds",
@@ -87,7 +84,6 @@ __all__ = [
     "polygon_mass_properties",
     "rotate",
     "rotate_host",
-    "set_batching",
     "step",
     "use_deterministic_ops",
     "with_deterministic_ops",

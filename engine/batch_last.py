@@ -11,8 +11,9 @@ Both pay only on CPU. On a GPU or TPU one vmapped program over the whole batch i
 step's kernels once per chunk in sequence, and the batch-first layout is the one those backends tile well. The
 same holds for the solver's loops (its substeps and Gauss-Seidel sweeps, `engine.sweep.SWEEPS`): looped on CPU,
 where a loop body compiled once runs fastest, unrolled elsewhere, where each kernel launch costs microseconds
-whatever the batch and the unrolled step runs about half the kernels. `set_batching` chooses per process; the
-default "auto" picks by `jax.default_backend()` when a step is traced.
+whatever the batch and the unrolled step runs about half the kernels. `Batching`, a static option of each step
+(`engine.StaticSimParams.batching`), chooses; its default "auto" picks by `jax.default_backend()` when a step is
+traced.
 """
 
 from __future__ import annotations
@@ -48,48 +49,36 @@ every fused consumer: 0.67x the steps/s of s at 256 scenes, 0.57x at 1, and comp
 
 @dataclasses.dataclass(frozen=True)
 class Batching:
-    """How a vmapped step batches: a resolved mode ("chunked" or "whole"), the chunk limit in scenes, and the
-    resolved form of the solver's loops (one of `SOLVER_LOOP_FORMS`)."""
+    """How a vmapped step batches (one of `BATCHING_MODES`), the chunk limit in scenes, and the form of the solver's
+    loops (one of `SOLVER_LOOP_MODES`): a static option of a step (`engine.StaticSimParams.batching`), so each
+    compiled program holds one form. Every choice gives the same states to rounding."""
 
-    mode: str
+    mode: str = "auto"
     chunk_limit: int = BATCH_CHUNK
-    solver_loops: str = "looped"
+    solver_loops: str = "auto"
+
+    def __post_init__(self):
+        if self.mode not in BATCHING_MODES:
+            raise ValueError(f"batching mode {self.mode!r} is not one of {BATCHING_MODES}")
+        if isinstance(self.chunk_limit, bool) or not isinstance(self.chunk_limit, int) or self.chunk_limit < 1:
+            raise ValueError(f"batching chunk_limit must be a positive number of scenes, got {self.chunk_limit!r}")
+        if self.solver_loops not in SOLVER_LOOP_MODES:
+            raise ValueError(f"solver_loops mode {self.solver_loops!r} is not one of {SOLVER_LOOP_MODES}")
+
+    def resolved(self, backend: str | None = None) -> Batching:
+        """This batching with "auto" resolved for `backend` (default: `jax.default_backend()`, read when a step is
+        traced)."""
+        backend = jax.default_backend() if backend is None else backend
+        mode = ("chunked" if backend in CHUNKED_BACKENDS else "whole") if self.mode == "auto" else self.mode
+        loops = self.solver_loops
+        if loops == "auto":
+            loops = "looped" if backend in LOOPED_SOLVER_BACKENDS else "unrolled"
+        return Batching(mode, self.chunk_limit, loops)
 
     @property
     def chunked(self) -> bool:
+        """Chunked with the batch-last layout (a resolved batching)."""
         return self.mode == "chunked"
-
-
-_requested = {"mode": "auto", "chunk_limit": BATCH_CHUNK, "solver_loops": "auto"}
-
-
-def set_batching(mode: str = "auto", chunk_limit: int = BATCH_CHUNK, solver_loops: str = "auto") -> None:
-    """Choose how vmapped steps batch (see `BATCHING_MODES`) and the form of the solver's loops (see
-    `SOLVER_LOOP_MODES`); all choices give the same states to rounding.
-
-    A change clears JAX's trace and compilation caches, so that programs traced before (an env step, a training
-    loop) are traced again with the new batching on their next call.
-    """
-    if mode not in BATCHING_MODES:
-        raise ValueError(f"batching mode {mode!r} is not one of {BATCHING_MODES}")
-    if int(chunk_limit) < 1:
-        raise ValueError(f"batching chunk_limit must be a positive number of scenes, got {chunk_limit}")
-    if solver_loops not in SOLVER_LOOP_MODES:
-        raise ValueError(f"solver_loops mode {solver_loops!r} is not one of {SOLVER_LOOP_MODES}")
-    before = current_batching()
-    _requested.update(mode=mode, chunk_limit=int(chunk_limit), solver_loops=solver_loops)
-    if current_batching() != before:
-        jax.clear_caches()
-
-
-def current_batching() -> Batching:
-    """The batching set by `set_batching`, with "auto" resolved for the default backend."""
-    mode, loops = _requested["mode"], _requested["solver_loops"]
-    if mode == "auto":
-        mode = "chunked" if jax.default_backend() in CHUNKED_BACKENDS else "whole"
-    if loops == "auto":
-        loops = "looped" if jax.default_backend() in LOOPED_SOLVER_BACKENDS else "unrolled"
-    return Batching(mode, _requested["chunk_limit"], loops)
 
 
 def vmap_batch_last(function):

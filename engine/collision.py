@@ -98,15 +98,17 @@ def _clamp_to_face(point, r1, tangent, length):
     return point + (clamped - along) * tangent, clamped != along
 
 
-def polygon_polygon(a: WorldGeometry, b: WorldGeometry, margin, kinetix_points=False, jax2d_geometry=False):
+def polygon_polygon(
+    a: WorldGeometry, b: WorldGeometry, margin, kinetix_points: bool = False, jax2d_geometry: bool = False
+):
     """Manifold of two convex polygons: separating axes, then clipping of the incident edge to the reference face.
 
-    With `kinetix_points` (may be traced) the points lie on the incident polygon and every overlapping point takes the
-    pair's deepest separation, as in Jax2D; with `jax2d_geometry` (may be traced) the points are Jax2D's: the incident
+    With `kinetix_points` (static) the points lie on the incident polygon and every overlapping point takes the
+    pair's deepest separation, as in Jax2D; with `jax2d_geometry` (static) the points are Jax2D's: the incident
     polygon's two deepest vertices moved along the reference face into its extent (`engine.CollisionRules.JAX2D`)."""
     separation_a, edge_a = _best_edge(a.normals, a.vertices, a.edge_valid, b.vertices)
     separation_b, edge_b = _best_edge(b.normals, b.vertices, b.edge_valid, a.vertices)
-    tolerance = jnp.where(jax2d_geometry, KINETIX_REFERENCE_FACE_TOLERANCE, REFERENCE_FACE_TOLERANCE)
+    tolerance = KINETIX_REFERENCE_FACE_TOLERANCE if jax2d_geometry else REFERENCE_FACE_TOLERANCE
     flip = separation_b > separation_a + tolerance
     ref = jax.tree_util.tree_map(lambda x, y: jnp.where(flip, y, x), a, b)
     inc = jax.tree_util.tree_map(lambda x, y: jnp.where(flip, x, y), a, b)
@@ -116,42 +118,56 @@ def polygon_polygon(a: WorldGeometry, b: WorldGeometry, margin, kinetix_points=F
     length = norm2(r2 - r1)
     tangent = (r2 - r1) / jnp.maximum(length, DIRECTION_EPSILON)
 
-    # Box2D's: the incident edge most anti-parallel to the reference normal, clipped to the reference face's sides.
-    inc_edge = jnp.argmin(jnp.where(inc.edge_valid, dot2(inc.normals, normal), jnp.inf))
-    inc_next = inc.next_vertex[inc_edge]
-    p1, p2, id1, id2, ok1 = _clip(
-        inc.vertices[inc_edge],
-        inc.vertices[inc_next],
-        inc_edge,
-        inc_next,
-        -tangent,
-        -dot2(tangent, r1),
-        MAX_POLYGON_VERTICES,
-    )
-    p1, p2, id1, id2, ok2 = _clip(p1, p2, id1, id2, tangent, dot2(tangent, r2), MAX_POLYGON_VERTICES + 1)
+    if jax2d_geometry:
+        # Jax2D's: the two deepest vertices, each moved along the face into its extent.
+        deepest, next_deepest = _deepest_two(inc.vertices, inc.edge_valid, normal)
+        k1, moved1 = _clamp_to_face(inc.vertices[deepest], r1, tangent, length)
+        k2, moved2 = _clamp_to_face(inc.vertices[next_deepest], r1, tangent, length)
+        points = jnp.stack([k1, k2])
+        clipped = True
+        incident_feature = deepest
+        point_ids = jnp.stack(
+            [
+                jnp.where(moved1, MAX_POLYGON_VERTICES, deepest),
+                jnp.where(moved2, MAX_POLYGON_VERTICES + 1, next_deepest),
+            ]
+        )
+    else:
+        # Box2D's: the incident edge most anti-parallel to the reference normal, clipped to the reference face's sides.
+        inc_edge = jnp.argmin(jnp.where(inc.edge_valid, dot2(inc.normals, normal), jnp.inf))
+        inc_next = inc.next_vertex[inc_edge]
+        p1, p2, id1, id2, ok1 = _clip(
+            inc.vertices[inc_edge],
+            inc.vertices[inc_next],
+            inc_edge,
+            inc_next,
+            -tangent,
+            -dot2(tangent, r1),
+            MAX_POLYGON_VERTICES,
+        )
+        p1, p2, id1, id2, ok2 = _clip(p1, p2, id1, id2, tangent, dot2(tangent, r2), MAX_POLYGON_VERTICES + 1)
+        points = jnp.stack([p1, p2])
+        clipped = ok1 & ok2
+        incident_feature = inc_edge
+        point_ids = jnp.stack([id1, id2])
 
-    # Jax2D's: the two deepest vertices, each moved along the face into its extent.
-    deepest, next_deepest = _deepest_two(inc.vertices, inc.edge_valid, normal)
-    k1, moved1 = _clamp_to_face(inc.vertices[deepest], r1, tangent, length)
-    k2, moved2 = _clamp_to_face(inc.vertices[next_deepest], r1, tangent, length)
-    deepest_ids = jnp.stack(
-        [jnp.where(moved1, MAX_POLYGON_VERTICES, deepest), jnp.where(moved2, MAX_POLYGON_VERTICES + 1, next_deepest)]
-    )
-
-    points = jnp.where(jax2d_geometry, jnp.stack([k1, k2]), jnp.stack([p1, p2]))
     separation = dot2(points, normal) - dot2(normal, r1)
     pair_separation = jnp.maximum(separation_a, separation_b)
-    valid = (jax2d_geometry | (ok1 & ok2)) & (separation < margin) & (pair_separation < margin)
-    placed = jnp.where(kinetix_points, points, points - 0.5 * separation[:, None] * normal)
-    separation = jnp.where(kinetix_points & (separation <= 0), pair_separation, separation)
-    incident_feature = jnp.where(jax2d_geometry, deepest, inc_edge)
+    valid = clipped & (separation < margin) & (pair_separation < margin)
+    if kinetix_points:
+        placed = points
+        separation = jnp.where(separation <= 0, pair_separation, separation)
+    else:
+        placed = points - 0.5 * separation[:, None] * normal
     base_id = ((flip.astype(jnp.int32) * MAX_POLYGON_VERTICES + ref_edge) * MAX_POLYGON_VERTICES + incident_feature) * 8
-    ids = base_id + jnp.where(jax2d_geometry, deepest_ids, jnp.stack([id1, id2]))
+    ids = base_id + point_ids
     feature = jnp.where(valid, ids, NO_FEATURE)
     return jnp.where(flip, -normal, normal), placed, separation, valid, feature
 
 
-def polygon_circle(a: WorldGeometry, b: WorldGeometry, margin, kinetix_points=False, jax2d_geometry=False):
+def polygon_circle(
+    a: WorldGeometry, b: WorldGeometry, margin, kinetix_points: bool = False, jax2d_geometry: bool = False
+):
     """Manifold of a polygon (a) and a circle (b); one point, on the polygon's surface with `kinetix_points`; a circle
     whose centre is inside the polygon overlaps it by its radius with `jax2d_geometry`."""
     centre, radius = b.centre, b.radius
@@ -168,14 +184,15 @@ def polygon_circle(a: WorldGeometry, b: WorldGeometry, margin, kinetix_points=Fa
     corner_normal = to_centre / jnp.maximum(corner_distance, DIRECTION_EPSILON)
     normal = jnp.where(in_corner_region, corner_normal, a.normals[edge])
     separation = jnp.where(in_corner_region, corner_distance, distance) - radius
-    point = centre - (radius + jnp.where(kinetix_points, 1.0, 0.5) * separation) * normal
-    separation = jnp.where(jax2d_geometry & (distance < 0), -radius, separation)
+    point = centre - (radius + (separation if kinetix_points else 0.5 * separation)) * normal
+    if jax2d_geometry:
+        separation = jnp.where(distance < 0, -radius, separation)
     region = jnp.where(in_corner_region, jnp.where(before_v1, 1, 2), 0)
     valid = separation < margin
     return _one_point(normal, point, separation, valid, edge * 3 + region)
 
 
-def circle_circle(a: WorldGeometry, b: WorldGeometry, margin, kinetix_points=False):
+def circle_circle(a: WorldGeometry, b: WorldGeometry, margin, kinetix_points: bool = False):
     """Manifold of two circles; coincident centres separate along +y; the point on a's surface with
     `kinetix_points`."""
     offset = b.centre - a.centre
@@ -184,7 +201,7 @@ def circle_circle(a: WorldGeometry, b: WorldGeometry, margin, kinetix_points=Fal
         distance > DIRECTION_EPSILON, offset / jnp.maximum(distance, DIRECTION_EPSILON), jnp.array([0.0, 1.0])
     )
     separation = distance - a.radius - b.radius
-    point = a.centre + (a.radius + jnp.where(kinetix_points, 0.0, 0.5) * separation) * normal
+    point = a.centre + (a.radius if kinetix_points else a.radius + 0.5 * separation) * normal
     return _one_point(normal, point, separation, separation < margin, jnp.int32(0))
 
 
@@ -199,20 +216,29 @@ def _one_point(normal, point, separation, valid, feature):
 
 
 def manifolds(
-    geometry: WorldGeometry, layout: PairLayout, margin: jnp.ndarray, kinetix_points=False, jax2d_geometry=False
+    geometry: WorldGeometry,
+    layout: PairLayout,
+    margin: jnp.ndarray,
+    kinetix_points: bool = False,
+    jax2d_geometry: bool = False,
 ) -> Manifolds:
     """Manifolds of all candidate pairs in layout order; `margin` (K,) [m] is each pair's speculative distance;
-    `kinetix_points` (may be traced) places the points as Jax2D does (`engine.ContactPoints.KINETIX`),
-    `jax2d_geometry` (may be traced) picks the points of two polygons and the depth of an engulfed circle as Jax2D
+    `kinetix_points` (static) places the points as Jax2D does (`engine.ContactPoints.KINETIX`),
+    `jax2d_geometry` (static) picks the points of two polygons and the depth of an engulfed circle as Jax2D
     does (`engine.CollisionRules.JAX2D`)."""
+    laws = {"kinetix_points": kinetix_points}
     kinds = (
-        (functools.partial(polygon_polygon, jax2d_geometry=jax2d_geometry), 0, layout.num_polygon_polygon),
+        (functools.partial(polygon_polygon, jax2d_geometry=jax2d_geometry, **laws), 0, layout.num_polygon_polygon),
         (
-            functools.partial(polygon_circle, jax2d_geometry=jax2d_geometry),
+            functools.partial(polygon_circle, jax2d_geometry=jax2d_geometry, **laws),
             layout.num_polygon_polygon,
             layout.num_polygon_circle,
         ),
-        (circle_circle, layout.num_polygon_polygon + layout.num_polygon_circle, layout.num_circle_circle),
+        (
+            functools.partial(circle_circle, **laws),
+            layout.num_polygon_polygon + layout.num_polygon_circle,
+            layout.num_circle_circle,
+        ),
     )
     parts = []
     for function, start, count in kinds:
@@ -221,7 +247,7 @@ def manifolds(
         pair = slice(start, start + count)
         a = _take(geometry, layout.body_a[pair])
         b = _take(geometry, layout.body_b[pair])
-        parts.append(jax.vmap(function, in_axes=(0, 0, 0, None))(a, b, margin[pair], kinetix_points))
+        parts.append(jax.vmap(function)(a, b, margin[pair]))
     normal, point, separation, valid, feature = (jnp.concatenate(x) for x in zip(*parts, strict=True))
     return Manifolds(normal, point, separation, valid, feature.astype(jnp.int32))
 

@@ -50,9 +50,8 @@ class ContactGeometry:
 
 @struct.dataclass
 class PushLaw:
-    """Per-scene choice of `engine.params.ContactLaw` and its constants."""
+    """Per-scene constants of Baumgarte's push-out (`engine.params.ContactLaw.BAUMGARTE`)."""
 
-    baumgarte: jnp.ndarray  # bool: ContactLaw.BAUMGARTE
     depth: jnp.ndarray  # [m] under the soft law, points deeper than this at the step's start follow BAUMGARTE's
     rate: jnp.ndarray  # [1/s] normal speed per metre of overlap beyond the slop
     slop: jnp.ndarray  # [m]
@@ -382,6 +381,7 @@ def solve_contacts(
     inverse_substep,
     max_push_velocity,
     use_bias,
+    baumgarte_law: bool,
     push_law: PushLaw,
     sweep: Sweep,
     block: bool = False,
@@ -389,10 +389,11 @@ def solve_contacts(
     """One sweep of normal rows, then friction rows, of every pair; returns velocities and impulses.
 
     `moved` is each body's displacement since the start of the step; `use_bias` (bool, may be traced) selects
-    the soft position-correcting solve, otherwise the relaxing solve without position bias; under the Baumgarte
-    `push_law` (every point, or under the soft law the points deeper than its depth at the step's start) both
-    solve the same rigid rows with its bias. `sweep` (one of `engine.sweep.SWEEPS`) visits the colours. With
-    `block` (static) a pair's two normal rows are solved together where both are rigid (`_block_normal_impulses`).
+    the soft position-correcting solve, otherwise the relaxing solve without position bias. Under Baumgarte's law
+    (`baumgarte_law`, static: every point; otherwise the points deeper than `push_law.depth` at the step's start)
+    both solve the same rigid rows with `push_law`'s bias. `sweep` (one of `engine.sweep.SWEEPS`) visits the colours.
+    With `block` (static) a pair's two normal rows are solved together where both are rigid
+    (`_block_normal_impulses`).
     """
 
     def solve_colour(rows, impulse, vel_a, vel_b, bodies_of, _):
@@ -401,25 +402,33 @@ def solve_contacts(
         for p in range(NUM_POINTS):
             separation = rows.separation[p] + _row_speed(rows, p, moved_a, moved_b)
             speculative = separation > 0
-            pushing = use_bias & ~speculative
-            bias = jnp.where(
-                speculative,
-                separation * inverse_substep,
-                jnp.where(use_bias, jnp.maximum(rows.softness.bias_rate * separation, -max_push_velocity), 0.0),
-            )
-            mass_scale = jnp.where(pushing, rows.softness.mass_scale, 1.0)
-            impulse_scale = jnp.where(pushing, rows.softness.impulse_scale, 0.0)
-            baumgarte = push_law.baumgarte | (rows.separation[p] < -push_law.depth)
             baumgarte_bias = push_law.rate * jnp.minimum(separation + push_law.slop, 0.0)
-            bias = jnp.where(baumgarte & ~speculative, baumgarte_bias, bias)
-            mass_scale = jnp.where(baumgarte, 1.0, mass_scale)
-            impulse_scale = jnp.where(baumgarte, 0.0, impulse_scale)
+            if baumgarte_law:
+                bias = jnp.where(speculative, separation * inverse_substep, baumgarte_bias)
+                rigid = True
+            else:
+                pushing = use_bias & ~speculative
+                bias = jnp.where(
+                    speculative,
+                    separation * inverse_substep,
+                    jnp.where(use_bias, jnp.maximum(rows.softness.bias_rate * separation, -max_push_velocity), 0.0),
+                )
+                mass_scale = jnp.where(pushing, rows.softness.mass_scale, 1.0)
+                impulse_scale = jnp.where(pushing, rows.softness.impulse_scale, 0.0)
+                deep = rows.separation[p] < -push_law.depth
+                bias = jnp.where(deep & ~speculative, baumgarte_bias, bias)
+                mass_scale = jnp.where(deep, 1.0, mass_scale)
+                impulse_scale = jnp.where(deep, 0.0, impulse_scale)
+                rigid = (mass_scale == 1.0) & (impulse_scale == 0.0)
             speed = _row_speed(rows, p, vel_a, vel_b)
             if block:
-                targets.append((speed + bias, (mass_scale == 1.0) & (impulse_scale == 0.0)))
+                targets.append((speed + bias, rigid))
             speed = _speed_after(rows, p, speed, deltas)
             old = impulse[p]
-            new = old - rows.mass[p] * mass_scale * (speed + bias) - impulse_scale * old
+            if baumgarte_law:
+                new = old - rows.mass[p] * (speed + bias)
+            else:
+                new = old - rows.mass[p] * mass_scale * (speed + bias) - impulse_scale * old
             new = jnp.where(rows.enabled[p], jnp.maximum(new, 0.0), 0.0)
             deltas.append(new - old)
             new_impulses.append(new)

@@ -14,6 +14,7 @@ import jax.numpy as jnp
 from flax import struct
 
 from engine.geometry import rotate
+from engine.params import LimitLaw
 from engine.softness import Softness
 from engine.state import Joints
 from engine.sweep import Motion, Sweep
@@ -247,15 +248,15 @@ def _angular_row(
     use_bias,
     inverse_substep,
     one_sided: bool,
-    return_rate=jnp.inf,
+    return_rate=None,
 ):
     """New impulse of an angular row driving `relative_speed` and the position `error` to zero.
 
     One-sided rows (limits) are speculative while `error` > 0: they only stop the motion that would cross it; past it
-    (`error` < 0) they turn back at most `return_rate` [1/s] x the excess.
+    (`error` < 0) they turn back at most `return_rate` [1/s] x the excess (None: as fast as the joint's softness).
     """
     bias = jnp.where(use_bias, softness.bias_rate * error, 0.0)
-    if one_sided:
+    if one_sided and return_rate is not None:
         bias = jnp.where(error < 0, jnp.maximum(bias, return_rate * error), bias)
     mass_scale = jnp.where(use_bias, softness.mass_scale, 1.0)
     impulse_scale = jnp.where(use_bias, softness.impulse_scale, 0.0)
@@ -275,19 +276,19 @@ def solve_joints(
     softness: Softness,
     inverse_substep,
     use_bias,
-    kinetix_limits,
+    limit_law: LimitLaw,
     limit_recovery_rate,
-    limit_return_rate,
+    constraint_motors: bool,
     sweep: Sweep,
 ):
     """One sweep (`sweep`, one of `engine.sweep.SWEEPS`) over the joints in index order: motor, limits, fixed
     angle, then the point constraint.
 
     `use_bias` (bool, may be traced) selects the soft position-correcting solve, otherwise the relaxing solve.
-    `kinetix_limits` (bool, may be traced) selects Kinetix's limit law (`engine.params.LimitLaw.KINETIX`): the
-    lower limit slot then holds the signed sum of this substep's limit impulses, and the upper slot 0.
-    `limit_return_rate` [1/s] bounds how fast the speculative law turns a joint back from beyond a limit, per radian.
-    Returns the velocities and the new impulses.
+    `limit_law` (static) chooses how limits hold: under `LimitLaw.KINETIX` the lower limit slot holds the signed sum
+    of this substep's limit impulses, and the upper slot 0; under `LimitLaw.BOUNDED_RETURN` the speculative rows
+    turn a joint back from beyond a limit at most `limit_recovery_rate` [1/s] per radian. Motors are rows only with
+    `constraint_motors` (static, `engine.params.MotorLaw.CONSTRAINT`). Returns the velocities and the new impulses.
     """
 
     def solve_joint(row: JointRows, frame: JointFrames, impulse: JointImpulses, vel_a: Motion, vel_b: Motion):
@@ -295,43 +296,47 @@ def solve_joints(
         ia, ib = row.response_a[2], row.response_b[2]
         mass = row.axial_mass
         wa, wb = vel_a[2], vel_b[2]
-        # Motor: velocity row with a bounded impulse.
-        bound = row.motor_max_impulse
-        new_motor = jnp.clip(impulse.motor - mass * (wb - wa - row.motor_target), -bound, bound)
-        new_motor = jnp.where(row.solve_motor, new_motor, 0.0)
-        wa, wb = wa - ia * (new_motor - impulse.motor), wb + ib * (new_motor - impulse.motor)
-        # Limits: one-sided rows (speculative law), or Kinetix's turning back from beyond a limit.
+        # Motor: velocity row with a bounded impulse (the servo law acted before the solve).
+        new_motor = impulse.motor
+        if constraint_motors:
+            bound = row.motor_max_impulse
+            new_motor = jnp.clip(impulse.motor - mass * (wb - wa - row.motor_target), -bound, bound)
+            new_motor = jnp.where(row.solve_motor, new_motor, 0.0)
+            wa, wb = wa - ia * (new_motor - impulse.motor), wb + ib * (new_motor - impulse.motor)
+        # Limits: one-sided rows (speculative laws), or Kinetix's turning back from beyond a limit.
         lower_old, upper_old = impulse.limit[0], impulse.limit[1]
-        lower = _angular_row(
-            mass,
-            wb - wa,
-            frame.angle - row.lower_angle,
-            lower_old,
-            softness,
-            use_bias,
-            inverse_substep,
-            True,
-            limit_return_rate,
-        )
-        lower = jnp.where(row.solve_limits, jnp.maximum(lower, 0.0), 0.0)
-        lower_change = lower - lower_old
-        upper = _angular_row(
-            mass,
-            (wa - ia * lower_change) - (wb + ib * lower_change),
-            row.upper_angle - frame.angle,
-            upper_old,
-            softness,
-            use_bias,
-            inverse_substep,
-            True,
-            limit_return_rate,
-        )
-        upper = jnp.where(row.solve_limits, jnp.maximum(upper, 0.0), 0.0)
-        excess = row.start_excess
-        outward = row.solve_limits & (excess != 0.0) & (jnp.sign(wb - wa) == jnp.sign(excess))
-        turn_back = jnp.where(outward, -mass * (wb - wa + limit_recovery_rate * excess), 0.0)
-        lower = jnp.where(kinetix_limits, lower_old + turn_back, lower)
-        upper = jnp.where(kinetix_limits, upper_old, upper)
+        if limit_law == LimitLaw.KINETIX:
+            excess = row.start_excess
+            outward = row.solve_limits & (excess != 0.0) & (jnp.sign(wb - wa) == jnp.sign(excess))
+            lower = lower_old + jnp.where(outward, -mass * (wb - wa + limit_recovery_rate * excess), 0.0)
+            upper = upper_old
+        else:
+            return_rate = limit_recovery_rate if limit_law == LimitLaw.BOUNDED_RETURN else None
+            lower = _angular_row(
+                mass,
+                wb - wa,
+                frame.angle - row.lower_angle,
+                lower_old,
+                softness,
+                use_bias,
+                inverse_substep,
+                True,
+                return_rate,
+            )
+            lower = jnp.where(row.solve_limits, jnp.maximum(lower, 0.0), 0.0)
+            lower_change = lower - lower_old
+            upper = _angular_row(
+                mass,
+                (wa - ia * lower_change) - (wb + ib * lower_change),
+                row.upper_angle - frame.angle,
+                upper_old,
+                softness,
+                use_bias,
+                inverse_substep,
+                True,
+                return_rate,
+            )
+            upper = jnp.where(row.solve_limits, jnp.maximum(upper, 0.0), 0.0)
         wa, wb = wa - ia * (lower - lower_old), wb + ib * (lower - lower_old)
         wa, wb = wa - ia * (upper_old - upper), wb + ib * (upper_old - upper)
         # Fixed joint: relative angle held at the reference.

@@ -1,4 +1,5 @@
-"""Physics parameters: traced floats (`SimParams`) and compile-time sizes (`StaticSimParams`)."""
+"""Physics parameters: traced floats (`SimParams`) and compile-time sizes, laws and execution form
+(`StaticSimParams`)."""
 
 from __future__ import annotations
 
@@ -6,6 +7,8 @@ import dataclasses
 import enum
 
 from flax import struct
+
+from engine.batch_last import Batching
 
 MAX_POLYGON_VERTICES = 4
 """Every polygon slot holds up to this many vertices (triangles and quadrilaterals)."""
@@ -99,7 +102,8 @@ class LimitLaw(enum.IntEnum):
 
 @struct.dataclass
 class SimParams:
-    """Physical constants of a step; every field may differ per scene under `vmap`."""
+    """Continuous physical constants of a step, every one a float; every field may differ per scene under `vmap`.
+    Which law a step follows is static (`StaticSimParams`)."""
 
     # Time
     dt: float = 1.0 / 60.0  # [s] one physics step
@@ -116,7 +120,6 @@ class SimParams:
     # and so do pairs that bounce (restitution > 0), whose rebound then starts at the surface
     touch_distance: float = 0.005  # [m] shapes closer than this count as touching
     push_touch_distance: float = float("inf")  # [m] a contact that pushed counts as touching if this close at start
-    swept_speculative_contacts: bool = True  # a circle's speculative contact acts only if its free motion meets
     base_friction: float = 0.4  # [-] friction of a pair = base_friction * sqrt(f_a^2 + f_b^2) (Kinetix's mixing)
 
     # Joints. A soft joint stretches under load by about load / (effective mass x (2 pi joint_hertz)^2), and the
@@ -131,20 +134,14 @@ class SimParams:
     base_motor_speed: float = 6.0  # [rad/s] target relative speed per unit of joint motor_speed and action
     base_motor_power: float = 900.0  # [rad/s^2] torque bound per unit motor_power, per unit of axial inertia
     base_thruster_power: float = 10.0  # [N] force per unit of thruster power and action
-    motor_law: int = MotorLaw.SERVO  # `MotorLaw`: Kinetix's servo impulse or a constraint row
     motor_decay: float = 0.1  # [s/rad] servo: the impulse is tanh(motor_decay x speed error) of its bound
     motor_limit_fade: float = 0.1  # [rad] servo: the impulse fades to 0 over this angle before a joint limit
-    limit_law: int = LimitLaw.SPECULATIVE  # `LimitLaw`: how joint angle limits hold
     limit_recovery_rate: float = 5.0  # [1/s] KINETIX, BOUNDED_RETURN: speed of return per unit of excess angle
 
-    contact_law: int = ContactLaw.SOFT  # `ContactLaw`: how overlapping shapes are pushed apart
     baumgarte_share: float = 0.2  # [-] BAUMGARTE: share of the overlap beyond contact_slop closed per step (Jax2D's)
     contact_slop: float = 0.01  # [m] BAUMGARTE: overlap left uncorrected (Jax2D's)
     baumgarte_depth: float = float("inf")  # [m] SOFT: a contact point deeper than this at the step's start (a level
     # that starts with shapes inside each other) is pushed out by BAUMGARTE's law, the push kept in the velocity
-    contact_points: int = ContactPoints.MIDWAY  # `ContactPoints`: where contact points lie, how deep they count
-    collision_rules: int = CollisionRules.BOX2D  # `CollisionRules`: where shapes touch, warm starts
-    force_timing: int = ForceTiming.SPREAD  # `ForceTiming`: gravity and thrust spread over substeps or at step start
 
     # Safety clips applied after every step
     max_position: float = 15.0  # [m] per coordinate
@@ -152,9 +149,28 @@ class SimParams:
     max_angular_velocity: float = 50.0  # [rad/s]
 
 
+LAW_FIELDS: dict[str, type[enum.IntEnum]] = {
+    "force_timing": ForceTiming,
+    "motor_law": MotorLaw,
+    "contact_law": ContactLaw,
+    "contact_points": ContactPoints,
+    "collision_rules": CollisionRules,
+    "limit_law": LimitLaw,
+}
+"""`StaticSimParams` law field -> its enum."""
+
+SIZE_FIELDS = ("num_polygons", "num_circles", "num_joints", "num_thrusters", "num_reserved_static")
+"""`StaticSimParams` fields that size the arrays."""
+
+EXECUTION_FIELDS = ("batching",)
+"""`StaticSimParams` fields that choose how a step runs, not how it plays: every value gives the same states to
+rounding."""
+
+
 @dataclasses.dataclass(frozen=True)
 class StaticSimParams:
-    """Array sizes and iteration counts: hashable, static under `jit`; one compiled step per value."""
+    """Array sizes, the physics laws, iteration counts and the execution form: hashable, static under `jit`; one
+    compiled step per value, holding only the kernels of its laws."""
 
     num_polygons: int = 5  # polygon slots, reserved boundary slots included
     num_circles: int = 2
@@ -167,9 +183,18 @@ class StaticSimParams:
     block_contacts: bool = False  # a pair's two rigid normal rows are solved together, not one after the other
     relax_contacts: bool = True  # relaxing passes solve contacts and joints; False: joints only (contacts keep their
     # push-out velocity, as under Jax2D's scheme, while joints and their limits let go of theirs)
+    force_timing: ForceTiming = ForceTiming.SPREAD  # gravity and thrust spread over substeps or at the step's start
+    motor_law: MotorLaw = MotorLaw.SERVO  # Kinetix's servo impulse or a constraint row
+    contact_law: ContactLaw = ContactLaw.SOFT  # how overlapping shapes are pushed apart
+    contact_points: ContactPoints = ContactPoints.MIDWAY  # where contact points lie, how deep they count
+    collision_rules: CollisionRules = CollisionRules.BOX2D  # where shapes touch, which impulses they start from
+    limit_law: LimitLaw = LimitLaw.SPECULATIVE  # how joint angle limits hold
+    swept_speculative_contacts: bool = True  # a circle's speculative contact acts only if its free motion meets
+    # what it faces within the step (a near miss makes no contact)
+    batching: Batching = Batching()  # how a vmapped step batches and the form of the solver's loops (execution only)
 
     def __post_init__(self):
-        for name in ("num_polygons", "num_circles", "num_joints", "num_thrusters", "num_reserved_static"):
+        for name in SIZE_FIELDS:
             if getattr(self, name) < 0:
                 raise ValueError(f"StaticSimParams.{name} must be >= 0, got {getattr(self, name)}")
         if self.num_reserved_static > self.num_polygons:
@@ -180,11 +205,23 @@ class StaticSimParams:
         for name, least in (("num_substeps", 1), ("num_iterations", 1), ("num_relax_iterations", 0)):
             if getattr(self, name) < least:
                 raise ValueError(f"StaticSimParams.{name} must be >= {least}, got {getattr(self, name)}")
+        for name, law in LAW_FIELDS.items():
+            value = getattr(self, name)
+            if isinstance(value, bool) or value not in set(law):
+                known = ", ".join(f"{member.name}={member.value}" for member in law)
+                raise ValueError(f"StaticSimParams.{name} must be a {law.__name__} ({known}), got {value!r}")
+            object.__setattr__(self, name, law(value))
+        for name in ("block_contacts", "relax_contacts", "swept_speculative_contacts"):
+            if not isinstance(getattr(self, name), bool):
+                raise ValueError(f"StaticSimParams.{name} must be a bool, got {getattr(self, name)!r}")
+        if not isinstance(self.batching, Batching):
+            raise ValueError(f"StaticSimParams.batching must be an engine.Batching, got {self.batching!r}")
 
     def physics_options(self) -> dict[str, int | bool]:
-        """Every setting that changes how a step plays (laws, substeps, passes), the sizes left out."""
-        sizes = {"num_polygons", "num_circles", "num_joints", "num_thrusters", "num_reserved_static"}
-        return {f.name: getattr(self, f.name) for f in dataclasses.fields(self) if f.name not in sizes}
+        """Every setting that changes how a step plays (laws, substeps, passes), the sizes and the execution form
+        (`EXECUTION_FIELDS`) left out."""
+        left_out = set(SIZE_FIELDS) | set(EXECUTION_FIELDS)
+        return {f.name: getattr(self, f.name) for f in dataclasses.fields(self) if f.name not in left_out}
 
     @property
     def num_bodies(self) -> int:

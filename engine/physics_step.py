@@ -8,7 +8,7 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from engine.batch_last import Batching, current_batching, vmap_batch_last, vmap_in_chunks
+from engine.batch_last import Batching, vmap_batch_last, vmap_in_chunks
 from engine.collision import WorldGeometry, circle_contact_clearance, manifolds, world_geometry
 from engine.collision_filter import modes_collide
 from engine.contact_solver import (
@@ -81,16 +81,17 @@ def _inner_radius(geometry: WorldGeometry):
     return jnp.where(geometry.edge_valid[:, 0], jnp.min(depth, -1), geometry.radius)
 
 
-def match_warm_start(cache: ContactCache, feature, by_slot):
-    """Last step's impulses for points whose feature id reappears (in either point slot); with `by_slot` (may be
-    traced), for points whose slot held a point last step (Jax2D's)."""
+def match_warm_start(cache: ContactCache, feature, by_slot: bool):
+    """Last step's impulses for points whose feature id reappears (in either point slot); with `by_slot` (static),
+    for points whose slot held a point last step (Jax2D's)."""
 
     def pick(values):
+        found = feature >= 0
+        if by_slot:
+            return jnp.where(found & (cache.feature >= 0), values, 0.0)
         match0 = feature == cache.feature[:, :1]
         match1 = feature == cache.feature[:, 1:]
-        found = feature >= 0
-        by_feature = jnp.where(found & match0, values[:, :1], jnp.where(found & match1, values[:, 1:], 0.0))
-        return jnp.where(by_slot, jnp.where(found & (cache.feature >= 0), values, 0.0), by_feature)
+        return jnp.where(found & match0, values[:, :1], jnp.where(found & match1, values[:, 1:], 0.0))
 
     return pick(cache.normal_impulse), pick(cache.tangent_impulse)
 
@@ -102,12 +103,9 @@ class SolverScalars:
     substep: jnp.ndarray  # [s]
     inverse_substep: jnp.ndarray  # [1/s]
     max_push_velocity: jnp.ndarray  # [m/s]
-    force_at_step_start: jnp.ndarray  # bool: gravity and thrust act as one impulse before the first substep
     restitution_threshold: jnp.ndarray  # [m/s]
     joint_softness: Softness
-    kinetix_limits: jnp.ndarray  # bool: joint limits follow `LimitLaw.KINETIX`
-    limit_recovery_rate: jnp.ndarray  # [1/s]
-    limit_return_rate: jnp.ndarray  # [1/s] fastest return from beyond a limit per radian (inf: the joint's softness)
+    limit_recovery_rate: jnp.ndarray  # [1/s] LimitLaw.KINETIX, BOUNDED_RETURN: return per radian beyond a limit
     push_law: PushLaw
 
 
@@ -145,6 +143,17 @@ class Prepared:
     feature: jnp.ndarray  # (K, 2) i32
 
 
+def force_substeps(static: StaticSimParams, index) -> jnp.ndarray:
+    """How many substeps' worth of gravity and thrust substep `index` (traced) adds to the velocities, by
+    `static.force_timing`: SPREAD 1 in each, STEP_START all of them in the first.
+
+    Both are selections on the index, as when the law was a traced parameter: a constant share would be hoisted out of
+    the substep loop, and the update's product rounded apart from its sum, changing the step's bits (1 ulp)."""
+    if static.force_timing == ForceTiming.STEP_START:
+        return jnp.where(index == 0, static.num_substeps, 0)
+    return jnp.where(index >= 0, 1, 0)
+
+
 @functools.cache
 def substep_solver(static: StaticSimParams, batch_last: bool = True, solver_loops: str = "looped"):
     """The substep loop and restitution for `static`: `SolverInput -> SolverOutput`, batch-last under vmap if asked,
@@ -156,7 +165,8 @@ def substep_solver(static: StaticSimParams, batch_last: bool = True, solver_loop
     (soft step: 1, 1; Jax2D's scheme: 10 iterations in one substep and no relaxing pass). Looped, substeps, passes,
     joints and colours are `lax.scan`s, so the compiled size does not grow with their number; unrolled, they are
     written out in order (fewer kernels, a larger program); "unrolled_sweeps" writes out joints and colours only.
-    Joints' warm starting (nothing solved) is unrolled into one fusion either way.
+    Joints' warm starting (nothing solved) is unrolled into one fusion either way. The laws of `static` are chosen
+    here, in Python: the program holds only their kernels.
     """
     layout = pair_layout(static)
     sweep = SWEEPS["looped" if solver_loops == "looped" else "unrolled"]
@@ -183,9 +193,9 @@ def substep_solver(static: StaticSimParams, batch_last: bool = True, solver_loop
                 scalars.joint_softness,
                 scalars.inverse_substep,
                 use_bias,
-                scalars.kinetix_limits,
+                static.limit_law,
                 scalars.limit_recovery_rate,
-                scalars.limit_return_rate,
+                static.motor_law == MotorLaw.CONSTRAINT,
                 sweep,
             )
             if contacts:
@@ -198,6 +208,7 @@ def substep_solver(static: StaticSimParams, batch_last: bool = True, solver_loop
                     scalars.inverse_substep,
                     scalars.max_push_velocity,
                     use_bias,
+                    static.contact_law == ContactLaw.BAUMGARTE,
                     scalars.push_law,
                     sweep,
                     static.block_contacts,
@@ -210,10 +221,9 @@ def substep_solver(static: StaticSimParams, batch_last: bool = True, solver_loop
         def substep_body(carry, index):
             """Integrate velocities, warm start, soft solve, integrate positions, then relax without bias."""
             velocity, pose, contact_impulses, joint_impulses = carry
-            limits = jnp.where(scalars.kinetix_limits, 0.0, joint_impulses.limit)  # Kinetix's: nothing carried
-            joint_impulses = joint_impulses.replace(limit=limits)
-            at_start = jnp.where(index == 0, static.num_substeps, 0)
-            share = jnp.where(scalars.force_at_step_start, at_start, 1) * scalars.substep
+            if static.limit_law == LimitLaw.KINETIX:  # Kinetix's: nothing carried
+                joint_impulses = joint_impulses.replace(limit=jnp.zeros_like(joint_impulses.limit))
+            share = force_substeps(static, index) * scalars.substep
             velocity = tuple(v + share * a for v, a in zip(velocity, acceleration, strict=True))
             velocity = warm_start_joints(
                 velocity, joint_rows, joint_frames(joint_rows, pose, start_pose[2]), joint_impulses
@@ -280,9 +290,10 @@ def prepare_step(
     inverse_masses = jnp.stack([bodies.inverse_mass, bodies.inverse_mass, bodies.inverse_inertia], -1)
     response_scale = jnp.where(movable[:, None], extend(inverse_masses), 0.0)
     acceleration = _external_acceleration(state, params, thruster_actions, movable, response_scale)
-    servo = params.motor_law == MotorLaw.SERVO
-    kick = servo_motor_kick(joints, extend(bodies.active), velocity, pose, response_scale, motor_actions, params)
-    velocity = velocity.at[:, 2].add(jnp.where(servo, kick, 0.0))
+    servo = static.motor_law == MotorLaw.SERVO
+    if servo:
+        kick = servo_motor_kick(joints, extend(bodies.active), velocity, pose, response_scale, motor_actions, params)
+        velocity = velocity.at[:, 2].add(kick)
 
     # Narrowphase with a speculative margin covering this step's motion.
     a, b = layout.body_a, layout.body_b
@@ -297,8 +308,8 @@ def prepare_step(
     allowed = (motion <= params.overlap_allowance * thinner) & (restitution <= 0.0)
     motion = jnp.where(allowed, 0.0, motion)
     margin = params.speculative_distance + params.speculative_reach * motion
-    jax2d_rules = params.collision_rules == CollisionRules.JAX2D
-    manifold = manifolds(geometry, layout, margin, params.contact_points == ContactPoints.KINETIX, jax2d_rules)
+    jax2d_rules = static.collision_rules == CollisionRules.JAX2D
+    manifold = manifolds(geometry, layout, margin, static.contact_points == ContactPoints.KINETIX, jax2d_rules)
     both_active = bodies.active[a] & bodies.active[b]
     modes = modes_collide(bodies.collision_mode[a], bodies.collision_mode[b])
     present = manifold.valid & both_active[:, None]
@@ -312,10 +323,10 @@ def prepare_step(
     # Contact rows, warm-started from last step's impulses of the same features.
     pair_enabled = both_active & modes & state.collision_matrix[a, b] & ~(static_body[a] & static_body[b])
     # A circle's speculative contact is dropped when free motion carries it past what it faces (a near miss).
-    check_times = [0.5 * params.dt, params.dt]
-    clears = circle_contact_clearance(manifold, geometry, layout, velocity[:n], acceleration[:n], check_times)
-    misses = jnp.asarray(params.swept_speculative_contacts).astype(bool) & clears
-    manifold = manifold.replace(valid=manifold.valid & ~misses[:, None])
+    if static.swept_speculative_contacts:
+        check_times = [0.5 * params.dt, params.dt]
+        misses = circle_contact_clearance(manifold, geometry, layout, velocity[:n], acceleration[:n], check_times)
+        manifold = manifold.replace(valid=manifold.valid & ~misses[:, None])
     point_enabled = manifold.valid & pair_enabled[:, None]
     contact_geometry = prepare_contacts(
         manifold,
@@ -343,9 +354,8 @@ def prepare_step(
     )
 
     # Joints (a servo motor acted above).
-    joint_rows = prepare_joints(
-        joints, pose, response_scale, motor_actions, params.base_motor_speed, params.base_motor_power, substep, ~servo
-    )
+    motor_speed, motor_power, rows = params.base_motor_speed, params.base_motor_power, not servo
+    joint_rows = prepare_joints(joints, pose, response_scale, motor_actions, motor_speed, motor_power, substep, rows)
     joint_impulses = JointImpulses(
         linear=jnp.where(joints.active[:, None], joints.linear_impulse, 0.0),
         angular=jnp.where(joints.active, joints.angular_impulse, 0.0),
@@ -356,14 +366,10 @@ def prepare_step(
         substep=substep,
         inverse_substep=1.0 / substep,
         max_push_velocity=params.max_push_velocity,
-        force_at_step_start=params.force_timing == ForceTiming.STEP_START,
         restitution_threshold=params.restitution_threshold,
         joint_softness=make_softness(params.joint_hertz, params.joint_damping_ratio, substep),
-        kinetix_limits=params.limit_law == LimitLaw.KINETIX,
         limit_recovery_rate=params.limit_recovery_rate,
-        limit_return_rate=jnp.where(params.limit_law == LimitLaw.BOUNDED_RETURN, params.limit_recovery_rate, jnp.inf),
         push_law=PushLaw(
-            baumgarte=params.contact_law == ContactLaw.BAUMGARTE,
             depth=params.baumgarte_depth,
             rate=params.baumgarte_share / params.dt,
             slop=params.contact_slop,
@@ -433,7 +439,7 @@ def _info_after_solve(prepared: Prepared, solved: SolverOutput, params: SimParam
 
 @functools.cache
 def _batched_step(static: StaticSimParams, batching: Batching):
-    """The step of `static` with the vmap rule of `batching` (`engine.batch_last`)."""
+    """The step of `static` with the vmap rule of `batching` (`engine.batch_last`, resolved)."""
 
     def one_step(state, params, motor_actions, thruster_actions):
         prepared = prepare_step(state, params, motor_actions, thruster_actions, static)
@@ -458,8 +464,9 @@ def step(
     """Advance `state` by `params.dt`.
 
     `motor_actions` (J,) in [-1, 1] scale each joint motor's target speed; `thruster_actions` (T,) in [0, 1]
-    scale each thruster's force. Returns the new state and per-pair contact information. Under `vmap`, how the
-    batch is run (in chunks with batch-last layout, or as one vmap) and the form of the solver's loops (looped or
-    unrolled) follow `engine.set_batching` when traced.
+    scale each thruster's force. Returns the new state and per-pair contact information. The laws and counts of
+    `static` are compiled in; under `vmap`, how the batch is run (in chunks with batch-last layout, or as one vmap)
+    and the form of the solver's loops (looped or unrolled) follow `static.batching`, "auto" resolved for the default
+    backend when traced.
     """
-    return _step(state, params, motor_actions, thruster_actions, static=static, batching=current_batching())
+    return _step(state, params, motor_actions, thruster_actions, static=static, batching=static.batching.resolved())

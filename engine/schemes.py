@@ -1,5 +1,6 @@
-"""Named physics schemes: how the engine solves a step, as `SimParams` fields and `StaticSimParams` solver settings
-that differ from the engine's defaults."""
+"""Named physics schemes: how the engine solves a step, as `StaticSimParams` laws and solver settings and
+`SimParams` constants that differ from the engine's defaults. A scheme's laws are static: each scheme compiles to its
+own step program, holding only its laws' kernels."""
 
 from __future__ import annotations
 
@@ -13,15 +14,15 @@ class PhysicsScheme:
     """A physics setting applied over any `SimParams` (a level's gravity, friction and the like are kept) and any
     `StaticSimParams` (sizes are kept)."""
 
-    sim_fields: tuple[tuple[str, float], ...] = ()  # SimParams field -> value
-    solver_fields: tuple[tuple[str, int | bool], ...] = ()  # StaticSimParams solver setting -> value
+    sim_fields: tuple[tuple[str, float], ...] = ()  # SimParams field (a continuous constant) -> value
+    solver_fields: tuple[tuple[str, int | bool], ...] = ()  # StaticSimParams law or solver setting -> value
 
     def sim(self, base: SimParams) -> SimParams:
         """`base` with the scheme's physics parameters."""
         return base.replace(**dict(self.sim_fields)) if self.sim_fields else base
 
     def static(self, base: StaticSimParams) -> StaticSimParams:
-        """`base` with the scheme's solver settings."""
+        """`base` with the scheme's laws and solver settings (its sizes and execution form kept)."""
         return dataclasses.replace(base, **dict(self.solver_fields)) if self.solver_fields else base
 
 
@@ -34,16 +35,17 @@ PHYSICS_SCHEMES = {
     # gravity and thrust at the step's start, no speculative contacts, Jax2D's contact points and geometry,
     # overlaps found a step late below twice the inner radius, joints past a limit returned at a bounded rate.
     "kinetix": PhysicsScheme(
-        sim_fields=(
+        sim_fields=(("speculative_distance", 0.0), ("overlap_allowance", 2.0)),
+        solver_fields=(
+            ("num_substeps", 1),
+            ("num_iterations", 10),
+            ("num_relax_iterations", 0),
             ("contact_law", ContactLaw.BAUMGARTE),
             ("force_timing", ForceTiming.STEP_START),
-            ("speculative_distance", 0.0),
-            ("overlap_allowance", 2.0),
             ("contact_points", ContactPoints.KINETIX),
             ("collision_rules", CollisionRules.JAX2D),
             ("limit_law", LimitLaw.BOUNDED_RETURN),
         ),
-        solver_fields=(("num_substeps", 1), ("num_iterations", 10), ("num_relax_iterations", 0)),
     ),
 }
 """Scheme name -> scheme. docs/fidelity.md measures how often each agrees with Kinetix level by level, and which rows

@@ -15,7 +15,7 @@ whatever the number of items. A single item is solved in a loop of two steps, th
 `unrolled_sweep` does the same arithmetic with each item's code written out in order: no loop step per item, and
 the compiler may fuse across items, so a step runs far fewer kernels (what an accelerator pays for), at the price
 of a compiled size that grows with the number of items and, on CPU, of solves recomputed inside every fused
-consumer. `SWEEPS` names both; `engine.set_batching` picks one per backend.
+consumer. `SWEEPS` names both; `engine.StaticSimParams.batching` picks one ("auto": per backend).
 """
 
 from __future__ import annotations

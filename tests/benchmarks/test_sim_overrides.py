@@ -1,4 +1,5 @@
-"""`KEY=VALUE` physics switches of the benchmarks: parsed against SimParams with one-line errors, and timed side by
+"""`KEY=VALUE` physics switches of the benchmarks: parsed against SimParams and StaticSimParams' laws with one-line
+errors, each applied where it belongs, and timed side by
 side with the defaults by `benchmarks/engine.py --vs-sim` (and other solver counts by `--vs-substeps`,
 `--vs-iterations`, `--vs-relax-iterations`)."""
 
@@ -10,20 +11,31 @@ import json
 import pytest
 
 from benchmarks import engine as engine_benchmark
-from benchmarks.sim_overrides import sim_override
+from benchmarks.sim_overrides import sim_override, with_sim_overrides
+from engine import ContactLaw, SimParams, StaticSimParams
 
 
 def test_a_field_and_a_number_parse():
-    assert sim_override("swept_speculative_contacts=0") == ("swept_speculative_contacts", 0.0)
+    assert sim_override("swept_speculative_contacts=0") == ("swept_speculative_contacts", False)
+    assert sim_override("contact_law=1") == ("contact_law", ContactLaw.BAUMGARTE)
     assert sim_override("contact_hertz=30.5") == ("contact_hertz", 30.5)
+
+
+def test_a_law_goes_to_the_static_params_and_a_constant_to_the_traced_ones():
+    overrides = [sim_override("contact_law=1"), sim_override("contact_hertz=20")]
+    params, static = with_sim_overrides(SimParams(), StaticSimParams(), overrides)
+    assert static == StaticSimParams(contact_law=ContactLaw.BAUMGARTE)
+    assert params == SimParams(contact_hertz=20.0)
 
 
 @pytest.mark.parametrize(
     ("text", "message"),
     [
         ("contact_hertz", r"expected KEY=VALUE, got 'contact_hertz'"),
-        ("no_such_field=1", r"'no_such_field' is not a SimParams field \(fields: .*contact_hertz.*\)"),
+        ("no_such_field=1", r"'no_such_field' is neither a SimParams field nor a law \(known: .*contact_hertz.*\)"),
         ("contact_hertz=fast", r"contact_hertz='fast': the value is not a number"),
+        ("contact_law=2", r"contact_law='2': 2.0 is not a valid ContactLaw"),
+        ("swept_speculative_contacts=2", r"swept_speculative_contacts='2': the value is not 0 or 1"),
     ],
 )
 def test_a_bad_switch_is_refused_naming_the_problem(text, message):
@@ -34,7 +46,7 @@ def test_a_bad_switch_is_refused_naming_the_problem(text, message):
 def test_the_engine_benchmark_refuses_an_unknown_field_on_its_command_line(capsys):
     with pytest.raises(SystemExit):
         engine_benchmark.main(["--vs-sim", "no_such_field=1"])
-    assert "'no_such_field' is not a SimParams field" in capsys.readouterr().err
+    assert "'no_such_field' is neither a SimParams field nor a law" in capsys.readouterr().err
 
 
 @pytest.mark.parametrize(
@@ -73,7 +85,7 @@ def test_the_engine_benchmark_times_a_switched_option_beside_the_default(capsys)
         + ["--vs-sim", "swept_speculative_contacts=0", "--json"]
     )
     report = json.loads(capsys.readouterr().out)
-    assert report["sim_overrides"] == {"swept_speculative_contacts": 0.0}
+    assert report["sim_overrides"] == {"swept_speculative_contacts": False}
     default, switched = report["steps_per_second"]["ours"]["s"]["2"], report["steps_per_second"]["ours_sim"]["s"]["2"]
     assert default > 0 and switched > 0
     assert report["sim_vs_default"]["s"]["2"] == pytest.approx(switched / default)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 
 import jax
@@ -285,22 +286,18 @@ def _mode_picks(batch) -> list[int]:
 
 
 def _step_batch_in_mode(mode: str, batch, solver_loops: str = "auto"):
-    """`MODE_STEPS` vmapped steps of the mode test batch traced under `engine.set_batching(mode,
-    solver_loops=solver_loops)`: the first step's (state, info), the state after the last step, and the compiled
-    program's text."""
+    """`MODE_STEPS` vmapped steps of the mode test batch under `engine.Batching(mode, TEST_CHUNK_LIMIT,
+    solver_loops)`: the first step's (state, info), the state after the last step, and the compiled program's text."""
     picks = _mode_picks(batch)
     states = stack_states([batch["states"][k] for k in picks])
     motors, thrusters = batch["motors"][picks], batch["thrusters"][picks]
-    engine.set_batching(mode, chunk_limit=TEST_CHUNK_LIMIT, solver_loops=solver_loops)
-    try:
-        stepped = jax.jit(jax.vmap(lambda s, m, t: engine.step(s, PARAMS, m, t, static=SIZE_M)))
-        compiled = stepped.lower(states, motors[:, 0], thrusters[:, 0]).compile()
-        first = compiled(states, motors[:, 0], thrusters[:, 0])
-        states = first[0]
-        for k in range(1, MODE_STEPS):
-            states, _ = compiled(states, motors[:, k], thrusters[:, k])
-    finally:
-        engine.set_batching()
+    static = dataclasses.replace(SIZE_M, batching=engine.Batching(mode, TEST_CHUNK_LIMIT, solver_loops))
+    stepped = jax.jit(jax.vmap(lambda s, m, t: engine.step(s, PARAMS, m, t, static=static)))
+    compiled = stepped.lower(states, motors[:, 0], thrusters[:, 0]).compile()
+    first = compiled(states, motors[:, 0], thrusters[:, 0])
+    states = first[0]
+    for k in range(1, MODE_STEPS):
+        states, _ = compiled(states, motors[:, k], thrusters[:, k])
     return first, states, compiled.as_text()
 
 
@@ -317,7 +314,7 @@ def test_batches_larger_than_a_chunk_equal_single_steps(batch, request):
     picks = _mode_picks(batch)
     motors, thrusters = batch["motors"][picks, 0], batch["thrusters"][picks, 0]
     alone = {}
-    for k in sorted(set(picks)):  # each scene stepped alone, before the batching switch clears the compiled step
+    for k in sorted(set(picks)):  # each scene stepped alone
         state, info = engine.step(
             batch["states"][k], PARAMS, jnp.asarray(motors[k]), jnp.asarray(thrusters[k]), static=SIZE_M
         )
@@ -345,7 +342,7 @@ def test_chunked_and_whole_batching_and_every_solver_loop_form_give_the_same_sta
     whole, programs = {}, {}
     for form in engine.SOLVER_LOOP_FORMS:
         _, whole[form], programs[form] = _step_batch_in_mode("whole", batch, solver_loops=form)
-    assert len({chunked_program, *programs.values()}) == 4, "set_batching did not change the program"
+    assert len({chunked_program, *programs.values()}) == 4, "the batching option did not change the program"
     for form, stepped in whole.items():
         for field, expected in _dynamic_fields(chunked.bodies).items():
             np.testing.assert_allclose(
@@ -359,26 +356,32 @@ def test_chunked_and_whole_batching_and_every_solver_loop_form_give_the_same_sta
     assert kernels["unrolled"] < kernels["unrolled_sweeps"] < 0.7 * kernels["looped"], kernels
 
 
-def test_set_batching_retraces_programs_traced_before(batch):
-    """A jitted program that calls `engine.step` (as the env does) follows a later `set_batching`."""
+def test_the_batching_is_a_static_option_of_each_step_not_a_physics_option(batch):
+    """Two programs traced side by side (as an env's step traces `engine.step`) under static params that differ only
+    in their batching are different programs; the batching is not among the physics options a dataset's definition
+    holds."""
     zeros_m, zeros_t = jnp.zeros(SIZE_M.num_joints), jnp.zeros(SIZE_M.num_thrusters)
-    wrapper = jax.jit(lambda s: engine.step(s, PARAMS, zeros_m, zeros_t, static=SIZE_M)[0])
     states = stack_states(batch["states"][:2])
     jaxprs = {}
-    try:
-        for mode in ("chunked", "whole"):
-            engine.set_batching(mode)
-            jaxprs[mode] = str(jax.make_jaxpr(jax.vmap(wrapper))(states))
-    finally:
-        engine.set_batching()
+    for mode in ("chunked", "whole"):
+        static = dataclasses.replace(SIZE_M, batching=engine.Batching(mode))
+        wrapper = jax.jit(lambda s, static=static: engine.step(s, PARAMS, zeros_m, zeros_t, static=static)[0])
+        jaxprs[mode] = str(jax.make_jaxpr(jax.vmap(wrapper))(states))
     assert jaxprs["chunked"] != jaxprs["whole"]
+    unrolled = dataclasses.replace(SIZE_M, batching=engine.Batching("whole", 8, "unrolled"))
+    assert unrolled != SIZE_M and unrolled.physics_options() == SIZE_M.physics_options()
+    assert "batching" not in SIZE_M.physics_options()
 
 
 def test_auto_batching_chunks_and_loops_on_cpu_only():
     assert jax.default_backend() == "cpu"
-    assert engine.current_batching() == engine.Batching("chunked", BATCH_CHUNK, "looped")
+    assert SIZE_M.batching == engine.Batching("auto", BATCH_CHUNK, "auto")
+    assert SIZE_M.batching.resolved() == engine.Batching("chunked", BATCH_CHUNK, "looped")
+    assert SIZE_M.batching.resolved("gpu") == engine.Batching("whole", BATCH_CHUNK, "unrolled")
+    assert engine.Batching("whole", 8, "looped").resolved("gpu") == engine.Batching("whole", 8, "looped")
     with pytest.raises(ValueError, match="batching mode 'gpu'"):
-        engine.set_batching("gpu")
+        engine.Batching("gpu")
     with pytest.raises(ValueError, match="solver_loops mode 'fast' is not one of"):
-        engine.set_batching(solver_loops="fast")
-    assert engine.current_batching() == engine.Batching("chunked", BATCH_CHUNK, "looped")
+        engine.Batching(solver_loops="fast")
+    with pytest.raises(ValueError, match="chunk_limit must be a positive number of scenes, got 0"):
+        engine.Batching(chunk_limit=0)

@@ -1,6 +1,6 @@
-"""Which points overlapping shapes touch at and which impulses they start from (`SimParams.collision_rules`): Box2D's
-rules (the default) and Jax2D's, the latter's manifolds checked against Jax2D's own narrowphase functions on random
-overlapping pairs (docs/physics.md).
+"""Which points overlapping shapes touch at and which impulses they start from
+(`StaticSimParams.collision_rules`): Box2D's rules (the default) and Jax2D's, the latter's manifolds checked against
+Jax2D's own narrowphase functions on random overlapping pairs (docs/physics.md).
 
 Every test prints a `MEASURED` line (run pytest with -s to see them).
 """

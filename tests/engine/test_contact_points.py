@@ -1,4 +1,4 @@
-"""Where a contact's points lie and how deep they count (`SimParams.contact_points`): ours midway between the
+"""Where a contact's points lie and how deep they count (`StaticSimParams.contact_points`): ours midway between the
 surfaces, each point with its own depth, or Jax2D's placement (docs/physics.md, docs/fidelity.md).
 
 Every test prints a `MEASURED` line (run pytest with -s to see them).
@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 from engine_test_helpers import SIZE_S, pair_index, run, zero_gravity
 
-from engine import FLOOR_TOP, ContactLaw, ContactPoints, SceneBuilder, SimParams, pair_layout
+from engine import FLOOR_TOP, ContactLaw, ContactPoints, SceneBuilder, SimParams, StaticSimParams, pair_layout
 from engine.collision import manifolds, world_geometry
 from engine.params import ContactPoints as ContactPointsFromParams
 
@@ -41,7 +41,7 @@ def _pair_manifold(builder: SceneBuilder, body_a: int, body_b: int, points: Cont
 
 def test_the_enum_is_the_engines_public_one():
     assert ContactPoints is ContactPointsFromParams
-    assert SimParams().contact_points == ContactPoints.MIDWAY
+    assert StaticSimParams().contact_points == ContactPoints.MIDWAY
 
 
 def test_two_overlapping_circles_touch_midway_or_on_the_first_circles_surface():
@@ -122,10 +122,9 @@ def _spinning_disc_in_the_floor(law: ContactPoints, depth: float, radius: float,
     builder = SceneBuilder(SIZE_S)
     disc = builder.add_circle((2.5, FLOOR_TOP + radius - depth), radius, angular_velocity=spin)
     state = zero_gravity(builder.build())
-    params = SimParams(
-        contact_law=ContactLaw.BAUMGARTE, speculative_distance=0.0, overlap_allowance=1.0, contact_points=law
-    )
-    _, traj = run(state, dataclasses.replace(SIZE_S, **JAX2D_SCHEME), 1, params=params)
+    params = SimParams(speculative_distance=0.0, overlap_allowance=1.0)
+    static = dataclasses.replace(SIZE_S, contact_law=ContactLaw.BAUMGARTE, contact_points=law, **JAX2D_SCHEME)
+    _, traj = run(state, static, 1, params=params)
     mass = 1.0 / float(state.bodies.inverse_mass[disc])
     inertia = 1.0 / float(state.bodies.inverse_inertia[disc])
     return float(traj.angular_velocity[-1, disc]), mass, inertia

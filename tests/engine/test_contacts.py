@@ -403,7 +403,7 @@ TUNNEL_PHASES = (0.0, 1.0 / 3.0, 2.0 / 3.0)  # start offsets in units of one ste
 WALL_X, WALL_THICKNESS = 5.0, 0.1
 
 
-def _shoot(shape: str, v: float, phase: float, params: SimParams = PARAMS) -> bool:
+def _shoot(shape: str, v: float, phase: float, params: SimParams = PARAMS, static: StaticSimParams = SIZE_S) -> bool:
     """Zero gravity: a 0.1 m box or 5 cm circle shot along +x at a 0.1 m thick static wall; True if it passes."""
     builder = SceneBuilder(SIZE_S, boundaries=False)
     builder.add_box((WALL_X, 2.0), (WALL_THICKNESS, 2.0), static=True, slot=0)
@@ -412,7 +412,7 @@ def _shoot(shape: str, v: float, phase: float, params: SimParams = PARAMS) -> bo
         body = builder.add_box((start, 2.0), (0.1, 0.1), velocity=(v, 0.0))
     else:
         body = builder.add_circle((start, 2.0), 0.05, velocity=(v, 0.0))
-    _, traj = run(zero_gravity(builder.build()), SIZE_S, 100, params=params)
+    _, traj = run(zero_gravity(builder.build()), static, 100, params=params)
     return bool(traj.position[:, body, 0].max() > WALL_X)
 
 
@@ -494,7 +494,7 @@ CORNER = np.array([2.0, 2.0])  # [m] top right corner of the static box of `_pas
 PASS_DIRECTION = np.array([1.0, -1.0]) / math.sqrt(2.0)
 
 
-def _pass_corner(clearance: float, params: SimParams, speed_m_per_s: float = 8.5):
+def _pass_corner(clearance: float, swept: bool, speed_m_per_s: float = 8.5):
     """Zero gravity: a 10 cm disc flies down-right past the top right corner of a static 1 m box, on a straight line
     whose closest approach leaves `clearance` [m] between disc and corner. Returns (trajectory, pair, disc)."""
     builder = SceneBuilder(SIZE_S, boundaries=False)
@@ -502,7 +502,8 @@ def _pass_corner(clearance: float, params: SimParams, speed_m_per_s: float = 8.5
     closest = CORNER + (0.1 + clearance) * np.array([1.0, 1.0]) / math.sqrt(2.0)
     start = closest - 1.0 * PASS_DIRECTION
     disc = builder.add_circle(tuple(start), 0.1, velocity=tuple(speed_m_per_s * PASS_DIRECTION))
-    _, traj = run(zero_gravity(builder.build()), SIZE_S, 20, params=params)
+    static = dataclasses.replace(SIZE_S, swept_speculative_contacts=swept)
+    _, traj = run(zero_gravity(builder.build()), static, 20)
     return traj, pair_index(SIZE_S, box, disc), disc
 
 
@@ -512,8 +513,8 @@ def test_a_disc_that_passes_a_corner_flies_on_untouched(clearance):
     the circle to what it faces: a disc passing a corner with 1-3 cm to spare keeps its velocity and never touches.
     With the contact's normal fixed at the step's start (the switch off), the same disc is stopped as if the box's top
     face went on past its corner."""
-    swept, pair, disc = _pass_corner(clearance, SimParams(swept_speculative_contacts=True))
-    fixed, _, _ = _pass_corner(clearance, SimParams(swept_speculative_contacts=False))
+    swept, pair, disc = _pass_corner(clearance, swept=True)
+    fixed, _, _ = _pass_corner(clearance, swept=False)
     launch = 8.5 * PASS_DIRECTION
     swept_change = np.abs(swept.velocity[:, disc] - launch).max()
     fixed_change = np.abs(fixed.velocity[:, disc] - launch).max()
@@ -532,7 +533,7 @@ def test_a_disc_that_passes_a_corner_flies_on_untouched(clearance):
 def test_a_disc_that_clips_a_corner_is_still_deflected():
     """The same disc on a line that cuts 1 cm into the corner is stopped by its speculative contact in both modes,
     and touches."""
-    traj, pair, disc = _pass_corner(-0.01, SimParams(swept_speculative_contacts=True))
+    traj, pair, disc = _pass_corner(-0.01, swept=True)
     change = np.abs(traj.velocity[:, disc] - 8.5 * PASS_DIRECTION).max()
     measured("corner clipped by 1 cm", velocity_change=float(change))
     assert change > 1.0
@@ -549,7 +550,8 @@ def test_discs_that_pass_each_other_do_not_meet():
         resting = builder.add_circle((2.5, 2.0), 0.1)
         start = np.array([2.5, 2.0]) + 0.21 * np.array([1.0, 1.0]) / math.sqrt(2.0) - 1.0 * PASS_DIRECTION
         flying = builder.add_circle(tuple(start), 0.1, velocity=tuple(8.5 * PASS_DIRECTION))
-        _, traj = run(zero_gravity(builder.build()), SIZE_S, 20, params=SimParams(swept_speculative_contacts=swept))
+        static = dataclasses.replace(SIZE_S, swept_speculative_contacts=swept)
+        _, traj = run(zero_gravity(builder.build()), static, 20)
         results[swept] = (
             float(np.abs(traj.velocity[:, resting]).max()),
             bool(traj.touching[:, pair_index(SIZE_S, resting, flying)].any()),
@@ -565,8 +567,8 @@ def test_swept_speculative_contacts_keep_fast_bodies_from_tunnelling(tunnelling_
     facing an edge counts as apart only while it stays in front of the edge's line, and a corner's closest approach
     is checked between the samples, so a body shot at the 0.1 m wall (the sweep above, swept contacts being the
     default) passes it exactly as often as with the normal fixed at the step's start."""
-    fixed = SimParams(swept_speculative_contacts=False)
-    passes = {v: sum(_shoot(shape, v, phase, fixed) for phase in TUNNEL_PHASES) for v in TUNNEL_SPEEDS}
+    fixed = dataclasses.replace(SIZE_S, swept_speculative_contacts=False)
+    passes = {v: sum(_shoot(shape, v, phase, static=fixed) for phase in TUNNEL_PHASES) for v in TUNNEL_SPEEDS}
     measured(f"tunnelling {shape} with the normal fixed", pass_throughs_per_speed=passes)
     assert tunnelling_sweep[shape] == passes
 
@@ -830,14 +832,15 @@ def test_warm_start_equals_every_slots_impulse_added_to_its_bodies():
         assert np.asarray(warmed[component])[-1] == np.asarray(v)[-1]
 
 
-def _box_started_in_the_floor(law: int, depth: float, steps: int = 30, baumgarte_depth: float = math.inf):
+def _box_started_in_the_floor(law: ContactLaw, depth: float, steps: int = 30, baumgarte_depth: float = math.inf):
     """Upward speed and bottom height above the floor [m/s, m] of a 0.5 m box that starts `depth` inside the floor,
     at rest, in zero gravity: at the start, then after each step."""
     builder = SceneBuilder(SIZE_S)
     size = 0.5
     box = builder.add_box((2.5, FLOOR_TOP + size / 2 - depth), (size, size))
-    params = SimParams(contact_law=law, baumgarte_depth=baumgarte_depth)
-    _, traj = run(zero_gravity(builder.build()), SIZE_S, steps, params=params)
+    params = SimParams(baumgarte_depth=baumgarte_depth)
+    static = dataclasses.replace(SIZE_S, contact_law=law)
+    _, traj = run(zero_gravity(builder.build()), static, steps, params=params)
     return traj.velocity[:, box, 1], traj.position[:, box, 1] - size / 2 - FLOOR_TOP
 
 
@@ -880,7 +883,8 @@ def _disc_started_in_the_floor(depth: float, static: StaticSimParams, steps: int
     builder = SceneBuilder(SIZE_S)
     radius = 0.25
     disc = builder.add_circle((2.5, FLOOR_TOP + radius - depth), radius)
-    params = SimParams(contact_law=ContactLaw.BAUMGARTE, speculative_distance=0.0, speculative_reach=0.0)
+    params = SimParams(speculative_distance=0.0, speculative_reach=0.0)
+    static = dataclasses.replace(static, contact_law=ContactLaw.BAUMGARTE)
     _, traj = run(zero_gravity(builder.build()), static, steps, params=params)
     return traj.velocity[:, disc, 1], traj.position[:, disc, 1] - radius - FLOOR_TOP
 
@@ -924,8 +928,10 @@ def _box_resting_one_step(block: bool):
     builder = SceneBuilder(SIZE_S)
     box = builder.add_box((2.5, FLOOR_TOP + 0.25 - RESTING_OVERLAP), (0.5, 0.5))
     state = builder.build()
-    static = dataclasses.replace(SIZE_S, num_iterations=3, num_relax_iterations=0, block_contacts=block)
-    params = SimParams(contact_law=ContactLaw.BAUMGARTE, speculative_distance=0.0, overlap_allowance=1.0)
+    static = dataclasses.replace(
+        SIZE_S, num_iterations=3, num_relax_iterations=0, block_contacts=block, contact_law=ContactLaw.BAUMGARTE
+    )
+    params = SimParams(speculative_distance=0.0, overlap_allowance=1.0)
     final, traj = run(state, static, 1, params=params)
     impulses = np.asarray(final.contacts.normal_impulse[pair_index(static, 0, box)], np.float64)
     mass = 1.0 / float(state.bodies.inverse_mass[box])

@@ -18,7 +18,7 @@ from engine import ContactLaw, LimitLaw, MotorLaw, SceneBuilder, SimParams
 
 STATIC = SIZE_L
 PARAMS = SimParams()
-CONSTRAINT_MOTORS = SimParams(motor_law=MotorLaw.CONSTRAINT)
+CONSTRAINT_MOTORS = dataclasses.replace(STATIC, motor_law=MotorLaw.CONSTRAINT)
 """The motor as a constraint row (not Kinetix's law; kept as an option)."""
 DT = PARAMS.dt
 SUBSTEP = DT / STATIC.num_substeps
@@ -260,8 +260,7 @@ def test_a_spinning_wheel_meets_its_angle_limit(law):
     start: the wheel reaches 0.54 rad (the first step start beyond 0.5), and that step turns it back at
     limit_recovery_rate x 0.04 rad = 0.2 rad/s, which nothing changes after (it no longer turns outward)."""
     state, wheel = _wheel_spinning_towards_its_limit(STATIC)
-    params = SimParams(limit_law=law)
-    _, traj = run(state, STATIC, 30, params=params)
+    _, traj = run(state, dataclasses.replace(STATIC, limit_law=law), 30)
     angle, omega = _joint_angle(traj, state, 0), traj.angular_velocity[:, wheel]
     measured(f"wheel at its limit ({law.name})", max_angle_rad=angle.max(), final_omega=omega[-1])
     if law != LimitLaw.KINETIX:  # BOUNDED_RETURN approaches a limit as SPECULATIVE does
@@ -271,7 +270,7 @@ def test_a_spinning_wheel_meets_its_angle_limit(law):
         peak = int(np.argmax(angle))
         assert peak == 12 and abs(angle[peak] - 0.54) < 1e-4
         np.testing.assert_allclose(omega[: peak + 1], 2.7, rtol=1e-5)
-        np.testing.assert_allclose(omega[peak + 1 :], -params.limit_recovery_rate * 0.04, rtol=1e-3)
+        np.testing.assert_allclose(omega[peak + 1 :], -PARAMS.limit_recovery_rate * 0.04, rtol=1e-3)
 
 
 def test_relaxing_joints_only_holds_a_wheel_at_its_limit_where_no_relaxing_pass_lets_it_drift_back():
@@ -279,8 +278,8 @@ def test_relaxing_joints_only_holds_a_wheel_at_its_limit_where_no_relaxing_pass_
     Without a relaxing pass the limit row's correction velocity stays in the wheel, which leaves its limit turning
     back; one relaxing pass of joints only (`relax_contacts=False`) takes it out, and the wheel rests at the limit."""
     state, wheel = _wheel_spinning_towards_its_limit(SIZE_S)  # the smallest size: two schemes to compile
-    params = SimParams(contact_law=ContactLaw.BAUMGARTE, speculative_distance=0.0, overlap_allowance=1.0)
-    scheme = dict(num_iterations=3, block_contacts=True)
+    params = SimParams(speculative_distance=0.0, overlap_allowance=1.0)
+    scheme = dict(num_iterations=3, block_contacts=True, contact_law=ContactLaw.BAUMGARTE)
     final = {}
     for relax in (0, 1):
         static = dataclasses.replace(SIZE_S, num_relax_iterations=relax, relax_contacts=False, **scheme)
@@ -303,7 +302,7 @@ def test_a_wheel_started_past_its_limit_returns_as_each_law_says():
     state = state.replace(bodies=state.bodies.replace(rotation=state.bodies.rotation.at[wheel].set(1.5)))
     excess = {}
     for law in (LimitLaw.SPECULATIVE, LimitLaw.BOUNDED_RETURN, LimitLaw.KINETIX):
-        _, traj = run(state, STATIC, 90, params=SimParams(limit_law=law))
+        _, traj = run(state, dataclasses.replace(STATIC, limit_law=law), 90)
         excess[law] = _joint_angle(traj, state, 0) - 0.5
     fastest_step = math.exp(-PARAMS.limit_recovery_rate * DT)
     bounded = excess[LimitLaw.BOUNDED_RETURN]
@@ -380,7 +379,7 @@ def test_servo_motor_holds_a_bar_where_its_impulse_balances_gravity():
 
 def test_constraint_motor_free_wheel_reaches_target_speed():
     state, wheel = _motor_wheel()
-    _, traj = run(state, STATIC, 100, params=CONSTRAINT_MOTORS, motor=_motor_actions())
+    _, traj = run(state, CONSTRAINT_MOTORS, 100, motor=_motor_actions())
     target = 1.0 * PARAMS.base_motor_speed * 1.0
     omega = traj.angular_velocity[:, wheel]
     relative_error = np.abs(omega / target - 1.0)
@@ -399,14 +398,14 @@ def test_constraint_motor_free_wheel_reaches_target_speed():
     assert np.all(np.abs(traj.motor_impulse[:, 0]) <= bound * (1 + 1e-5))
 
 
-@pytest.mark.parametrize("params", [PARAMS, CONSTRAINT_MOTORS], ids=["servo", "constraint"])
-def test_motor_with_zero_action_is_off_and_the_wheel_spins_freely(params):
+@pytest.mark.parametrize("static", [STATIC, CONSTRAINT_MOTORS], ids=["servo", "constraint"])
+def test_motor_with_zero_action_is_off_and_the_wheel_spins_freely(static):
     # Kinetix/Jax2D semantics: a motor acts only while its action is non-zero; action 0 is not a brake.
     builder = _builder_with_pivot()
     wheel = builder.add_circle(PIVOT, 0.2, angular_velocity=3.0)
     builder.add_revolute_joint(0, wheel, PIVOT, motor_speed=1.0, motor_power=1.0, motor_on=True)
     state = builder.build()
-    _, traj = run(state, STATIC, 60, params=params, motor=np.zeros(STATIC.num_joints, np.float32))
+    _, traj = run(state, static, 60, motor=np.zeros(STATIC.num_joints, np.float32))
     np.testing.assert_allclose(traj.angular_velocity[:, wheel], 3.0, rtol=1e-5)
     assert np.all(traj.motor_impulse[:, 0] == 0.0)
 
@@ -420,7 +419,7 @@ def test_constraint_motor_under_heavy_load_respects_and_saturates_torque_bound()
     bound = _motor_bound(state, 0)
     mass = 1.0 / float(state.bodies.inverse_mass[bar])
     assert bound / SUBSTEP < mass * G * 0.5  # the motor torque cannot hold the bar horizontal
-    _, traj = run(state, STATIC, 300, params=CONSTRAINT_MOTORS, motor=_motor_actions())
+    _, traj = run(state, CONSTRAINT_MOTORS, 300, motor=_motor_actions())
     impulse = np.abs(traj.motor_impulse[:, 0])
     saturated = impulse >= bound * (1 - 1e-4)
     angle = _joint_angle(traj, state, 0)

@@ -3,6 +3,10 @@ Jax2D's push-out of a deep overlap."""
 
 from __future__ import annotations
 
+import dataclasses
+
+import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 from engine_test_helpers import SIZE_M, SIZE_S, run, zero_gravity
@@ -11,14 +15,18 @@ from engine import (
     DEFAULT_PHYSICS_SCHEME,
     FLOOR_TOP,
     PHYSICS_SCHEMES,
+    Batching,
     CollisionRules,
     ContactLaw,
     ContactPoints,
     ForceTiming,
     LimitLaw,
+    MotorLaw,
     SceneBuilder,
     SimParams,
+    StaticSimParams,
     physics_scheme,
+    step,
 )
 
 KINETIX = physics_scheme("kinetix")
@@ -33,23 +41,43 @@ def test_the_default_scheme_changes_nothing():
 
 def test_the_kinetix_scheme_is_jax2ds_solver_and_contact_geometry_and_keeps_sizes_and_level_constants():
     sim = KINETIX.sim(SimParams(base_friction=0.7, dt=1.0 / 30.0))
-    assert (sim.contact_law, sim.force_timing, sim.limit_law) == (
+    assert (sim.speculative_distance, sim.overlap_allowance) == (0.0, 2.0)
+    assert (sim.base_friction, sim.dt) == (0.7, 1.0 / 30.0)  # what it does not set is the level's own
+    batching = Batching("whole", 8, "unrolled")
+    static = KINETIX.static(dataclasses.replace(SIZE_M, batching=batching))
+    assert (static.contact_law, static.force_timing, static.limit_law) == (
         ContactLaw.BAUMGARTE,
         ForceTiming.STEP_START,
         LimitLaw.BOUNDED_RETURN,
     )
-    assert (sim.speculative_distance, sim.overlap_allowance, sim.contact_points) == (0.0, 2.0, ContactPoints.KINETIX)
-    assert sim.collision_rules == CollisionRules.JAX2D
-    assert (sim.base_friction, sim.dt) == (0.7, 1.0 / 30.0)  # what it does not set is the level's own
-    static = KINETIX.static(SIZE_M)
+    assert (static.contact_points, static.collision_rules) == (ContactPoints.KINETIX, CollisionRules.JAX2D)
     assert (static.num_substeps, static.num_iterations, static.num_relax_iterations) == (1, 10, 0)
     assert (static.num_polygons, static.num_circles, static.num_joints, static.num_thrusters) == (6, 3, 2, 2)
+    assert static.batching == batching  # the execution form is the caller's
 
 
-def test_physics_options_are_the_solver_settings_without_the_sizes():
+def test_a_scheme_sets_only_continuous_constants_in_sim_params_and_its_laws_statically():
+    for name, scheme in PHYSICS_SCHEMES.items():
+        for field, value in scheme.sim_fields:
+            assert isinstance(value, float) and isinstance(getattr(SimParams(), field), float), (name, field)
+        assert {field for field, _ in scheme.solver_fields} <= set(StaticSimParams().physics_options()), name
+
+
+def test_physics_options_are_the_laws_and_solver_settings_without_the_sizes_or_the_execution_form():
     options = KINETIX.static(SIZE_M).physics_options()
     assert options["num_substeps"] == 1 and options["num_iterations"] == 10 and options["num_relax_iterations"] == 0
+    assert options["contact_law"] == ContactLaw.BAUMGARTE and options["limit_law"] == LimitLaw.BOUNDED_RETURN
+    assert options["swept_speculative_contacts"] is True and options["block_contacts"] is False
     assert not {"num_polygons", "num_circles", "num_joints", "num_thrusters", "num_reserved_static"} & set(options)
+    assert "batching" not in options
+
+
+def test_a_law_must_be_one_of_its_enum():
+    assert StaticSimParams(contact_law=1).contact_law is ContactLaw.BAUMGARTE
+    with pytest.raises(ValueError, match=r"StaticSimParams.limit_law must be a LimitLaw \(SPECULATIVE=0, KINETIX=1, "):
+        StaticSimParams(limit_law=3)
+    with pytest.raises(ValueError, match="StaticSimParams.swept_speculative_contacts must be a bool, got 1"):
+        StaticSimParams(swept_speculative_contacts=1)
 
 
 def test_an_unknown_scheme_is_refused_with_the_known_ones():
@@ -76,3 +104,22 @@ def test_under_the_kinetix_scheme_a_deep_disc_leaves_at_jax2ds_push_out_speed():
     depth, share, slop, dt = 0.1, SimParams().baumgarte_share, SimParams().contact_slop, SimParams().dt
     assert _disc_in_the_floor_first_step_speed("kinetix", depth) == pytest.approx(share / dt * (depth - slop), rel=1e-5)
     assert _disc_in_the_floor_first_step_speed("kforge", depth) < 0.95 * share / dt * (depth - slop)
+
+
+def _step_jaxpr(static: StaticSimParams, params: SimParams) -> str:
+    """The traced program of one step of an empty scene of `static`'s size."""
+    state = SceneBuilder(static).build()
+    motors, thrusters = jnp.zeros(static.num_joints), jnp.zeros(static.num_thrusters)
+    return str(jax.make_jaxpr(lambda s, p: step(s, p, motors, thrusters, static=static))(state, params))
+
+
+def test_each_scheme_traces_its_own_program_holding_only_its_laws():
+    """The laws are static: the two schemes' steps are different programs, and a law's kernels are only in the
+    programs that follow it (the servo motor's tanh is in a SERVO step, and nowhere in a CONSTRAINT one)."""
+    programs = {
+        name: _step_jaxpr(scheme.static(SIZE_S), scheme.sim(SimParams())) for name, scheme in PHYSICS_SCHEMES.items()
+    }
+    assert programs["kforge"] != programs["kinetix"]
+    assert "tanh" in programs["kforge"]
+    constraint = dataclasses.replace(SIZE_S, motor_law=MotorLaw.CONSTRAINT)
+    assert "tanh" not in _step_jaxpr(constraint, SimParams())
