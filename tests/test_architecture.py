@@ -106,3 +106,24 @@ def test_the_command_line_answers_help_without_jax_or_ray(arguments):
     result = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, cwd=REPO, check=True)
     assert "usage:" in result.stdout
     assert result.stdout.strip().splitlines()[-1] == "HEAVY []"
+
+
+def test_sim_params_hold_only_continuous_constants_and_the_laws_are_static():
+    """`engine.SimParams` is traced: every field is a float (a law switch there would compile every law into every
+    step, and could change under a compiled program). The laws are enum or bool fields of the static
+    `engine.StaticSimParams`, each program holding only its own."""
+    import dataclasses
+    import enum
+
+    from engine import SimParams, StaticSimParams
+
+    switches = {
+        field.name: type(getattr(SimParams(), field.name)).__name__
+        for field in dataclasses.fields(SimParams)
+        if type(getattr(SimParams(), field.name)) is not float
+    }
+    assert not switches, f"SimParams fields that are not floats (law switches belong in StaticSimParams): {switches}"
+    static = StaticSimParams()
+    laws = [f.name for f in dataclasses.fields(static) if isinstance(getattr(static, f.name), enum.Enum)]
+    assert {"force_timing", "motor_law", "contact_law", "contact_points", "collision_rules", "limit_law"} <= set(laws)
+    assert set(laws) <= set(static.physics_options())
