@@ -150,6 +150,8 @@ def _check(args: argparse.Namespace, chosen: argparse.ArgumentParser) -> None:
             chosen.error(f"--out must end in .png (start state) or .gif (episode), got {args.out}")
         if args.steps < 1 or (args.resolution is not None and args.resolution < 1):
             chosen.error("--steps and --resolution must be >= 1")
+    if args.command == "import" and not args.level.is_file():
+        raise fail(InputError(f"{args.level}: no such level file"))
     if args.command == "export":
         args.overrides = [item for item in args.items if "=" in item] + (args.override or [])
         numbers = [item for item in args.items if "=" not in item]

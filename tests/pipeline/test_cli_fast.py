@@ -32,6 +32,7 @@ def argument_errors(tmp: Path) -> list[list[str]]:
         ["levels", "preview"],
         ["levels", "export", "1M/s", "zero"],
         ["levels", "list", "--size", "xl"],
+        ["levels", "import", level],
         ["render", level, "--steps", "0"],
         ["render", level, "--physics", "jax2d"],
         ["verify", missing],
