@@ -14,7 +14,7 @@ from collections.abc import Mapping
 import jax
 import numpy as np
 
-from engine import StaticSimParams, empty_state
+from engine import Batching, StaticSimParams, empty_state
 from env import NUM_ACTION_SLOTS, ActionType, EnvState, Level, StaticEnvParams, empty_task, initial_state, noop_action
 
 STATE_PREFIX = "env_state"
@@ -139,7 +139,10 @@ def static_to_json(static: StaticEnvParams) -> dict:
 
 def static_from_json(data: Mapping) -> StaticEnvParams:
     fields = dict(data)
-    return StaticEnvParams(sim=StaticSimParams(**fields.pop("sim")), **fields)
+    sim = dict(fields.pop("sim"))
+    if "batching" in sim:  # a nested dataclass in the JSON (`static_to_json`)
+        sim["batching"] = Batching(**sim["batching"])
+    return StaticEnvParams(sim=StaticSimParams(**sim), **fields)
 
 
 def _state_template(static: StaticEnvParams) -> EnvState:

@@ -8,6 +8,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
+import time
 from pathlib import Path
 
 import numpy as np
@@ -33,13 +34,17 @@ from pipeline.reading.stats import collect_stats
 from pipeline.storage import (
     LEASE_KEY,
     Lease,
+    LeaseLost,
     Store,
+    commit_record,
     iter_records,
     open_dataset,
     read_holder,
+    read_record_json,
     record_key,
 )
 from pipeline.storage.layout import DatasetError
+from pipeline.storage.manifest import remove_record
 from pipeline.storage.verify import verify_dataset
 
 BUCKET = "kforge-test"
@@ -323,3 +328,20 @@ def assert_same_contents(first: str, second: str) -> None:
         np.testing.assert_array_equal(a.read([spec.name], slots)[spec.name], b.read([spec.name], slots)[spec.name])
     records = [[dataclasses.replace(r, provenance=None) for r in iter_records(root)] for root in (first, second)]
     assert records[0] == records[1]
+
+
+def test_commits_on_s3_are_fenced_a_record_is_never_overwritten_and_a_garbage_lease_is_lost(s3):
+    """The fences of `test_fencing.py` on S3: a commit is a conditional create, an uncommit removes only the record
+    it read (`If-Match`), and a lease overwritten with garbage is a lost lease, not a failed heartbeat."""
+    url = f"s3://{BUCKET}/fenced"
+    assert commit_record(url, 0, 1, {"shard": 0, "batch": 1, "by": "first"}) is not None
+    assert commit_record(url, 0, 1, {"shard": 0, "batch": 1, "by": "second"}) is None
+    assert read_record_json(url, 0, 1)["by"] == "first"
+    assert remove_record(url, 0, 1) and not remove_record(url, 0, 1)
+    with Lease.acquire(url, job_id="mine", heartbeat_s=0.05) as lease:
+        s3.put_object(Bucket=BUCKET, Key=f"fenced/{LEASE_KEY}", Body=b"garbage")
+        deadline = time.monotonic() + 30
+        while lease.lost is None and time.monotonic() < deadline:
+            time.sleep(0.02)
+        with pytest.raises(LeaseLost, match="overwritten by an unreadable lease"):
+            lease.fence()
