@@ -10,15 +10,17 @@ the batch spread over them when their count divides it (`pipeline.generation.dev
 from __future__ import annotations
 
 import enum
-import functools
+import threading
 import time
+from collections.abc import Callable
+from concurrent.futures import Future
 from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from agents import collect_windows, train_levels
+from agents import collect_windows, initial_params, train_levels
 from env import FilterReason, Level, filter_levels, sample_levels
 from pipeline.generation.config import FIXED_BUDGET_MODE, JobConfig, environment, ppo_config
 from pipeline.generation.devices import over_local_devices
@@ -65,11 +67,16 @@ def sample_batch(job: JobConfig, level_indices: np.ndarray) -> Level:
 
 def sample_and_filter(job: JobConfig, indices: np.ndarray):
     """(levels, the filter's verdicts, (L,) bool dropped by the filter) of a level batch."""
-    params, static = environment(job)
     levels = sample_batch(job, indices)
+    return (levels, *filter_batch(job, levels))
+
+
+def filter_batch(job: JobConfig, levels: Level):
+    """(the filter's verdicts, (L,) bool dropped by the filter) of a level batch's levels."""
+    params, static = environment(job)
     filtered = jax.device_get(filter_levels(levels, params, static, noop_steps=job.filter.noop_steps))
     dropped = ~filtered.keep if job.filter.enabled else np.zeros_like(filtered.keep)
-    return levels, filtered, dropped
+    return filtered, dropped
 
 
 def run_level_batch(
@@ -83,14 +90,17 @@ def run_level_batch(
     train (from another thread; `estimated_progress`), and all of them once trained.
     """
     clock = PhaseClock()
-    params, static = environment(job)
+    params, _ = environment(job)
     indices = batch_level_indices(job, shard, batch)
-    levels, filtered, dropped = sample_and_filter(job, indices)
-    clock.lap("sample_and_filter")
-
     config = ppo_config(job)
     train_keys = level_keys(job.split.seed, indices, KeyPurpose.TRAIN)
-    train = _compiled_train_program(config, static, levels, train_keys, params)
+    compiling_train = _compiling_train_program(job, indices, train_keys)
+    levels = sample_batch(job, indices)
+    filtered, dropped = filter_batch(job, levels)
+    _compiled_collect_program(job, levels, level_keys(job.split.seed, indices, KeyPurpose.COLLECT))
+    clock.lap("sample_and_filter")
+
+    train = compiling_train.result()
     with estimated_progress(train, config.num_updates, on_progress or _ignore_progress):
         trained = jax.block_until_ready(train(levels, train_keys, params))
     clock.lap("train")
@@ -155,21 +165,61 @@ def batch_result(
     )
 
 
-def _compiled_train_program(config, static, levels: Level, keys: jax.Array, env_params):
-    """`train_levels` for a batch of these shapes, spread over the local devices: compiled (or loaded from the
-    persistent compilation cache) once per config and level count in a process."""
+def _compiling_train_program(job: JobConfig, indices: np.ndarray, keys: jax.Array) -> Future:
+    """The future of `train_levels` for the job's level batches of this size, spread over the local devices:
+    traced and compiled (or loaded from the persistent compilation cache) once per config and level count in a
+    process, in a thread of its own, while the calling thread samples and filters the batch and compiles its
+    collection program (XLA compiles without holding the GIL: on two cores, the longest compilation, the training
+    program's, has a core to itself)."""
+    env_params, static = environment(job)
+    config = ppo_config(job)
     program = (config, static, len(keys))
-    if program not in _train_programs:
+    compiling = _train_programs.get(program)
+    if compiling is None or (compiling.done() and compiling.exception() is not None):
 
         def train(levels, keys, env_params):
             return train_levels(levels, keys, config, env_params, static)
 
-        spread = over_local_devices(train, len(keys), level_args=2, shared_args=1)
-        _train_programs[program] = jax.jit(spread).lower(levels, keys, env_params).compile()
-    return _train_programs[program]
+        def compile_train() -> jax.stages.Compiled:
+            levels = jax.eval_shape(lambda: sample_batch(job, indices))
+            spread = over_local_devices(train, len(keys), level_args=2, shared_args=1)
+            return jax.jit(spread).lower(levels, keys, env_params).compile()
+
+        compiling = _train_programs[program] = _in_background(compile_train, "compile-train")
+    return compiling
 
 
-_train_programs: dict[tuple, jax.stages.Compiled] = {}
+_train_programs: dict[tuple, Future] = {}
+
+
+def _in_background(function: Callable[[], object], name: str) -> Future:
+    """The future of `function()`, run in a daemon thread (an interrupted job exits without waiting for it)."""
+    future = Future()
+
+    def run() -> None:
+        try:
+            future.set_result(function())
+        except BaseException as error:  # handed to whoever waits for the result
+            future.set_exception(error)
+
+    threading.Thread(target=run, name=name, daemon=True).start()
+    return future
+
+
+def _compiled_collect_program(job: JobConfig, levels: Level, keys: jax.Array) -> jax.stages.Compiled:
+    """`_collect_program` for this job and level count, compiled (or loaded from the persistent compilation cache)
+    once per process, before any expert is trained (the experts' parameters have the shapes of fresh ones)."""
+    env_params, static = environment(job)
+    config = ppo_config(job)
+    program = (config, static, len(keys), job.collect.window_steps, job.collect.greedy)
+    if program not in _collect_programs:
+        params = jax.eval_shape(jax.vmap(lambda key: initial_params(key, config, static)), keys)
+        lowered = jax.jit(_collect_program(*program)).lower(params, levels, keys, env_params)
+        _collect_programs[program] = lowered.compile()
+    return _collect_programs[program]
+
+
+_collect_programs: dict[tuple, jax.stages.Compiled] = {}
 
 
 def windows_successful(job: JobConfig, params, levels: Level, indices: np.ndarray) -> np.ndarray:
@@ -179,12 +229,11 @@ def windows_successful(job: JobConfig, params, levels: Level, indices: np.ndarra
 
 
 def _windows(job: JobConfig, params, levels: Level, indices: np.ndarray):
-    env_params, static = environment(job)
-    collect = _collect_program(ppo_config(job), static, len(indices), job.collect.window_steps, job.collect.greedy)
-    return collect(params, levels, level_keys(job.split.seed, indices, KeyPurpose.COLLECT), env_params)
+    env_params, _ = environment(job)
+    keys = level_keys(job.split.seed, indices, KeyPurpose.COLLECT)
+    return _compiled_collect_program(job, levels, keys)(params, levels, keys, env_params)
 
 
-@functools.cache
 def _collect_program(config, static, num_levels: int, num_steps: int, greedy: bool):
     """(expert params, levels, keys, env params) -> `collect_windows`, spread over the local devices."""
 

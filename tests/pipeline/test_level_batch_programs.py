@@ -1,0 +1,47 @@
+"""The programs a level batch runs, compiled ahead of their first call (the collection program before any expert is
+trained, from the shapes of fresh parameters), compute what the plain functions compute, bit for bit."""
+
+import jax
+import numpy as np
+import pytest
+from pipeline_test_helpers import tiny_job
+
+from agents import collect_windows, initial_params
+from pipeline.generation.config import environment, ppo_config
+from pipeline.generation.level_batch import (
+    KeyPurpose,
+    batch_level_indices,
+    level_keys,
+    sample_batch,
+    windows_successful,
+)
+from pipeline.generation.level_batch import _windows as level_batch_windows
+
+
+@pytest.fixture(scope="module")
+def job():
+    return tiny_job("unused")
+
+
+def test_the_collection_program_compiled_ahead_rolls_out_what_collect_windows_does(job):
+    env_params, static = environment(job)
+    config = ppo_config(job)
+    indices = batch_level_indices(job, 0, 0)
+    levels = sample_batch(job, indices)
+    params = jax.vmap(lambda key: initial_params(key, config, static))(
+        jax.random.split(jax.random.key(3), len(indices))
+    )
+    window = level_batch_windows(job, params, levels, indices)
+    expected = collect_windows(
+        params,
+        levels,
+        level_keys(job.split.seed, indices, KeyPurpose.COLLECT),
+        config,
+        env_params,
+        static,
+        num_steps=job.collect.window_steps,
+        greedy=job.collect.greedy,
+    )
+    jax.tree.map(np.testing.assert_array_equal, window, expected)
+    assert window.actions.shape == (len(indices), job.collect.window_steps, 6)
+    np.testing.assert_array_equal(windows_successful(job, params, levels, indices), expected.successful)
