@@ -10,12 +10,18 @@ Public surface: the exit codes, `EXIT_CODES_HELP`, `add_common_options`, `InputE
 
 from __future__ import annotations
 
+import _thread
 import argparse
+import atexit
+import gc
 import importlib
+import os
+import signal
 import sys
+import threading
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import TypeVar
+from typing import NoReturn, TypeVar
 
 Config = TypeVar("Config")
 
@@ -27,6 +33,9 @@ EXIT_USAGE = 2
 """A usage, config or input-file error (argparse's own code for bad arguments)."""
 EXIT_INTERRUPTED = 130
 """Interrupted by SIGINT (Ctrl-C) or SIGTERM (128 + SIGINT, as shells report it)."""
+
+INTERRUPT_AGAIN_AFTER_SECONDS = 0.01
+"""[s] Delay before a Ctrl-C that came inside a garbage-collector callback is delivered again (`_interrupt`)."""
 
 EXIT_CODES_HELP = (
     "exit codes: 0 success; 1 the data has a problem or the job is incomplete; 2 usage, config or input-file "
@@ -144,8 +153,55 @@ def fail(error: BaseException, code: int | None = None) -> SystemExit:
     return SystemExit(exit_code(error) if code is None else code)
 
 
+def _interrupt(signum, frame) -> None:
+    """SIGINT handler of the kforge process: KeyboardInterrupt where the main flow runs; inside a garbage-collector
+    callback (JAX has one), where Python would print and drop it, the signal is delivered again shortly after."""
+    callbacks = {getattr(callback, "__code__", None) for callback in gc.callbacks}
+    while frame is not None:
+        if frame.f_code in callbacks:
+            again = threading.Timer(INTERRUPT_AGAIN_AFTER_SECONDS, _thread.interrupt_main)
+            again.daemon = True
+            again.start()
+            return
+        frame = frame.f_back
+    raise KeyboardInterrupt
+
+
+def _interrupted(error: BaseException | None) -> bool:
+    """Whether `error` is a Ctrl-C, or was raised while handling one (numpy, for one, turns a Ctrl-C during its
+    import into an ImportError)."""
+    while error is not None:
+        if isinstance(error, KeyboardInterrupt):
+            return True
+        error = error.__cause__ or error.__context__
+    return False
+
+
+def _end_interrupted_process() -> NoReturn:
+    """End the kforge process with EXIT_INTERRUPTED after its exit handlers ran. (An interpreter whose Ctrl-C
+    passed through code run by a C extension kills itself with SIGINT at exit, whatever the exit code asked for.)"""
+    atexit._run_exitfuncs()
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(EXIT_INTERRUPTED)
+
+
 def main(argv: Sequence[str] | None = None) -> None:
-    """Run `kforge <command> [arguments]`; `kforge <command> --help` shows the command's own options."""
+    """Run `kforge <command> [arguments]`; `kforge <command> --help` shows the command's own options. Without
+    `argv` (the `kforge` program itself) an interrupted command always ends the process with EXIT_INTERRUPTED."""
+    own_process = argv is None
+    if own_process and signal.getsignal(signal.SIGINT) is signal.default_int_handler:
+        signal.signal(signal.SIGINT, _interrupt)
+    try:
+        _run(argv)
+    except SystemExit as stop:
+        if own_process and stop.code == EXIT_INTERRUPTED:
+            _end_interrupted_process()
+        raise
+
+
+def _run(argv: Sequence[str] | None) -> None:
+    """Parse the subcommand, run it, and turn what ends it into an exit code and a one-line error."""
     parser = argparse.ArgumentParser(prog="kforge", description=__doc__.splitlines()[0], epilog=EXIT_CODES_HELP)
     subcommands = parser.add_subparsers(dest="command", required=True, metavar="command")
     for name, (help_line, _) in COMMANDS.items():
@@ -166,7 +222,7 @@ def main(argv: Sequence[str] | None = None) -> None:
     except BaseException as error:
         if debug:
             raise
-        if isinstance(error, KeyboardInterrupt):
+        if _interrupted(error):
             print("interrupted", file=sys.stderr)
             raise SystemExit(EXIT_INTERRUPTED) from None
         raise fail(error) from None
