@@ -200,6 +200,8 @@ def _work_on_ray(job, shards: tuple, lease, tracker, bar, failures, attempts, ve
             shard = ray.get(actor.next_shard.remote(name))
             if shard is not None:
                 in_flight[worker.run_shard.remote(actor, shard)] = (worker, name, shard)
+            else:  # no work left for it: its CPUs go to a replacement still waiting for a node with room
+                ray.kill(worker, no_restart=True)
 
         for i in range(job.ray.num_workers):
             assign(start_worker(f"worker-{i}"), f"worker-{i}")
@@ -256,16 +258,23 @@ def _work_in_process(job: JobConfig, coordinator: _Observed, failures: list, att
 
 
 class _Observed:
-    """A coordinator in this process whose commits and training reports also check the lease, log the commits and
-    redraw the progress bar (what the driver's polling loop does on Ray)."""
+    """A coordinator in this process whose claims check the lease (`Lease.check`) and whose commits fence it
+    (`Lease.fence`), and which logs the commits and redraws the progress bar (what the driver's polling loop does on
+    Ray)."""
 
     def __init__(self, coordinator: Coordinator, lease: Lease, tracker, bar: ProgressBar):
         self._coordinator, self._lease, self._tracker, self._bar = coordinator, lease, tracker, bar
-        self.next_shard = coordinator.next_shard
         self.release = coordinator.release
         self.abandon = coordinator.abandon
-        self.claim_batch = coordinator.claim_batch
         self.job_id = coordinator.job_id
+
+    def next_shard(self, worker: str) -> int | None:
+        self._lease.check()
+        return self._coordinator.next_shard(worker)
+
+    def claim_batch(self, shard: int, worker: str) -> int | None:
+        self._lease.check()
+        return self._coordinator.claim_batch(shard, worker)
 
     def commit(self, shard: int, batch: int, record: dict, worker: str) -> bool:
         self._lease.fence()

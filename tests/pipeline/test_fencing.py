@@ -6,19 +6,26 @@ shard can neither claim nor commit its batches."""
 from __future__ import annotations
 
 import json
+import os
+import re
 import shutil
 import signal
 import subprocess
 import sys
+import threading
 import time
 
 import pytest
+from pipeline_test_helpers import assert_same_dataset, run_in_process, tiny_job
 
+from pipeline.cli import EXIT_DATA
+from pipeline.generation.config import to_yaml
 from pipeline.generation.coordinator import Coordinator, ShardNotHeld
 from pipeline.storage import (
     LEASE_KEY,
     Lease,
     LeaseLost,
+    all_committed,
     commit_age_limit,
     commit_record,
     read_holder,
@@ -151,3 +158,53 @@ def test_only_the_worker_holding_a_shard_claims_and_commits_its_batches(tmp_path
     assert not (tmp_path / record_key(0, 0)).exists()
     assert coordinator.claim_batch(shard, "new") == 0
     assert coordinator.commit(shard, 0, {"shard": 0, "batch": 0}, "new")
+
+
+JOB_LEASE = ["lease.stale_after_s=2", "lease.heartbeat_s=0.25"]
+"""A lease that goes stale 2 s after its holder stops."""
+JOB_TIMEOUT_S = 900.0
+
+
+@pytest.mark.slow
+def test_a_real_job_paused_past_its_lease_is_fenced_and_the_job_that_took_over_finishes_the_dataset(
+    uninterrupted, tmp_path
+):
+    output = tmp_path / "dataset"
+    config_file = tmp_path / "job.yaml"
+    config_file.write_text(to_yaml(tiny_job(output, "ray.num_workers=0", *JOB_LEASE)))
+    paused = subprocess.Popen(
+        [sys.executable, "-m", "pipeline", "run", str(config_file), "--no-progress"],
+        start_new_session=True,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+    )
+    try:
+        deadline = time.monotonic() + JOB_TIMEOUT_S
+        while not (output / "manifest").is_dir() or not all_committed(output):
+            assert paused.poll() is None and time.monotonic() < deadline, "the job ended before its first commit"
+            time.sleep(0.05)
+        paused_job = read_holder(output).job_id
+        os.killpg(paused.pid, signal.SIGSTOP)
+        time.sleep(3.0)  # its lease goes stale
+        outcome = {}
+        taker = threading.Thread(  # takes the lease over and finishes the dataset
+            target=lambda: outcome.update(summary=run_in_process(tiny_job(output, *JOB_LEASE)))
+        )
+        taker.start()
+        while (holder := read_holder(output)) is None or holder.job_id == paused_job:
+            assert taker.is_alive() and time.monotonic() < deadline, "the second job did not take the lease over"
+            time.sleep(0.01)
+        os.killpg(paused.pid, signal.SIGCONT)  # resumes while the second job works
+        text = paused.communicate(timeout=JOB_TIMEOUT_S)[0].decode(errors="replace")
+        taker.join(JOB_TIMEOUT_S)
+        assert outcome["summary"]["committed_batches"] == 4
+    finally:
+        if paused.poll() is None:
+            os.killpg(paused.pid, signal.SIGKILL)
+            paused.wait()
+    assert paused.returncode == EXIT_DATA, text[-3000:]
+    # Fenced at its next step: while the second job runs, or once it has ended and released the lease.
+    assert re.search(r"this job's lease was (taken over by job \w+ |removed$)", text.splitlines()[-1]), text[-3000:]
+    assert not (output / LEASE_KEY).exists()  # the fenced job left the (released) lease alone
+    assert all(report.ok for report in verify_dataset(output))
+    assert_same_dataset(uninterrupted, output)
