@@ -374,7 +374,7 @@ def _block_normal_impulses(rows: ContactRows, impulse, targets):
 
 def solve_contacts(
     velocity: Motion,
-    moved: Motion,
+    moved: Motion | None,
     rows: ContactRows,
     impulses: ContactImpulses,
     layout: PairLayout,
@@ -388,19 +388,21 @@ def solve_contacts(
 ):
     """One sweep of normal rows, then friction rows, of every pair; returns velocities and impulses.
 
-    `moved` is each body's displacement since the start of the step; `use_bias` (bool, may be traced) selects
-    the soft position-correcting solve, otherwise the relaxing solve without position bias. Under Baumgarte's law
-    (`baumgarte_law`, static: every point; otherwise the points deeper than `push_law.depth` at the step's start)
-    both solve the same rigid rows with `push_law`'s bias. `sweep` (one of `engine.sweep.SWEEPS`) visits the colours.
-    With `block` (static) a pair's two normal rows are solved together where both are rigid
-    (`_block_normal_impulses`).
+    `moved` is each body's displacement since the start of the step (None: every body is where it started);
+    `use_bias` (bool, may be traced) selects the soft position-correcting solve, otherwise the relaxing solve without
+    position bias. Under Baumgarte's law (`baumgarte_law`, static: every point; otherwise the points deeper than
+    `push_law.depth` at the step's start) both solve the same rigid rows with `push_law`'s bias. `sweep` (one of
+    `engine.sweep.SWEEPS`) visits the colours. With `block` (static) a pair's two normal rows are solved together
+    where both are rigid (`_block_normal_impulses`).
     """
 
     def solve_colour(rows, impulse, vel_a, vel_b, bodies_of, _):
-        moved_a, moved_b = bodies_of(moved)
+        moved_a, moved_b = (None, None) if moved is None else bodies_of(moved)
         deltas, new_impulses, targets = [], [], []
         for p in range(NUM_POINTS):
-            separation = rows.separation[p] + _row_speed(rows, p, moved_a, moved_b)
+            separation = rows.separation[p]
+            if moved is not None:
+                separation = separation + _row_speed(rows, p, moved_a, moved_b)
             speculative = separation > 0
             baumgarte_bias = push_law.rate * jnp.minimum(separation + push_law.slop, 0.0)
             if baumgarte_law:

@@ -181,6 +181,13 @@ def substep_solver(static: StaticSimParams, batch_last: bool = True, solver_loop
         joint_rows, scalars = solver_input.joint_rows, solver_input.scalars
         acceleration = components(solver_input.acceleration)
         move = solver_input.movable
+        # With one substep the position-correcting passes all see the step's starting poses (positions advance after
+        # the last): their joint frames are computed once, and their contacts have moved nowhere.
+        unmoved = static.num_substeps == 1
+        start_frames = joint_frames(joint_rows, start_pose, start_pose[2]) if unmoved else None
+
+        def frames_at(pose, use_bias: bool):
+            return start_frames if unmoved and use_bias else joint_frames(joint_rows, pose, start_pose[2])
 
         def solver_pass(carry, use_bias: bool, advance: bool, contacts: bool = True):
             """Joints then, if `contacts`, contacts; then, if `advance`, integrate positions."""
@@ -188,7 +195,7 @@ def substep_solver(static: StaticSimParams, batch_last: bool = True, solver_loop
             velocity, joint_impulses = solve_joints(
                 velocity,
                 joint_rows,
-                joint_frames(joint_rows, pose, start_pose[2]),
+                frames_at(pose, use_bias),
                 joint_impulses,
                 scalars.joint_softness,
                 scalars.inverse_substep,
@@ -201,7 +208,7 @@ def substep_solver(static: StaticSimParams, batch_last: bool = True, solver_loop
             if contacts:
                 velocity, contact_impulses = solve_contacts(
                     velocity,
-                    tuple(p - s for p, s in zip(pose, start_pose, strict=True)),
+                    None if unmoved and use_bias else tuple(p - s for p, s in zip(pose, start_pose, strict=True)),
                     rows,
                     contact_impulses,
                     layout,
@@ -225,9 +232,7 @@ def substep_solver(static: StaticSimParams, batch_last: bool = True, solver_loop
                 joint_impulses = joint_impulses.replace(limit=jnp.zeros_like(joint_impulses.limit))
             share = force_substeps(static, index) * scalars.substep
             velocity = tuple(v + share * a for v, a in zip(velocity, acceleration, strict=True))
-            velocity = warm_start_joints(
-                velocity, joint_rows, joint_frames(joint_rows, pose, start_pose[2]), joint_impulses
-            )
+            velocity = warm_start_joints(velocity, joint_rows, frames_at(pose, True), joint_impulses)
             velocity = warm_start_contacts(velocity, rows, contact_impulses, layout)
             carry = (velocity, pose, contact_impulses, joint_impulses)
             if static.num_iterations > 1:
