@@ -16,7 +16,7 @@ import pytest
 from pipeline_test_helpers import PARAMS, STATIC, as_a_terminal_job
 
 import configs
-from engine import ContactPoints, physics_scheme
+from engine import physics_scheme
 from env import EnvParams, StaticEnvParams, action_mask, list_levels, load_level, reset, under_scheme
 from pipeline.cli import main
 from pipeline.generation import ConfigError
@@ -237,14 +237,14 @@ def test_unseen_levels_are_the_split_levels_past_the_dataset_that_the_filter_kee
 
 
 def test_hand_levels_are_played_under_the_datasets_physics_scheme():
-    """A dataset made with env.physics=kinetix is evaluated on the hand-designed levels with that scheme's solver and
-    parameters, each level keeping its own constants; its static parameters are not size s's under the default."""
+    """A dataset made with env.physics=kinetix is evaluated on the hand-designed levels with that scheme's parameters
+    (its laws live in the static parameters), each level keeping its own constants; the engine's own scheme's static
+    parameters are none of Kinetix's sizes under it."""
     kinetix = physics_scheme("kinetix")
     _, static = under_scheme(kinetix, EnvParams(), StaticEnvParams.for_size("s"))
     starts = hand_starts(static, kinetix)
     names = list_levels("s")
     assert starts.level_ids == names and len(names) > 1
-    assert np.all(np.asarray(starts.params.sim.contact_points) == ContactPoints.KINETIX)
     assert np.all(np.asarray(starts.params.sim.speculative_distance) == 0.0)
     own = np.array([load_level(name).params.sim.base_friction for name in names], np.float32)
     assert np.array_equal(np.asarray(starts.params.sim.base_friction), own)
