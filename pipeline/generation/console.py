@@ -105,22 +105,25 @@ def in_flight_summary(in_flight: dict[tuple[int, int], float | str]) -> str:
     return ", ".join(parts)
 
 
-def remaining_seconds(committed_in_run: int, elapsed: float, remaining: int) -> float | None:
-    """Time left at this run's measured wall time per committed level batch; None before the first commit."""
-    if committed_in_run == 0:
+def seconds_left(since: tuple[float, float] | None, now: float, done: float, total: float) -> float | None:
+    """Time left at the pace measured since `since` = (time, work done then), the moment start-up (compiling) ended,
+    so that the compile's time does not count as work; None before work advanced after it."""
+    if since is None:
         return None
-    return remaining * elapsed / committed_in_run
+    start_time, start_done = since
+    if done <= start_done or now <= start_time:
+        return None
+    return (total - done) * (now - start_time) / (done - start_done)
 
 
 class ProgressBar:
-    """Committed level batches as whole numbers of all of them, the batches in flight and the time left (from this
-    run's measured time per batch), in the postfix."""
+    """Level batches done, counting the training share of those in flight (so the bar moves within a batch), the
+    batches in flight and the time left at the pace measured since compiling ended, in the postfix."""
 
-    BAR_FORMAT = "{desc}: {percentage:3.0f}%|{bar}| {n_fmt}/{total_fmt} [{elapsed}{postfix}]"
+    BAR_FORMAT = "{desc}: {percentage:3.0f}%|{bar}| {n:.1f}/{total_fmt} [{elapsed}{postfix}]"
 
     def __init__(self, committed: int, total: int, enabled: bool):
-        self._start_committed = committed
-        self._started = time.perf_counter()
+        self._since: tuple[float, float] | None = None
         self._bar = tqdm(
             total=total,
             initial=committed,
@@ -133,11 +136,14 @@ class ProgressBar:
 
     def show(self, committed: int, in_flight: dict[tuple[int, int], float | str]) -> None:
         """Redraw with `committed` batches done and the batches in flight."""
-        left = remaining_seconds(
-            committed - self._start_committed, time.perf_counter() - self._started, self._bar.total - committed
-        )
+        now = time.perf_counter()
+        shares = [share for share in in_flight.values() if not isinstance(share, str)]
+        done = committed + sum(shares)
+        if self._since is None and shares and len(shares) == len(in_flight):  # every batch in flight compiled
+            self._since = (now, done)
+        left = seconds_left(self._since, now, done, self._bar.total)
         parts = [f"left {'?' if left is None else tqdm.format_interval(left)}", in_flight_summary(in_flight)]
-        self._bar.n = committed
+        self._bar.n = done
         self._bar.set_postfix_str(", ".join(part for part in parts if part), refresh=False)
         self._bar.refresh()
 

@@ -30,6 +30,7 @@ from tqdm import tqdm
 from agents import ImitationTerms, NetworkConfig, imitation_terms, make_bc_network
 from env import EnvState, StaticEnvParams, observation_shape, observe
 from pipeline.generation import ConfigError, to_schema_object, to_yaml, tracking_mode
+from pipeline.generation.console import seconds_left
 from pipeline.learning.checkpoints import checkpoint_steps, restore_checkpoint, save_checkpoint
 from pipeline.learning.config import (
     DEFAULT_BATCH_SIZE,
@@ -52,6 +53,8 @@ SUMMARY_FILE = "summary.json"
 DATA_AXIS = "data"
 """Mesh axis over which a batch's trajectories are split."""
 BYTES_PER_GIB = 1 << 30
+BAR_FORMAT = "{desc}: {percentage:3.0f}%|{bar}| {n_fmt}/{total_fmt} [{elapsed}, {postfix}]"
+"""The progress bar: time left comes from the pace since the first step (which compiles), in the postfix."""
 
 
 @struct.dataclass
@@ -302,18 +305,33 @@ def train_bc(
     )
     tracking = _start_wandb(config, run_dir, verbose)
     end = train.num_steps if stop_after_steps is None else min(train.num_steps, start + stop_after_steps)
-    bar = tqdm(total=train.num_steps, initial=start, disable=not show_progress, unit="step", dynamic_ncols=True)
+    bar = tqdm(
+        total=train.num_steps,
+        initial=start,
+        disable=not show_progress,
+        unit="step",
+        dynamic_ncols=True,
+        bar_format=BAR_FORMAT,
+        desc="compiling",
+    )
+    since = None  # (time, step) once the first step, the one that compiles, is done
     wait = 0.0
     began = time.perf_counter()
     pending: list[dict] = []
-    latest = {"train": None, "validation": None}
+    latest = {"train": None, "validation": None, "step_loss": None}
     step = start
     saved = start
     try:
         with loader:
             while step < end:
                 if pending:  # the device finished the previous step: from here on it waits for data
-                    jax.block_until_ready(pending[-1]["loss"])
+                    latest["step_loss"] = float(pending[-1]["loss"])
+                    now = time.perf_counter()
+                    since = since or (now, step)
+                    bar.desc = "steps"
+                    bar.set_postfix_str(
+                        _postfix(latest, seconds_left(since, now, step, train.num_steps)), refresh=False
+                    )
                 asked = time.perf_counter()
                 batch = loader.load_next_batch()
                 wait += time.perf_counter() - asked
@@ -337,7 +355,9 @@ def train_bc(
                         metrics_file.write(json.dumps(line) + "\n")
                     if tracking is not None:
                         tracking.log(_flat_metrics(line), step=step)
-                    bar.set_postfix_str(_postfix(latest))
+                    bar.set_postfix_str(
+                        _postfix(latest, seconds_left(since, time.perf_counter(), step, train.num_steps))
+                    )
                 if step % config.checkpoint.every_steps == 0 or step == end:
                     save_checkpoint(run_dir, step, jax.device_get(state), config.checkpoint.keep)
                     saved = step
@@ -374,8 +394,11 @@ def _flat_metrics(line: dict) -> dict:
     return flat
 
 
-def _postfix(latest: dict) -> str:
-    parts = []
+def _postfix(latest: dict, left: float | None) -> str:
+    """The bar's text: time left, the last step's loss, the latest training and validation means."""
+    parts = [f"left {'?' if left is None else tqdm.format_interval(left)}"]
+    if latest["step_loss"] is not None:
+        parts.append(f"step loss {latest['step_loss']:.3f}")
     if latest["train"]:
         parts.append(f"loss {latest['train']['loss']:.3f} acc {latest['train']['accuracy']:.2f}")
     if latest["validation"]:

@@ -10,7 +10,6 @@ from pipeline.generation.console import (
     THIRD_PARTY_LOGGERS,
     closing_summary,
     in_flight_summary,
-    remaining_seconds,
     resume_line,
     start_log_file,
 )
@@ -62,11 +61,6 @@ def test_the_progress_text_shows_compiling_and_training_batches_apart():
     assert in_flight_summary(mixed) == expected
     many = {(shard, 0): share for shard, share in enumerate([0.1, 0.2, 0.3, 0.4, 0.5])}
     assert in_flight_summary(many) == "training 5 batches: mean 30%"
-
-
-def test_time_left_is_the_measured_time_per_committed_batch_of_this_run():
-    assert remaining_seconds(0, 120.0, 4) is None  # nothing committed yet: no estimate
-    assert remaining_seconds(2, 100.0, 3) == 150.0  # 50 s per batch, 3 to go
 
 
 def test_a_resumed_run_says_what_it_found():
