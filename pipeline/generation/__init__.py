@@ -15,7 +15,7 @@ __getattr__, __all__ = lazy_surface(
             "data_fingerprint environment load_config load_yaml merge_layers parse_overrides ppo_config read_config "
             "to_schema_object to_yaml"
         ),
-        "pipeline.generation.console": "closing_summary",
+        "pipeline.generation.console": "closing_summary seconds_left",
         "pipeline.generation.coordinator": "Commit Coordinator",
         "pipeline.generation.growth": "ResumeRefused",
         "pipeline.generation.level_batch": (
