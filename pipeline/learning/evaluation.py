@@ -40,8 +40,7 @@ from env import (
     reset,
     under_scheme,
 )
-from pipeline.generation import JobConfig, environment, merge_layers, sample_batch, to_schema_object
-from pipeline.generation.config import JOB_PHYSICS_SCHEME
+from pipeline.generation import EnvSection, JobConfig, environment, merge_layers, sample_batch, to_schema_object
 from pipeline.learning.checkpoints import checkpoint_steps, restore_checkpoint
 from pipeline.learning.config import LEVEL_SETS, BCConfig, network_config, run_config_file
 from pipeline.learning.data import kept_levels
@@ -260,7 +259,7 @@ def unseen_starts(job: JobConfig, count: int) -> StartSet:
 
 def hand_starts(
     static: StaticEnvParams,
-    scheme: PhysicsScheme = PHYSICS_SCHEMES[JOB_PHYSICS_SCHEME],
+    scheme: PhysicsScheme = PHYSICS_SCHEMES[EnvSection().physics],
     max_levels: int | None = None,
 ) -> StartSet:
     """Start states of the bundled hand-designed Kinetix levels of the dataset's size (the first `max_levels` by
@@ -303,7 +302,8 @@ def play_physics(job: JobConfig | None, static: StaticEnvParams) -> tuple[str, E
     unless the job named another), Kinetix's play for data made without a job config."""
     if job is not None:
         return job.env.physics, environment(job)[0]
-    return JOB_PHYSICS_SCHEME, under_scheme(physics_scheme(JOB_PHYSICS_SCHEME), EnvParams(), static)[0]
+    default = EnvSection().physics  # a job's scheme unless it names another
+    return default, under_scheme(physics_scheme(default), EnvParams(), static)[0]
 
 
 def evaluate_policy(

@@ -29,8 +29,7 @@ from tqdm import tqdm
 
 from agents import ImitationTerms, NetworkConfig, imitation_terms, make_bc_network
 from env import EnvState, StaticEnvParams, observation_shape, observe
-from pipeline.generation import ConfigError, to_schema_object, to_yaml, tracking_mode
-from pipeline.generation.console import seconds_left
+from pipeline.generation import ConfigError, seconds_left, to_schema_object, to_yaml, tracking_mode
 from pipeline.learning.checkpoints import checkpoint_steps, restore_checkpoint, save_checkpoint
 from pipeline.learning.config import (
     DEFAULT_BATCH_SIZE,
