@@ -195,22 +195,28 @@ def _start_wandb(config: BCConfig, run_dir: Path, verbose: bool):
     )
 
 
-def _prepare_run_dir(config: BCConfig) -> Path:
-    """The run directory with the config written; a re-run of a run with checkpoints must agree with the stored
-    config (`changed_keys`), while one that never checkpointed (it stopped before its first) starts afresh."""
-    run_dir = Path(config.output_dir)
+def _trained_config(run_dir: Path) -> BCConfig | None:
+    """The config a run directory was trained with: None until it holds a checkpoint (a run that stopped before its
+    first binds nothing)."""
     stored_file = run_dir / RUN_CONFIG_FILE
-    if stored_file.exists() and checkpoint_steps(run_dir):
-        stored = to_schema_object(
-            OmegaConf.merge(OmegaConf.structured(BCConfig), OmegaConf.load(stored_file)), BCConfig
+    if not (stored_file.exists() and checkpoint_steps(run_dir)):
+        return None
+    return to_schema_object(OmegaConf.merge(OmegaConf.structured(BCConfig), OmegaConf.load(stored_file)), BCConfig)
+
+
+def _prepare_run_dir(config: BCConfig) -> Path:
+    """The run directory with the config written; a re-run of a trained run must agree with its config
+    (`changed_keys`)."""
+    run_dir = Path(config.output_dir)
+    stored = _trained_config(run_dir)
+    changed = [] if stored is None else changed_keys(stored, config)
+    if changed:
+        raise ConfigError(
+            f"{run_dir}: this run directory was trained with other {', '.join(changed)}; resume with the same "
+            f"values or choose another output_dir"
         )
-        changed = changed_keys(stored, config)
-        if changed:
-            raise ConfigError(
-                f"{run_dir}: this run directory was trained with other {', '.join(changed)}; resume with the same "
-                f"values or choose another output_dir"
-            )
     run_dir.mkdir(parents=True, exist_ok=True)
+    stored_file = run_dir / RUN_CONFIG_FILE
     partial = stored_file.with_suffix(".partial")
     partial.write_text(to_yaml(config))
     os.replace(partial, stored_file)
@@ -273,8 +279,13 @@ def train_bc(
     train_ids, validation_ids = validation_split(chosen, config.validation.fraction, config.train.seed)
     train_trajectories = sum(len(levels[level]) for level in train_ids)
     requested_batch_size = config.train.batch_size
+    trained = _trained_config(Path(config.output_dir))
+    if requested_batch_size is None and trained is not None:  # a resumed run keeps the batch size it chose
+        config = dataclasses.replace(
+            config, train=dataclasses.replace(config.train, batch_size=trained.train.batch_size)
+        )
     config = fit_batch_size(config, train_trajectories, len(jax.local_devices()))
-    if requested_batch_size is None and config.train.batch_size < DEFAULT_BATCH_SIZE:
+    if requested_batch_size is None and trained is None and config.train.batch_size < DEFAULT_BATCH_SIZE:
         report(
             f"train.batch_size={config.train.batch_size} (not {DEFAULT_BATCH_SIZE}): {config.dataset} holds "
             f"{train_trajectories} training trajectories"

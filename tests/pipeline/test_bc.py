@@ -122,6 +122,12 @@ def test_a_small_dataset_fits_the_default_batch_and_a_refused_run_blocks_no_retr
     assert lines == [f"train.batch_size=7 (not 16): {dataset_dir} holds 7 training trajectories"]
     stored = load_bc_config(None, [], run_dir / "config.yaml")
     assert stored.train.batch_size == 7  # the run directory records the batch size it trained with
+    chosen = tmp_path / "chosen"  # trained with a batch size of its own: a re-run with the default keeps it
+    train_bc(
+        load_bc_config(str(dataset_dir), [f"output_dir={chosen}", *small, "train.num_steps=1", "train.batch_size=3"])
+    )
+    resumed = train_bc(load_bc_config(str(dataset_dir), [f"output_dir={chosen}", *small, "train.num_steps=2"]))
+    assert resumed.resumed_from == 1 and load_bc_config(None, [], chosen / "config.yaml").train.batch_size == 3
 
 
 def test_evaluation_counts_the_outcomes_the_levels_force(levels):
