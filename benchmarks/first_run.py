@@ -170,8 +170,10 @@ def main() -> None:
         ratio = summary["measured_over_base"][run]
         print(f"{run:<6} run: base {base_s:.1f} s, measured {measured_s:.1f} s, measured / base {ratio:.2f}")
     if args.json:
+        base_commit = described["base"]["commit"][:7]
         report = {
-            "command": " ".join(["python", "benchmarks/first_run.py", *sys.argv[1:]]),
+            "command": f"python benchmarks/first_run.py --base {base_commit} --rounds {args.rounds}",
+            "command_runs_in": "a checkout of trees.measured.commit (the same runs as the --base-tree / --tree given)",
             "quickstart": "kforge " + " ".join(QUICKSTART),
             "trees": described,
             "rounds": args.rounds,

@@ -167,10 +167,11 @@ def batch_result(
 
 def _compiling_train_program(job: JobConfig, indices: np.ndarray, keys: jax.Array) -> Future:
     """The future of `train_levels` for the job's level batches of this size, spread over the local devices:
-    traced and compiled (or loaded from the persistent compilation cache) once per config and level count in a
-    process, in a thread of its own, while the calling thread samples and filters the batch and compiles its
-    collection program (XLA compiles without holding the GIL: on two cores, the longest compilation, the training
-    program's, has a core to itself)."""
+    compiled (or loaded from the persistent compilation cache) once per config and level count in a process.
+    It is traced here, before the batch is sampled (tracing is Python: it holds the GIL), and compiled in a thread
+    of its own while the calling thread samples and filters the batch and compiles its collection program (XLA
+    compiles without holding the GIL: on two cores, the longest compilation, the training program's, has a core
+    to itself)."""
     env_params, static = environment(job)
     config = ppo_config(job)
     program = (config, static, len(keys))
@@ -180,12 +181,10 @@ def _compiling_train_program(job: JobConfig, indices: np.ndarray, keys: jax.Arra
         def train(levels, keys, env_params):
             return train_levels(levels, keys, config, env_params, static)
 
-        def compile_train() -> jax.stages.Compiled:
-            levels = jax.eval_shape(lambda: sample_batch(job, indices))
-            spread = over_local_devices(train, len(keys), level_args=2, shared_args=1)
-            return jax.jit(spread).lower(levels, keys, env_params).compile()
-
-        compiling = _train_programs[program] = _in_background(compile_train, "compile-train")
+        levels = jax.eval_shape(lambda: sample_batch(job, indices))
+        spread = over_local_devices(train, len(keys), level_args=2, shared_args=1)
+        lowered = jax.jit(spread).lower(levels, keys, env_params)
+        compiling = _train_programs[program] = _in_background(lowered.compile, "compile-train")
     return compiling
 
 
