@@ -447,7 +447,7 @@ def _data_digests(root: Path) -> dict[tuple[int, str], str]:
 
 WORKERS_WITHOUT_DETERMINISTIC_OPS = ("ray.deterministic_gpu_ops=false",)
 """The tiny job's repeat runs without XLA's deterministic GPU ops: the engine repeats bit for bit without them
-(docs/performance-accelerators.md), and this tells whether the whole pipeline does, so that workers can stop paying
+(docs/performance.md), and this tells whether the whole pipeline does, so that workers can stop paying
 for them."""
 
 

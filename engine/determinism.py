@@ -2,7 +2,7 @@
 
 On a GPU, XLA lowers a scatter-add whose indices repeat to atomic additions, whose order, and so whose float
 rounding, changes from run to run; a chaotic rollout then drifts apart within a few hundred steps (measured on an
-H100: docs/performance-accelerators.md). The engine sums each body's impulses in a fixed order instead and repeats
+H100: docs/performance.md). The engine sums each body's impulses in a fixed order instead and repeats
 bit for bit without help (measured on an H200). XLA's `--xla_gpu_deterministic_ops` lowers every scatter to ordered
 code, which guards the rest of a program too, at a measured 8.4x of the engine's time on a GPU. CPUs are
 deterministic without it; the flag is ignored there.
