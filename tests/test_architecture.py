@@ -13,7 +13,16 @@ pytestmark = pytest.mark.smoke
 
 REPO = Path(__file__).resolve().parents[1]
 
-_LEARNING = {"configs", "engine", "env", "agents", "pipeline.storage", "pipeline.reading", "pipeline.generation"}
+_LEARNING = {
+    "configs",
+    "engine",
+    "env",
+    "agents",
+    "pipeline.lazy",
+    "pipeline.storage",
+    "pipeline.reading",
+    "pipeline.generation",
+}
 
 ALLOWED = {
     "engine": set(),
@@ -21,7 +30,8 @@ ALLOWED = {
     "agents": {"engine", "env"},
     "pipeline.storage": {"engine", "env"},
     "pipeline.reading": {"engine", "env", "pipeline.storage"},
-    "pipeline.generation": {"configs", "engine", "env", "agents", "pipeline.storage"},
+    "pipeline.lazy": set(),
+    "pipeline.generation": {"configs", "engine", "env", "agents", "pipeline.lazy", "pipeline.storage"},
     "pipeline.kinetix": {"engine", "env", "pipeline.storage", "pipeline.reading"},
     "pipeline.learning": _LEARNING,
     "pipeline.cli": _LEARNING | {"pipeline.kinetix", "pipeline.learning"},
@@ -85,7 +95,7 @@ def test_every_package_imports_other_packages_through_their_public_surface():
     assert problems == []
 
 
-@pytest.mark.parametrize("package", sorted(ALLOWED))
+@pytest.mark.parametrize("package", sorted(name for name in ALLOWED if (REPO / name.replace(".", "/")).is_dir()))
 def test_every_package_names_its_public_surface(package):
     init = REPO / package.replace(".", "/") / "__init__.py"
     tree = ast.parse(init.read_text())
