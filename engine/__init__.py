@@ -2,7 +2,7 @@
 
 Public surface: state and parameter types, the scene builder, `step`, how batched steps and the solver's loops run
 (`Batching`, a static option of each step: `StaticSimParams.batching`), named physics schemes (`physics_scheme`),
-and bitwise-repeatable GPU execution (`use_deterministic_ops`).
+bitwise-repeatable GPU execution (`use_deterministic_ops`), and the demo scene written as a GIF (`write_demo`).
 """
 
 from engine.batch_last import (
@@ -13,6 +13,7 @@ from engine.batch_last import (
 )
 from engine.collision import manifolds, world_geometry
 from engine.collision_filter import joint_collision_matrix, modes_collide
+from engine.demo import write_demo
 from engine.determinism import use_deterministic_ops, with_deterministic_ops
 from engine.geometry import (
     CONVEXITY_TOLERANCE,
@@ -87,6 +88,7 @@ __all__ = [
     "step",
     "use_deterministic_ops",
     "with_deterministic_ops",
+    "write_demo",
     "world_geometry",
     "write_gif",
 ]

@@ -1,11 +1,8 @@
-"""Demo: simulate a small size-m scene (a motorised vehicle with a thruster and a stacked box, a ball) to a GIF.
-
-Run `python -m engine.demo [--out outputs/engine_demo.gif] [--steps 240]`.
-"""
+"""Demo: simulate a small size-m scene (a motorised vehicle with a thruster and a stacked box, a ball) to a GIF
+(`kforge demo [--out outputs/engine_demo.gif] [--steps 240]`)."""
 
 from __future__ import annotations
 
-import argparse
 import functools
 import time
 from typing import NamedTuple
@@ -14,12 +11,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from engine import SceneBuilder, SimParams, SimState, StaticSimParams, step
+from engine.params import SimParams, StaticSimParams
+from engine.physics_step import step
 from engine.render import render_frame, write_gif
-from engine.scene import FLOOR_TOP
+from engine.scene import FLOOR_TOP, SceneBuilder
+from engine.state import SimState
 
-DEFAULT_OUT = "outputs/engine_demo.gif"
-DEFAULT_STEPS = 240  # 4 s at the default dt of 1/60 s
 RENDER_EVERY = 2
 """Render every this many steps; the GIF plays in real time at 1 / (RENDER_EVERY * dt) frames per second."""
 
@@ -89,35 +86,27 @@ def rollout(
     return states
 
 
-def main(argv=None, prog: str | None = None) -> None:
-    """Simulate the demo scene, render every `RENDER_EVERY`-th step and write the GIF; `prog` names it in usage."""
-    parser = argparse.ArgumentParser(prog=prog, description=__doc__.splitlines()[0])
-    parser.add_argument("--out", default=DEFAULT_OUT, help=f"GIF path (default {DEFAULT_OUT})")
-    parser.add_argument("--steps", type=int, default=DEFAULT_STEPS, help=f"physics steps (default {DEFAULT_STEPS})")
-    args = parser.parse_args(argv)
-    if args.steps < RENDER_EVERY:
-        parser.error(f"--steps must be at least {RENDER_EVERY}")
-
+def write_demo(out: str, steps: int) -> tuple[str, str]:
+    """Simulate the demo scene for `steps` physics steps (at least `RENDER_EVERY`), render every `RENDER_EVERY`-th
+    step and write the GIF to `out`; returns its path and a one-line summary."""
+    if steps < RENDER_EVERY:
+        raise ValueError(f"the demo needs at least {RENDER_EVERY} steps, got {steps}")
     started = time.perf_counter()
     scene = build_scene()
     params = SimParams()
-    motor_actions = jnp.ones((args.steps, scene.static.num_joints))
-    thruster_actions = jnp.ones((args.steps, scene.static.num_thrusters))
+    motor_actions = jnp.ones((steps, scene.static.num_joints))
+    thruster_actions = jnp.ones((steps, scene.static.num_thrusters))
     states = jax.device_get(rollout(scene.state, params, motor_actions, thruster_actions, static=scene.static))
     wall = time.perf_counter() - started
 
-    rendered_steps = range(RENDER_EVERY - 1, args.steps, RENDER_EVERY)
+    rendered_steps = range(RENDER_EVERY - 1, steps, RENDER_EVERY)
     frames = [render_frame(jax.tree.map(lambda x, t=t: x[t], states)) for t in rendered_steps]
-    path = write_gif(frames, args.out, fps=1.0 / (RENDER_EVERY * params.dt))
+    path = write_gif(frames, out, fps=1.0 / (RENDER_EVERY * params.dt))
     positions = states.bodies.position
     travel = positions[-1, scene.chassis, 0] - scene.state.bodies.position[scene.chassis, 0]
     finite = bool(np.all(np.isfinite(positions)))
-    print(path)
-    print(
-        f"{args.steps} steps ({args.steps * params.dt:.1f} s simulated, {wall:.1f} s wall incl. compile), "
+    summary = (
+        f"{steps} steps ({steps * params.dt:.1f} s simulated, {wall:.1f} s wall incl. compile), "
         f"{len(frames)} frames; vehicle moved {travel:+.2f} m in x; positions finite: {finite}"
     )
-
-
-if __name__ == "__main__":
-    main()
+    return str(path), summary

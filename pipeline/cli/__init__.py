@@ -60,7 +60,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
         "pipeline.cli.evaluate",
     ),
     "render": ("play a Kinetix level with a simple policy and write a GIF", "pipeline.cli.render"),
-    "demo": ("simulate a small engine scene and write it as a GIF", "engine.demo"),
+    "demo": ("simulate a small engine scene and write it as a GIF", "pipeline.cli.demo"),
 }
 """Subcommand name -> (help line, module whose `main(argv, prog)` parses the remaining arguments)."""
 

@@ -5,8 +5,7 @@ from __future__ import annotations
 import imageio.v3 as iio
 import numpy as np
 
-from engine import SceneBuilder, StaticSimParams
-from engine.demo import main as demo_main
+from engine import SceneBuilder, StaticSimParams, write_demo
 from engine.render import BACKGROUND, STATIC_COLOUR, render_frame
 
 PIXELS_PER_METRE = 100
@@ -34,7 +33,8 @@ def test_render_frame_places_floor_box_and_background():
 
 def test_demo_writes_a_gif(tmp_path):
     out = tmp_path / "demo.gif"
-    demo_main(["--out", str(out), "--steps", "8"])
+    path, summary = write_demo(str(out), 8)
+    assert path == str(out) and summary.startswith("8 steps") and "positions finite: True" in summary
     frames = iio.imread(out, index=None)
     assert frames.shape[0] == 4 and frames.shape[1:3] == (ARENA_PIXELS, ARENA_PIXELS)
     assert frames.std() > 0  # not a blank image

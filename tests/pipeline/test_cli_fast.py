@@ -11,6 +11,7 @@ from pathlib import Path
 import pytest
 
 from pipeline.cli import DATASET_METADATA, ENV_SIZES, PHYSICS_SCHEME_NAMES, PLAY_PHYSICS_SCHEME, POLICY_NAMES
+from pipeline.cli.demo import DEMO_RENDER_EVERY
 
 pytestmark = pytest.mark.smoke
 
@@ -53,6 +54,8 @@ def argument_errors(tmp: Path) -> list[list[str]]:
         ["run", "1M/s", "--scale", "huge"],
         ["run", "1M/s", "split.num_levelz=3"],
         ["levels", "export", "1M/s", "0", "split.num_levelz=3"],
+        ["demo", "--steps", "1"],
+        ["demo", "--steps", "x"],
     ]
 
 
@@ -73,11 +76,13 @@ def test_argument_errors_exit_2_before_any_heavy_import(tmp_path):
 
 def test_the_names_parsed_are_the_engines_and_envs():
     from engine import KINETIX_SIZES, PHYSICS_SCHEMES
+    from engine.demo import RENDER_EVERY
     from env import BUNDLED_SIZES, Policy
 
     assert ENV_SIZES == tuple(KINETIX_SIZES) == tuple(BUNDLED_SIZES)
     assert set(PHYSICS_SCHEME_NAMES) == set(PHYSICS_SCHEMES) and PLAY_PHYSICS_SCHEME in PHYSICS_SCHEMES
     assert POLICY_NAMES == tuple(policy.value for policy in Policy) and POLICY_NAMES[0] == Policy.NOOP.value
+    assert DEMO_RENDER_EVERY == RENDER_EVERY
 
 
 def test_the_bc_names_checked_without_jax_are_the_networks_and_evaluations():
