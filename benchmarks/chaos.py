@@ -62,7 +62,7 @@ TINY_JOB = _tiny_job()
 TOTAL_BATCHES = 8
 LEASE = ["lease.stale_after_s=2", "lease.heartbeat_s=0.25"]
 """A lease that a stopped or killed job loses 2 s after its last heartbeat."""
-STALE_WAIT_S = 3.0  # [s] how long a stopped job stays stopped (past the stale limit)
+STALE_WAIT_S = 3.0  # [s] how long a stopped or killed job's lease is left to go stale
 JOB_TIMEOUT_S = 900.0
 POLL_S = 0.05
 FAULTS = ("driver-sigkill", "driver-sigterm", "worker-kill", "lease-expiry")
@@ -158,6 +158,7 @@ def run_round(fault: str, location: str, work: Path, env: dict, cache: Path, rng
             notes.append("ended before the fault")
         elif fault == "driver-sigkill":
             job.kill()
+            time.sleep(STALE_WAIT_S)  # its lease goes stale: a resume sooner is refused (`LeaseHeld`), as designed
         elif fault == "driver-sigterm":
             job.signal_session(signal.SIGTERM)
             code, last = job.finish()
@@ -194,7 +195,14 @@ def s3_server():
     server.start()
     host, port = server.get_host_and_port()
     endpoint = f"http://{host}:{port}"
-    boto3.client("s3", endpoint_url=endpoint, region_name=S3_ENV["AWS_REGION"]).create_bucket(Bucket=BUCKET)
+    client = boto3.client(
+        "s3",
+        endpoint_url=endpoint,
+        region_name=S3_ENV["AWS_REGION"],
+        aws_access_key_id=S3_ENV["AWS_ACCESS_KEY_ID"],
+        aws_secret_access_key=S3_ENV["AWS_SECRET_ACCESS_KEY"],
+    )
+    client.create_bucket(Bucket=BUCKET)
     try:
         yield {**S3_ENV, "AWS_ENDPOINT_URL": endpoint}
     finally:
