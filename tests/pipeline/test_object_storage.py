@@ -197,8 +197,23 @@ def test_kinetix_import_reads_a_split_and_a_shard_from_s3(s3, s3_trajectories, t
 
 def test_levels_export_and_run_read_a_dataset_config_from_s3(s3_dataset, tmp_path, capsys):
     url, local = s3_dataset
-    for config in (url, f"{url}/config.yaml"):
-        assert load_config(config) == load_config(local / "config.yaml") == load_config(local)
+    remote, local_job = load_config(url), load_config(local)
+    assert load_config(f"{url}/config.yaml") == remote and load_config(local / "config.yaml") == local_job
+    # A remote dataset's config says nothing of where the job runs: the dataset is the output, the rest the defaults.
+    defaults = {
+        "ray": type(remote.ray)(),
+        "tracking": type(remote.tracking)(),
+        "compile_cache": type(remote.compile_cache)(),
+    }
+    assert remote.output_dir == url and remote.compile_cache == defaults["compile_cache"]
+    assert (remote.ray.address, remote.tracking.dir) == (defaults["ray"].address, defaults["tracking"].dir)
+    assert remote == dataclasses.replace(
+        local_job,
+        output_dir=url,
+        compile_cache=remote.compile_cache,
+        ray=dataclasses.replace(local_job.ray, address=remote.ray.address),
+        tracking=dataclasses.replace(local_job.tracking, dir=remote.tracking.dir),
+    )
     outputs = []
     for index, config in enumerate((url, str(local / "config.yaml"))):
         out = tmp_path / str(index)
