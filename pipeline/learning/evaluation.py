@@ -48,6 +48,9 @@ from pipeline.learning.train import LEVELS_FILE, Learner
 from pipeline.reading import TrajectoryDatasetManager
 from pipeline.storage import CONFIG_FILE, DatasetError, iter_records, open_dataset
 
+JOB_PHYSICS_SCHEME = EnvSection.physics
+"""The scheme a job plays under unless its `env.physics` names another (the schema's default: kinetix)."""
+
 ACTION_TYPE = ActionType.MULTI_DISCRETE
 
 STORED_STARTS_PER_TRAJECTORY = 4
@@ -259,7 +262,7 @@ def unseen_starts(job: JobConfig, count: int) -> StartSet:
 
 def hand_starts(
     static: StaticEnvParams,
-    scheme: PhysicsScheme = PHYSICS_SCHEMES[EnvSection().physics],
+    scheme: PhysicsScheme = PHYSICS_SCHEMES[JOB_PHYSICS_SCHEME],
     max_levels: int | None = None,
 ) -> StartSet:
     """Start states of the bundled hand-designed Kinetix levels of the dataset's size (the first `max_levels` by
@@ -302,7 +305,7 @@ def play_physics(job: JobConfig | None, static: StaticEnvParams) -> tuple[str, E
     unless the job named another), Kinetix's play for data made without a job config."""
     if job is not None:
         return job.env.physics, environment(job)[0]
-    default = EnvSection().physics  # a job's scheme unless it names another
+    default = JOB_PHYSICS_SCHEME
     return default, under_scheme(physics_scheme(default), EnvParams(), static)[0]
 
 
