@@ -11,14 +11,12 @@ import pytest
 from pipeline_test_helpers import tiny_job
 
 import pipeline.generation.estimated_progress as estimated
-from pipeline.generation.config import environment, ppo_config
 from pipeline.generation.estimated_progress import estimated_progress
 from pipeline.generation.level_batch import (
     KeyPurpose,
-    _compiled_train_program,
+    _compiling_train_program,
     batch_level_indices,
     level_keys,
-    sample_and_filter,
 )
 
 FAST_INTERVAL_SECONDS = 0.02
@@ -86,11 +84,9 @@ def _custom_call_targets(compiled) -> set[str]:
 def test_the_fixed_budget_training_program_has_no_host_callback():
     """A program that calls back into Python is never stored in JAX's persistent compilation cache."""
     job = tiny_job("unused")
-    env_params, static = environment(job)
     indices = batch_level_indices(job, 0, 0)
-    levels, _, _ = sample_and_filter(job, indices)
     keys = level_keys(job.split.seed, indices, KeyPurpose.TRAIN)
     control = jax.jit(lambda x: (jax.debug.callback(print, x), x)[1]).lower(jnp.zeros(2)).compile()
     assert any("callback" in target for target in _custom_call_targets(control))  # what a host callback looks like
-    compiled = _compiled_train_program(ppo_config(job), static, levels, keys, env_params)
+    compiled = _compiling_train_program(job, indices, keys).result()
     assert not any("callback" in target for target in _custom_call_targets(compiled))
