@@ -33,9 +33,11 @@ REMOTE_LOG_ROOT = Path("outputs") / "remote-logs"
 
 def log_dir(output_dir: str | os.PathLike) -> Path:
     """The local folder of a dataset's run logs: `<output_dir>/logs` on a filesystem; for a dataset on object storage
-    (`s3://bucket/prefix`), `outputs/remote-logs/bucket/prefix/logs` on this machine (logs stay out of the bucket)."""
+    (`s3://bucket/prefix`), `outputs/remote-logs/bucket/prefix/logs` on this machine (logs stay out of the bucket;
+    "." and ".." parts of the URL are dropped, so the folder stays under `REMOTE_LOG_ROOT`)."""
     if is_remote(output_dir):
-        return REMOTE_LOG_ROOT / str(output_dir).split("://", 1)[1].strip("/") / LOG_DIR
+        parts = str(output_dir).split("://", 1)[1].split("/")
+        return REMOTE_LOG_ROOT.joinpath(*(part for part in parts if part not in ("", ".", ".."))) / LOG_DIR
     return Path(output_dir) / LOG_DIR
 
 

@@ -2,6 +2,7 @@
 training), the progress bar's text and time left, the --max-batches budget, the closing summary and the log file."""
 
 import logging
+from pathlib import Path
 
 from pipeline_test_helpers import tiny_job
 
@@ -10,6 +11,7 @@ from pipeline.generation.console import (
     THIRD_PARTY_LOGGERS,
     closing_summary,
     in_flight_summary,
+    log_dir,
     resume_line,
     start_log_file,
 )
@@ -163,3 +165,9 @@ def test_third_party_logs_go_to_the_log_file_and_to_the_terminal_only_when_verbo
     loud = start_log_file(tmp_path / "loud", verbose=True)
     logging.getLogger("wandb").warning("wandb says hello")
     assert "wandb says hello" in loud.read_text() and "wandb says hello" in capfd.readouterr().err
+
+
+def test_a_remote_datasets_log_folder_stays_under_the_remote_log_root():
+    assert log_dir("s3://bucket/runs/a") == Path("outputs/remote-logs/bucket/runs/a/logs")
+    assert log_dir("s3://bucket/../../etc/./x/") == Path("outputs/remote-logs/bucket/etc/x/logs")
+    assert log_dir("gs://bucket/..") == Path("outputs/remote-logs/bucket/logs")
