@@ -262,6 +262,15 @@ def run_job_process(config_file: Path, until=None) -> str:
         kill_session(process.pid)
 
 
+def kill_at_points(config_file: Path, kill_points: dict) -> None:
+    """Run the job once per kill point (name -> predicate on the dataset), SIGKILLing its session as soon as the
+    point is reached; each point must not hold before its run and must hold after it."""
+    for where, reached in kill_points.items():
+        assert not reached(), f"already past the kill point '{where}' before the run"
+        run_job_process(config_file, until=reached)
+        assert reached(), where
+
+
 def dataset_contents(root):
     """Every stored array and every commit record of a dataset directory."""
     group = zarr.open_group(str(root / "data"), mode="r")

@@ -5,7 +5,7 @@ dataset of its uninterrupted run: every stored array, the kept trajectories' byt
 from __future__ import annotations
 
 import pytest
-from pipeline_test_helpers import assert_same_dataset, run_in_process, run_job_process, tiny_job
+from pipeline_test_helpers import assert_same_dataset, kill_at_points, run_in_process, run_job_process, tiny_job
 
 from pipeline.generation.config import to_yaml
 from pipeline.storage import all_committed, iter_records
@@ -41,10 +41,7 @@ def test_a_job_keeping_trajectories_killed_at_several_points_and_resumed_equals_
         "in shard 2, after its first kept trajectory": lambda: _committed(output) >= 5,
         "in shard 3, after the batch that kept two": lambda: _committed(output) >= 7,
     }
-    for where, reached in kill_points.items():
-        assert not reached(), f"already past the kill point '{where}' before the run"
-        run_job_process(config_file, until=reached)
-        assert reached(), where
+    kill_at_points(config_file, kill_points)
     assert _committed(output) < 8  # the last kill came before the end
     run_job_process(config_file)
     assert sum(record.num_kept for record in iter_records(output)) == KEPT
