@@ -5,13 +5,13 @@ for adaptive budgets, and the pieces they are made of (GAE, loss, the learner an
 cloning, its policy networks and objective, and episodes of any policy given as an actor function.
 """
 
-from agents.bc_networks import Architecture, EntityTransformerPolicy, MLPPolicy, NetworkConfig, make_bc_network
-from agents.collect import WINDOW_STEPS, Window, collect_windows
-from agents.config import PPOConfig
-from agents.evaluate import Actor, Episode, EvalOutput, evaluate, level_episodes, network_actor, run_episode
-from agents.imitation import ImitationTerms, imitation_terms
-from agents.networks import ActorCritic, make_network
-from agents.ppo import (
+from kforge.agents.bc_networks import Architecture, EntityTransformerPolicy, MLPPolicy, NetworkConfig, make_bc_network
+from kforge.agents.collect import WINDOW_STEPS, Window, collect_windows
+from kforge.agents.config import PPOConfig
+from kforge.agents.evaluate import Actor, Episode, EvalOutput, evaluate, level_episodes, network_actor, run_episode
+from kforge.agents.imitation import ImitationTerms, imitation_terms
+from kforge.agents.networks import ActorCritic, make_network
+from kforge.agents.ppo import (
     Batch,
     LossTerms,
     Selection,
@@ -26,7 +26,7 @@ from agents.ppo import (
     train_level,
     train_levels,
 )
-from agents.segments import LevelTraining, SegmentOutput, check_segmented, put_slot, start_level, train_segments
+from kforge.agents.segments import LevelTraining, SegmentOutput, check_segmented, put_slot, start_level, train_segments
 
 __all__ = [
     "WINDOW_STEPS",

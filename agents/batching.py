@@ -5,7 +5,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from env import ActionType, Level
+from kforge.env import ActionType, Level
 
 ACTION_TYPE = ActionType.MULTI_DISCRETE
 """The action space the agents act in."""

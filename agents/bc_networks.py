@@ -12,8 +12,8 @@ import enum
 import flax.linen as nn
 import jax.numpy as jnp
 
-from agents.policy import NUM_LOGITS
-from env import EntityObservation, ObservationType
+from kforge.agents.policy import NUM_LOGITS
+from kforge.env import EntityObservation, ObservationType
 
 LOGITS_INIT_SCALE = 0.01
 """Variance-scaling gain of the logits layer: a near-uniform initial policy."""

@@ -6,7 +6,7 @@ import dataclasses
 from collections.abc import Mapping
 from typing import Any
 
-from env import ObservationType
+from kforge.env import ObservationType
 
 SUPPORTED_OBSERVATIONS = (ObservationType.SYMBOLIC_FLAT,)
 """Observation types the MLP actor-critic can read (flat vectors)."""

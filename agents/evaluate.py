@@ -9,11 +9,11 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from agents import policy
-from agents.batching import ACTION_TYPE, check_level_keys, num_levels
-from agents.config import PPOConfig
-from agents.networks import make_network
-from env import EnvParams, EnvState, Level, StaticEnvParams, action_mask, advance, observe, reset
+from kforge.agents import policy
+from kforge.agents.batching import ACTION_TYPE, check_level_keys, num_levels
+from kforge.agents.config import PPOConfig
+from kforge.agents.networks import make_network
+from kforge.env import EnvParams, EnvState, Level, StaticEnvParams, action_mask, advance, observe, reset
 
 
 class EvalOutput(NamedTuple):

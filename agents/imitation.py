@@ -11,7 +11,7 @@ from typing import NamedTuple
 
 import jax.numpy as jnp
 
-from agents.policy import slot_log_probs
+from kforge.agents.policy import slot_log_probs
 
 
 class ImitationTerms(NamedTuple):

@@ -7,8 +7,8 @@ import math
 import flax.linen as nn
 import jax.numpy as jnp
 
-from agents.config import PPOConfig
-from agents.policy import NUM_LOGITS
+from kforge.agents.config import PPOConfig
+from kforge.agents.policy import NUM_LOGITS
 
 HIDDEN_INIT_SCALE = math.sqrt(2.0)
 """Orthogonal-init gain of hidden layers."""

@@ -11,7 +11,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from env import MULTI_DISCRETE_SIZES
+from kforge.env import MULTI_DISCRETE_SIZES
 
 NUM_LOGITS = sum(MULTI_DISCRETE_SIZES)
 """Actor outputs: the concatenated logits of every slot."""

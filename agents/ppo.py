@@ -30,12 +30,12 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from agents import policy
-from agents.batching import ACTION_TYPE, check_level_keys, num_levels
-from agents.config import PPOConfig
-from agents.evaluate import level_episodes
-from agents.networks import make_network
-from env import (
+from kforge.agents import policy
+from kforge.agents.batching import ACTION_TYPE, check_level_keys, num_levels
+from kforge.agents.config import PPOConfig
+from kforge.agents.evaluate import level_episodes
+from kforge.agents.networks import make_network
+from kforge.env import (
     EnvParams,
     EnvState,
     Level,

@@ -18,8 +18,8 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from agents.config import PPOConfig
-from agents.ppo import (
+from kforge.agents.config import PPOConfig
+from kforge.agents.ppo import (
     SELECTION_STREAM,
     UpdateMetrics,
     _Best,
@@ -28,7 +28,7 @@ from agents.ppo import (
     _TrainCarry,
     initial_params,
 )
-from env import EnvParams, Level, StaticEnvParams
+from kforge.env import EnvParams, Level, StaticEnvParams
 
 
 class LevelTraining(NamedTuple):

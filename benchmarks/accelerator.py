@@ -56,7 +56,7 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 from benchmarks.engine import JAX2D_PUBLISHED_PEAK_STEPS_PER_SECOND  # noqa: E402
 from benchmarks.machine import describe_machine  # noqa: E402
-from engine import SOLVER_LOOP_FORMS  # noqa: E402
+from kforge.engine import SOLVER_LOOP_FORMS  # noqa: E402
 
 ENGINE_SPEEDUP_TARGET = 2.0
 """Engine steps/s at least this many times Jax2D's, measured in the same run."""
@@ -219,7 +219,7 @@ def compile_engine_programs(
     programs, or the error that stopped one of them."""
     from benchmarks import jax2d_baseline
     from benchmarks.engine import compile_rollout_ours
-    from engine import Batching
+    from kforge.engine import Batching
 
     batching = Batching().resolved()
     forms = list(dict.fromkeys((batching.solver_loops, *plan.engine_solver_loops)))
@@ -343,7 +343,7 @@ def measure_pipeline(
     """A tiny job end to end into `scratch`, `kforge run` in a fresh process: one Ray worker on the accelerator, or
     where Ray is not installed the job's own process (`ray.num_workers=0`); programs go to `compile_cache`, so a
     second run loads them."""
-    from pipeline.generation.config import load_config, to_yaml
+    from kforge.pipeline.generation.config import load_config, to_yaml
 
     with_ray = _importable("ray")
     gpus = 1.0 if jax.default_backend() == "gpu" else 0.0
@@ -362,7 +362,7 @@ def measure_pipeline(
     config_file = scratch / f"pipeline-{size}.yaml"
     scratch.mkdir(parents=True, exist_ok=True)
     config_file.write_text(to_yaml(load_config(None, overrides)))
-    command = [sys.executable, "-m", "pipeline", "run", str(config_file), "--no-progress", "--json"]
+    command = [sys.executable, "-m", "kforge", "run", str(config_file), "--no-progress", "--json"]
     root = Path(__file__).resolve().parents[1]
     finished = subprocess.run(command, capture_output=True, text=True, env=_with_path_first(root), cwd=root)
     if finished.returncode != 0:
@@ -382,7 +382,7 @@ def engine_determinism(size: str, batch: int, steps: int) -> dict:
     from benchmarks.engine import _batched_states
     from benchmarks.scenes import build_scene
     from benchmarks.timing import best_time
-    from engine import SimParams, step
+    from kforge.engine import SimParams, step
 
     static = build_scene(size, 0)[1]
     params = SimParams()
@@ -425,7 +425,7 @@ def engine_determinism(size: str, batch: int, steps: int) -> dict:
 def measure_engine_determinism(size: str, batch: int, steps: int) -> dict:
     """`engine_determinism` in fresh processes (XLA reads its flags once per process), with XLA's deterministic GPU
     ops off and on."""
-    from engine.determinism import XLA_FLAGS_ENV, with_deterministic_ops
+    from kforge.engine.determinism import XLA_FLAGS_ENV, with_deterministic_ops
 
     results = {}
     for ops, flag in (("default_ops", "--xla_gpu_deterministic_ops=false"), ("deterministic_ops", "")):
@@ -440,7 +440,7 @@ def measure_engine_determinism(size: str, batch: int, steps: int) -> dict:
 
 def _data_digests(root: Path) -> dict[tuple[int, str], str]:
     """(level batch, array) -> the digest of its data, as the commit records give it."""
-    from pipeline.storage import iter_records
+    from kforge.pipeline.storage import iter_records
 
     return {(r.global_batch, name): e.data_sha256 for r in iter_records(root) for name, e in r.arrays.items()}
 

@@ -25,7 +25,7 @@ from pathlib import Path
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 from benchmarks.machine import describe_machine  # noqa: E402
-from pipeline.learning import evaluate_policy, load_bc_config, load_policy, train_bc  # noqa: E402
+from kforge.pipeline.learning import evaluate_policy, load_bc_config, load_policy, train_bc  # noqa: E402
 
 LOADER_WAIT_TARGET = 0.05
 """Target share of BC step time spent waiting for the loader."""

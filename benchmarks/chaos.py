@@ -43,9 +43,9 @@ import numpy as np
 REPOSITORY = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPOSITORY))  # the project's `pipeline`, not benchmarks/pipeline.py
 
-from pipeline.generation.config import load_config, to_yaml  # noqa: E402
-from pipeline.storage import PROVENANCE, all_committed, iter_records, open_store  # noqa: E402
-from pipeline.storage.verify import verify_dataset  # noqa: E402
+from kforge.pipeline.generation.config import load_config, to_yaml  # noqa: E402
+from kforge.pipeline.storage import PROVENANCE, all_committed, iter_records, open_store  # noqa: E402
+from kforge.pipeline.storage.verify import verify_dataset  # noqa: E402
 
 
 def _tiny_job() -> list[str]:
@@ -95,11 +95,11 @@ def records(location: str) -> dict[tuple[int, int], str]:
 
 
 class Job:
-    """`python -m pipeline run CONFIG` in a session of its own."""
+    """`python -m kforge run CONFIG` in a session of its own."""
 
     def __init__(self, config_file: Path, env: dict):
         self.process = subprocess.Popen(
-            [sys.executable, "-m", "pipeline", "run", str(config_file), "--no-progress"],
+            [sys.executable, "-m", "kforge", "run", str(config_file), "--no-progress"],
             start_new_session=True,
             stdout=subprocess.PIPE,
             stderr=subprocess.STDOUT,

@@ -1,5 +1,5 @@
 """How fast the command line answers: wall time of `kforge <subcommand> --help` and of an argument or config error,
-per subcommand, each in a fresh process (`python -m pipeline`, as the installed `kforge` runs it).
+per subcommand, each in a fresh process (`python -m kforge`, as the installed `kforge` runs it).
 
     python benchmarks/cli_latency.py [--repeats 3]
 
@@ -36,9 +36,9 @@ ERRORS = {
 
 
 def wall_seconds(arguments: list[str]) -> tuple[float, int]:
-    """(seconds, exit code) of one `python -m pipeline ARGUMENTS` in a fresh process."""
+    """(seconds, exit code) of one `python -m kforge ARGUMENTS` in a fresh process."""
     started = time.perf_counter()
-    result = subprocess.run([sys.executable, "-m", "pipeline", *arguments], capture_output=True, text=True)
+    result = subprocess.run([sys.executable, "-m", "kforge", *arguments], capture_output=True, text=True)
     return time.perf_counter() - started, result.returncode
 
 

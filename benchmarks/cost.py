@@ -22,9 +22,9 @@ from pathlib import Path
 
 from benchmarks.env import DEFAULT_KINETIX_VENV, kinetix_python
 from benchmarks.ppo import measure_kinetix
-from pipeline.generation.config import load_config, ppo_config
-from pipeline.generation.run import run_job
-from pipeline.storage import Outcome, iter_records
+from kforge.pipeline.generation.config import load_config, ppo_config
+from kforge.pipeline.generation.run import run_job
+from kforge.pipeline.storage import Outcome, iter_records
 
 RELEASE_SPLIT = "1M/s"
 MODES = ("fixed", "streamed", "adaptive")

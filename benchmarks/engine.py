@@ -58,7 +58,7 @@ from benchmarks.sim_overrides import (  # noqa: E402
     with_solver_scheme,
 )
 from benchmarks.timing import best_time, best_times_interleaved  # noqa: E402
-from engine import DEFAULT_PHYSICS_SCHEME, PHYSICS_SCHEMES, Batching, SimParams, physics_scheme, step  # noqa: E402
+from kforge.engine import DEFAULT_PHYSICS_SCHEME, PHYSICS_SCHEMES, Batching, SimParams, physics_scheme, step  # noqa: E402
 
 DISTINCT_SCENES = 16
 """Scenes with different jitter seeds, tiled to fill a batch (building thousands on the host is slow)."""
@@ -237,9 +237,9 @@ def env_step_kernels(
     """Kernels one vmapped env step of ours (step, auto-reset and observation) runs at `batch` levels under the named
     physics scheme and `batching` (default: the engine's "auto")."""
     from benchmarks.env import _env_step
-    from env import EnvParams, StaticEnvParams, reset, under_scheme
-    from env.actions import MULTI_DISCRETE_SIZES
-    from env.sampler import sample_levels
+    from kforge.env import EnvParams, StaticEnvParams, reset, under_scheme
+    from kforge.env.actions import MULTI_DISCRETE_SIZES
+    from kforge.env.sampler import sample_levels
 
     params, static = under_scheme(physics_scheme(physics), EnvParams(), StaticEnvParams.for_size(size))
     if batching is not None:

@@ -27,10 +27,10 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 from benchmarks.machine import describe_machine  # noqa: E402
 from benchmarks.timing import best_time  # noqa: E402
-from env import EnvParams, StaticEnvParams, reset, step  # noqa: E402
-from env.actions import MULTI_DISCRETE_SIZES  # noqa: E402
-from env.observations import ObservationType, observe  # noqa: E402
-from env.sampler import sample_levels  # noqa: E402
+from kforge.env import EnvParams, StaticEnvParams, reset, step  # noqa: E402
+from kforge.env.actions import MULTI_DISCRETE_SIZES  # noqa: E402
+from kforge.env.observations import ObservationType, observe  # noqa: E402
+from kforge.env.sampler import sample_levels  # noqa: E402
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 KINETIX_REQUIREMENT = "kinetix-env==3.0.2"

@@ -51,18 +51,18 @@ from tqdm import tqdm
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
-from agents import collect_windows, evaluate, train_levels  # noqa: E402
 from benchmarks.env import REPO_ROOT  # noqa: E402
 from benchmarks.machine import describe_machine  # noqa: E402
-from env import FilterReason, Level, StaticEnvParams, bundled_level_path, filter_levels, load_level  # noqa: E402
-from pipeline.generation.config import (  # noqa: E402
+from kforge.agents import collect_windows, evaluate, train_levels  # noqa: E402
+from kforge.env import FilterReason, Level, StaticEnvParams, bundled_level_path, filter_levels, load_level  # noqa: E402
+from kforge.pipeline.generation.config import (  # noqa: E402
     JobConfig,
     environment,  # noqa: E402
     load_config,
     ppo_config,
 )
-from pipeline.generation.estimated_progress import estimated_progress  # noqa: E402
-from pipeline.generation.level_batch import KeyPurpose, level_key, level_keys, sample_batch  # noqa: E402
+from kforge.pipeline.generation.estimated_progress import estimated_progress  # noqa: E402
+from kforge.pipeline.generation.level_batch import KeyPurpose, level_key, level_keys, sample_batch  # noqa: E402
 
 SPLIT_CONFIG = REPO_ROOT / "configs" / "splits" / "1M" / "s.yaml"
 """The split whose levels, env, filter, PPO and collection settings are used (its budget is replaced)."""

@@ -51,8 +51,8 @@ from benchmarks.sim_overrides import (  # noqa: E402
     split_sim_overrides,
 )
 from benchmarks.sim_overrides import with_solver_scheme as with_sim_scheme  # noqa: E402
-from engine import DEFAULT_PHYSICS_SCHEME, physics_scheme  # noqa: E402
-from env import (  # noqa: E402
+from kforge.engine import DEFAULT_PHYSICS_SCHEME, physics_scheme  # noqa: E402
+from kforge.env import (  # noqa: E402
     EnvParams,
     Outcome,
     Policy,

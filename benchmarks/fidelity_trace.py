@@ -46,8 +46,8 @@ from benchmarks.sim_overrides import (
     with_sim_overrides,
     with_solver_scheme,
 )  # noqa: E402
-from engine import DEFAULT_PHYSICS_SCHEME, physics_scheme  # noqa: E402
-from env import (  # noqa: E402
+from kforge.engine import DEFAULT_PHYSICS_SCHEME, physics_scheme  # noqa: E402
+from kforge.env import (  # noqa: E402
     MULTI_DISCRETE_SIZES,
     ActionType,
     EnvParams,

@@ -1,7 +1,7 @@
 """The quickstart's first run beside a base commit's: wall seconds of `kforge run 1M/s --scale tiny` with a cold and
 with a warm compilation cache.
 
-Each run is a fresh process (`python -m pipeline run 1M/s --scale tiny`, the quickstart's command) writing into a
+Each run is a fresh process (`python -m kforge run 1M/s --scale tiny`, the quickstart's command) writing into a
 fresh output folder. A round runs, for each tree, the first run with an empty `compile_cache.dir` and then the second
 run on the cache the first one filled; the base tree and the measured tree alternate (base first in odd rounds,
 second in even ones), so a change in the machine's load falls on both. A tree's packages shadow the installed ones
@@ -70,9 +70,9 @@ def tree_environment(tree: Path) -> dict[str, str]:
 
 
 def check_shadowing(tree: Path) -> None:
-    """Fail unless `python -m pipeline` run as `timed_run` runs it would load `pipeline` from `tree`."""
+    """Fail unless `python -m kforge` run as `timed_run` runs it would load `kforge.pipeline` from `tree`."""
     loaded = subprocess.run(
-        [sys.executable, "-c", "import pipeline; print(pipeline.__file__)"],
+        [sys.executable, "-c", "import kforge.pipeline as p; print(p.__file__)"],
         cwd=tree,
         env=tree_environment(tree),
         check=True,
@@ -96,7 +96,7 @@ def records_digest(output: Path) -> str:
 
 def timed_run(tree: Path, cache: Path, output: Path, log: Path) -> float:
     """Wall seconds of the quickstart's run of `tree` with compilation cache `cache`, writing into `output`."""
-    command = [sys.executable, "-m", "pipeline", *QUICKSTART, f"compile_cache.dir={cache}", f"output_dir={output}"]
+    command = [sys.executable, "-m", "kforge", *QUICKSTART, f"compile_cache.dir={cache}", f"output_dir={output}"]
     started = time.perf_counter()
     with log.open("w") as sink:
         done = subprocess.run(command, cwd=tree, env=tree_environment(tree), stdout=sink, stderr=subprocess.STDOUT)

@@ -24,9 +24,9 @@ import jax
 import numpy as np
 import tensorstore as ts
 
-from env import ActionType, EnvParams, StaticEnvParams, random_action, reset, sample_levels, step
-from pipeline.reading import TrajectoryDatasetManager
-from pipeline.storage import (
+from kforge.env import ActionType, EnvParams, StaticEnvParams, random_action, reset, sample_levels, step
+from kforge.pipeline.reading import TrajectoryDatasetManager
+from kforge.pipeline.storage import (
     ACTION,
     DONE,
     LEVEL_ID,
@@ -42,7 +42,7 @@ from pipeline.storage import (
     make_layout,
     write_record,
 )
-from pipeline.storage.layout import flatten_state
+from kforge.pipeline.storage.layout import flatten_state
 
 BUCKET = "kforge-bench"
 SERVER_START_TIMEOUT_S = 60.0

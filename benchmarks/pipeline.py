@@ -36,12 +36,12 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 from benchmarks import cost  # noqa: E402
 from benchmarks.machine import describe_machine  # noqa: E402
-from pipeline.generation.config import load_config  # noqa: E402
-from pipeline.generation.run import run_job  # noqa: E402
-from pipeline.reading.loader import TrajectoryDatasetManager  # noqa: E402
-from pipeline.storage.layout import STATE_PREFIX  # noqa: E402
-from pipeline.storage.manifest import iter_records  # noqa: E402
-from pipeline.storage.shard_store import DATA_DIR, open_dataset  # noqa: E402
+from kforge.pipeline.generation.config import load_config  # noqa: E402
+from kforge.pipeline.generation.run import run_job  # noqa: E402
+from kforge.pipeline.reading.loader import TrajectoryDatasetManager  # noqa: E402
+from kforge.pipeline.storage.layout import STATE_PREFIX  # noqa: E402
+from kforge.pipeline.storage.manifest import iter_records  # noqa: E402
+from kforge.pipeline.storage.shard_store import DATA_DIR, open_dataset  # noqa: E402
 
 KINETIX_OFFLINE_BYTES_PER_TRANSITION = {"s": 80.4, "m": 110.9, "l": 306.0}
 """Kinetix-Offline 1M splits: bytes on disk per transition (GB = 1e9), docs/kinetix.md, released splits."""

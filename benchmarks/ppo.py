@@ -33,11 +33,11 @@ import yaml
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
-from agents import Batch, PPOConfig, initial_params, learn, make_optimizer, train_levels  # noqa: E402
 from benchmarks.env import DEFAULT_KINETIX_VENV, REPO_ROOT, kinetix_python  # noqa: E402
 from benchmarks.machine import describe_machine  # noqa: E402
 from benchmarks.timing import best_time, best_times_interleaved  # noqa: E402
-from env import MULTI_DISCRETE_SIZES, EnvParams, StaticEnvParams, observation_shape, sample_levels  # noqa: E402
+from kforge.agents import Batch, PPOConfig, initial_params, learn, make_optimizer, train_levels  # noqa: E402
+from kforge.env import MULTI_DISCRETE_SIZES, EnvParams, StaticEnvParams, observation_shape, sample_levels  # noqa: E402
 
 DEFAULT_CONFIG = REPO_ROOT / "configs" / "ppo_specialist.yaml"
 LEVEL_SEED = 0

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from engine import SceneBuilder, SimState, StaticSimParams
+from kforge.engine import SceneBuilder, SimState, StaticSimParams
 
 BOX_SIZE_M = (0.4, 0.3)
 CIRCLE_RADIUS_M = 0.15

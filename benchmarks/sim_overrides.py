@@ -6,8 +6,8 @@ from __future__ import annotations
 import argparse
 import dataclasses
 
-from engine import DEFAULT_PHYSICS_SCHEME, PHYSICS_SCHEMES, SimParams, StaticSimParams
-from engine.params import LAW_FIELDS
+from kforge.engine import DEFAULT_PHYSICS_SCHEME, PHYSICS_SCHEMES, SimParams, StaticSimParams
+from kforge.engine.params import LAW_FIELDS
 
 STATIC_SWITCHES = (*LAW_FIELDS, "swept_speculative_contacts")
 """`StaticSimParams` fields that `KEY=VALUE` also sets: the laws (VALUE an enum's number) and the swept contacts switch

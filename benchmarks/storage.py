@@ -34,9 +34,9 @@ from numcodecs import Blosc
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
-from pipeline.storage.layout import DONE, VALID  # noqa: E402
-from pipeline.storage.shard_store import BLOSC_LEVEL, DATA_DIR, open_dataset  # noqa: E402
-from pipeline.storage.state_codec import encode, is_coded  # noqa: E402
+from kforge.pipeline.storage.layout import DONE, VALID  # noqa: E402
+from kforge.pipeline.storage.shard_store import BLOSC_LEVEL, DATA_DIR, open_dataset  # noqa: E402
+from kforge.pipeline.storage.state_codec import encode, is_coded  # noqa: E402
 
 
 def _blosc(level: int = BLOSC_LEVEL, shuffle: int = Blosc.SHUFFLE) -> Callable[[np.ndarray], int]:

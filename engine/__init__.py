@@ -5,17 +5,17 @@ Public surface: state and parameter types, the scene builder, `step`, how batche
 bitwise-repeatable GPU execution (`use_deterministic_ops`), and the demo scene written as a GIF (`write_demo`).
 """
 
-from engine.batch_last import (
+from kforge.engine.batch_last import (
     BATCHING_MODES,
     SOLVER_LOOP_FORMS,
     SOLVER_LOOP_MODES,
     Batching,
 )
-from engine.collision import manifolds, world_geometry
-from engine.collision_filter import joint_collision_matrix, modes_collide
-from engine.demo import write_demo
-from engine.determinism import use_deterministic_ops, with_deterministic_ops
-from engine.geometry import (
+from kforge.engine.collision import manifolds, world_geometry
+from kforge.engine.collision_filter import joint_collision_matrix, modes_collide
+from kforge.engine.demo import write_demo
+from kforge.engine.determinism import use_deterministic_ops, with_deterministic_ops
+from kforge.engine.geometry import (
     CONVEXITY_TOLERANCE,
     MIN_POLYGON_AREA,
     circle_mass_properties,
@@ -24,8 +24,8 @@ from engine.geometry import (
     rotate,
     rotate_host,
 )
-from engine.pairs import PairLayout, pair_layout
-from engine.params import (
+from kforge.engine.pairs import PairLayout, pair_layout
+from kforge.engine.params import (
     KINETIX_SIZES,
     MAX_POLYGON_VERTICES,
     CollisionRules,
@@ -37,11 +37,11 @@ from engine.params import (
     SimParams,
     StaticSimParams,
 )
-from engine.physics_step import StepInfo, step
-from engine.render import write_gif
-from engine.scene import ARENA_SIZE, FLOOR_TOP, SceneBuilder
-from engine.schemes import DEFAULT_PHYSICS_SCHEME, PHYSICS_SCHEMES, PhysicsScheme, physics_scheme
-from engine.state import NO_FEATURE, Bodies, ContactCache, Joints, SimState, Thrusters, empty_state
+from kforge.engine.physics_step import StepInfo, step
+from kforge.engine.render import write_gif
+from kforge.engine.scene import ARENA_SIZE, FLOOR_TOP, SceneBuilder
+from kforge.engine.schemes import DEFAULT_PHYSICS_SCHEME, PHYSICS_SCHEMES, PhysicsScheme, physics_scheme
+from kforge.engine.state import NO_FEATURE, Bodies, ContactCache, Joints, SimState, Thrusters, empty_state
 
 __all__ = [
     "ARENA_SIZE",

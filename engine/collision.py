@@ -8,10 +8,10 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from engine.geometry import dot2, norm2, rotate
-from engine.pairs import PairLayout
-from engine.params import MAX_POLYGON_VERTICES
-from engine.state import NO_FEATURE, Bodies
+from kforge.engine.geometry import dot2, norm2, rotate
+from kforge.engine.pairs import PairLayout
+from kforge.engine.params import MAX_POLYGON_VERTICES
+from kforge.engine.state import NO_FEATURE, Bodies
 
 REFERENCE_FACE_TOLERANCE = 5e-4
 """[m] polygon B's face becomes the reference only if it separates more than A's by this (avoids flip-flopping)."""

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 
-from engine.state import Joints
+from kforge.engine.state import Joints
 
 
 def joint_collision_matrix(joints: Joints, num_bodies: int) -> jnp.ndarray:

@@ -17,11 +17,11 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from engine.collision import Manifolds
-from engine.geometry import dot2
-from engine.pairs import PairLayout
-from engine.softness import Softness
-from engine.sweep import Motion, Sweep
+from kforge.engine.collision import Manifolds
+from kforge.engine.geometry import dot2
+from kforge.engine.pairs import PairLayout
+from kforge.engine.softness import Softness
+from kforge.engine.sweep import Motion, Sweep
 
 NUM_ROWS = 4
 """Rows per pair: normal point 0, normal point 1, friction point 0, friction point 1."""

@@ -11,11 +11,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from engine.params import SimParams, StaticSimParams
-from engine.physics_step import step
-from engine.render import render_frame, write_gif
-from engine.scene import FLOOR_TOP, SceneBuilder
-from engine.state import SimState
+from kforge.engine.params import SimParams, StaticSimParams
+from kforge.engine.physics_step import step
+from kforge.engine.render import render_frame, write_gif
+from kforge.engine.scene import FLOOR_TOP, SceneBuilder
+from kforge.engine.state import SimState
 
 RENDER_EVERY = 2
 """Render every this many steps; the GIF plays in real time at 1 / (RENDER_EVERY * dt) frames per second."""

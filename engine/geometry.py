@@ -5,7 +5,7 @@ from __future__ import annotations
 import jax.numpy as jnp
 import numpy as np
 
-from engine.params import MAX_POLYGON_VERTICES
+from kforge.engine.params import MAX_POLYGON_VERTICES
 
 MIN_POLYGON_AREA = 1e-6
 """[m^2] polygons smaller than this are degenerate."""

@@ -13,11 +13,11 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from engine.geometry import rotate
-from engine.params import LimitLaw
-from engine.softness import Softness
-from engine.state import Joints
-from engine.sweep import Motion, Sweep
+from kforge.engine.geometry import rotate
+from kforge.engine.params import LimitLaw
+from kforge.engine.softness import Softness
+from kforge.engine.state import Joints
+from kforge.engine.sweep import Motion, Sweep
 
 SINGULAR_DETERMINANT = 1e-12
 """Point-constraint matrices with a smaller determinant (both bodies immovable) are not solved."""

@@ -16,7 +16,7 @@ import functools
 
 import numpy as np
 
-from engine.params import StaticSimParams
+from kforge.engine.params import StaticSimParams
 
 
 @dataclasses.dataclass(frozen=True, eq=False)

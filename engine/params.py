@@ -8,7 +8,7 @@ import enum
 
 from flax import struct
 
-from engine.batch_last import Batching
+from kforge.engine.batch_last import Batching
 
 MAX_POLYGON_VERTICES = 4
 """Every polygon slot holds up to this many vertices (triangles and quadrilaterals)."""

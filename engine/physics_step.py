@@ -8,10 +8,10 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from engine.batch_last import Batching, vmap_batch_last, vmap_in_chunks
-from engine.collision import WorldGeometry, circle_contact_clearance, manifolds, world_geometry
-from engine.collision_filter import modes_collide
-from engine.contact_solver import (
+from kforge.engine.batch_last import Batching, vmap_batch_last, vmap_in_chunks
+from kforge.engine.collision import WorldGeometry, circle_contact_clearance, manifolds, world_geometry
+from kforge.engine.collision_filter import modes_collide
+from kforge.engine.contact_solver import (
     NUM_POINTS,
     ContactGeometry,
     ContactImpulses,
@@ -24,8 +24,8 @@ from engine.contact_solver import (
     to_colour_layout,
     warm_start_contacts,
 )
-from engine.geometry import cross2, dot2, norm2, rotate
-from engine.joint_solver import (
+from kforge.engine.geometry import cross2, dot2, norm2, rotate
+from kforge.engine.joint_solver import (
     JointImpulses,
     JointRows,
     joint_frames,
@@ -34,8 +34,8 @@ from engine.joint_solver import (
     solve_joints,
     warm_start_joints,
 )
-from engine.pairs import pair_layout
-from engine.params import (
+from kforge.engine.pairs import pair_layout
+from kforge.engine.params import (
     CollisionRules,
     ContactLaw,
     ContactPoints,
@@ -45,9 +45,9 @@ from engine.params import (
     SimParams,
     StaticSimParams,
 )
-from engine.softness import Softness, make_softness
-from engine.state import NO_FEATURE, ContactCache, SimState
-from engine.sweep import SWEEPS
+from kforge.engine.softness import Softness, make_softness
+from kforge.engine.state import NO_FEATURE, ContactCache, SimState
+from kforge.engine.sweep import SWEEPS
 
 STATIC_CONTACT_STIFFNESS_FACTOR = 2.0
 """Contacts against static bodies are this many times stiffer (in Hz) than between movable bodies."""

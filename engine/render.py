@@ -9,9 +9,9 @@ import jax
 import numpy as np
 from PIL import Image, ImageDraw
 
-from engine.geometry import rotate_host
-from engine.scene import ARENA_SIZE
-from engine.state import Bodies, SimState
+from kforge.engine.geometry import rotate_host
+from kforge.engine.scene import ARENA_SIZE
+from kforge.engine.state import Bodies, SimState
 
 DEFAULT_PIXELS_PER_METRE = 100
 """[px/m] image scale; the arena (ARENA_SIZE m square) becomes a 500 x 500 px image."""

@@ -8,10 +8,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from engine.collision_filter import joint_collision_matrix
-from engine.geometry import check_convex_polygon, circle_mass_properties, polygon_mass_properties, rotate_host
-from engine.params import MAX_POLYGON_VERTICES, StaticSimParams
-from engine.state import SimState, empty_state
+from kforge.engine.collision_filter import joint_collision_matrix
+from kforge.engine.geometry import check_convex_polygon, circle_mass_properties, polygon_mass_properties, rotate_host
+from kforge.engine.params import MAX_POLYGON_VERTICES, StaticSimParams
+from kforge.engine.state import SimState, empty_state
 
 ARENA_SIZE = 5.0
 """[m] side of the Kinetix arena: the floor spans x in [0, 5], the ceiling starts at y = 5."""

@@ -6,7 +6,15 @@ from __future__ import annotations
 
 import dataclasses
 
-from engine.params import CollisionRules, ContactLaw, ContactPoints, ForceTiming, LimitLaw, SimParams, StaticSimParams
+from kforge.engine.params import (
+    CollisionRules,
+    ContactLaw,
+    ContactPoints,
+    ForceTiming,
+    LimitLaw,
+    SimParams,
+    StaticSimParams,
+)
 
 
 @dataclasses.dataclass(frozen=True)

@@ -5,8 +5,8 @@ from __future__ import annotations
 import jax.numpy as jnp
 from flax import struct
 
-from engine.pairs import pair_layout
-from engine.params import MAX_POLYGON_VERTICES, StaticSimParams
+from kforge.engine.pairs import pair_layout
+from kforge.engine.params import MAX_POLYGON_VERTICES, StaticSimParams
 
 MAX_CONTACT_POINTS = 2
 """Contact points kept per shape pair (polygon pairs use both, pairs with a circle only the first)."""

@@ -5,7 +5,7 @@ action spaces and masks, observations, the pixel renderer and GIF export, Kineti
 hand-designed levels.
 """
 
-from env.actions import (
+from kforge.env.actions import (
     MULTI_DISCRETE_SIZES,
     NUM_DISCRETE_ACTIONS,
     ActionType,
@@ -14,16 +14,16 @@ from env.actions import (
     noop_action,
     random_action,
 )
-from env.bundled_levels import BUNDLED_SIZES, bundled_level_path, list_levels
-from env.environment import Environment
-from env.episode import StepResult, advance, reset, step
-from env.gif import GIF_RESOLUTION, write_state_gif
-from env.kinetix_state import KinetixStateError, kinetix_leaf_specs, state_from_kinetix, state_to_kinetix
-from env.level_builder import build_level
-from env.level_files import LevelFileError, LoadedLevel, level_to_dict, load_level, save_level
-from env.level_filter import FilterReason, FilterResult, filter_levels
-from env.observations import EntityObservation, ObservationType, observation_shape, observe
-from env.params import (
+from kforge.env.bundled_levels import BUNDLED_SIZES, bundled_level_path, list_levels
+from kforge.env.environment import Environment
+from kforge.env.episode import StepResult, advance, reset, step
+from kforge.env.gif import GIF_RESOLUTION, write_state_gif
+from kforge.env.kinetix_state import KinetixStateError, kinetix_leaf_specs, state_from_kinetix, state_to_kinetix
+from kforge.env.level_builder import build_level
+from kforge.env.level_files import LevelFileError, LoadedLevel, level_to_dict, load_level, save_level
+from kforge.env.level_filter import FilterReason, FilterResult, filter_levels
+from kforge.env.observations import EntityObservation, ObservationType, observation_shape, observe
+from kforge.env.params import (
     NUM_ACTION_SLOTS,
     NUM_MOTOR_BINDINGS,
     NUM_THRUSTER_BINDINGS,
@@ -31,12 +31,12 @@ from env.params import (
     StaticEnvParams,
     under_scheme,
 )
-from env.pixels import PIXEL_OBSERVATION_RESOLUTION, PixelObservation, pixel_observation, render_image
-from env.play import GIF_FPS, record_episode
-from env.rewards import goal_reward, green_blue_distance
-from env.rollout import Outcome, Policy, RolloutResult, first_episode_outcomes
-from env.sampler import sample_level, sample_levels
-from env.state import NO_DISTANCE, NUM_ROLES, EnvState, Level, Role, Task, empty_task, initial_state
+from kforge.env.pixels import PIXEL_OBSERVATION_RESOLUTION, PixelObservation, pixel_observation, render_image
+from kforge.env.play import GIF_FPS, record_episode
+from kforge.env.rewards import goal_reward, green_blue_distance
+from kforge.env.rollout import Outcome, Policy, RolloutResult, first_episode_outcomes
+from kforge.env.sampler import sample_level, sample_levels
+from kforge.env.state import NO_DISTANCE, NUM_ROLES, EnvState, Level, Role, Task, empty_task, initial_state
 
 __all__ = [
     "BUNDLED_SIZES",

@@ -7,8 +7,8 @@ import enum
 import jax
 import jax.numpy as jnp
 
-from env.params import NUM_ACTION_SLOTS, NUM_MOTOR_BINDINGS, NUM_THRUSTER_BINDINGS
-from env.state import EnvState, Level
+from kforge.env.params import NUM_ACTION_SLOTS, NUM_MOTOR_BINDINGS, NUM_THRUSTER_BINDINGS
+from kforge.env.state import EnvState, Level
 
 MULTI_DISCRETE_SIZES = (3, 3, 3, 3, 2, 2)
 """Choices per unified slot: motors {0: off, 1: +1, 2: -1}, thrusters {0: off, 1: on}."""

@@ -8,12 +8,12 @@ import functools
 import jax
 import jax.numpy as jnp
 
-from env.actions import ActionType, noop_action, random_action
-from env.actions import action_mask as level_action_mask
-from env.episode import StepResult, reset, step
-from env.observations import ObservationType, observe
-from env.params import EnvParams, StaticEnvParams
-from env.state import EnvState, Level
+from kforge.env.actions import ActionType, noop_action, random_action
+from kforge.env.actions import action_mask as level_action_mask
+from kforge.env.episode import StepResult, reset, step
+from kforge.env.observations import ObservationType, observe
+from kforge.env.params import EnvParams, StaticEnvParams
+from kforge.env.state import EnvState, Level
 
 
 @dataclasses.dataclass(frozen=True)

@@ -8,11 +8,11 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from engine import step as physics_step
-from env.actions import ActionType, actuator_actions
-from env.params import EnvParams, StaticEnvParams
-from env.rewards import goal_reward, green_blue_distance
-from env.state import NO_DISTANCE, EnvState, Level, initial_state
+from kforge.engine import step as physics_step
+from kforge.env.actions import ActionType, actuator_actions
+from kforge.env.params import EnvParams, StaticEnvParams
+from kforge.env.rewards import goal_reward, green_blue_distance
+from kforge.env.state import NO_DISTANCE, EnvState, Level, initial_state
 
 
 @struct.dataclass

@@ -8,10 +8,10 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from engine import write_gif
-from env.params import StaticEnvParams
-from env.pixels import render_image
-from env.state import EnvState
+from kforge.engine import write_gif
+from kforge.env.params import StaticEnvParams
+from kforge.env.pixels import render_image
+from kforge.env.state import EnvState
 
 GIF_RESOLUTION = 500
 """Default GIF side [px]: Kinetix's full screen, 100 px/m."""

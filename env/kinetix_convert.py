@@ -26,9 +26,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from engine import SimParams, SimState, StaticSimParams, empty_state, joint_collision_matrix, rotate_host
-from env.params import EnvParams, StaticEnvParams
-from env.state import Level, Task
+from kforge.engine import SimParams, SimState, StaticSimParams, empty_state, joint_collision_matrix, rotate_host
+from kforge.env.params import EnvParams, StaticEnvParams
+from kforge.env.state import Level, Task
 
 NUM_BOUNDARY_POLYGONS = 4
 """Kinetix's `num_static_fixated_polys`: polygon slots 0-3 hold the floor, the walls and the ceiling."""

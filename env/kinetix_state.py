@@ -20,16 +20,16 @@ from collections.abc import Mapping
 import jax.numpy as jnp
 import numpy as np
 
-from env.kinetix_convert import (
+from kforge.env.kinetix_convert import (
     NUM_BOUNDARY_POLYGONS,
     KinetixLevel,
     entities_to_kinetix,
     level_from_kinetix,
     static_from_counts,
 )
-from env.level_files import BODY_SCHEMA, JOINT_SCHEMA, MANIFOLD_FIELDS, THRUSTER_SCHEMA, manifold_counts
-from env.params import StaticEnvParams
-from env.state import EnvState, Level
+from kforge.env.level_files import BODY_SCHEMA, JOINT_SCHEMA, MANIFOLD_FIELDS, THRUSTER_SCHEMA, manifold_counts
+from kforge.env.params import StaticEnvParams
+from kforge.env.state import EnvState, Level
 
 KINETIX_FRAME_SKIP = 2
 """Physics steps per env step in every Kinetix size (s, m, l); a Kinetix state does not store it."""

@@ -7,9 +7,9 @@ from collections.abc import Collection, Mapping
 import jax.numpy as jnp
 import numpy as np
 
-from engine import SceneBuilder
-from env.params import NUM_MOTOR_BINDINGS, NUM_THRUSTER_BINDINGS
-from env.state import Level, Role, Task
+from kforge.engine import SceneBuilder
+from kforge.env.params import NUM_MOTOR_BINDINGS, NUM_THRUSTER_BINDINGS
+from kforge.env.state import Level, Role, Task
 
 
 def build_level(

@@ -20,9 +20,9 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from engine import CONVEXITY_TOLERANCE, MIN_POLYGON_AREA, cross2
-from env.bundled_levels import bundled_level_path, close_level_names
-from env.kinetix_convert import (
+from kforge.engine import CONVEXITY_TOLERANCE, MIN_POLYGON_AREA, cross2
+from kforge.env.bundled_levels import bundled_level_path, close_level_names
+from kforge.env.kinetix_convert import (
     ENV_PARAM_ORDER,
     KINETIX_UNMODELLED_ENV_PARAMS,
     KINETIX_UNMODELLED_STATIC,
@@ -36,8 +36,8 @@ from env.kinetix_convert import (
     params_from_kinetix,
     static_from_kinetix,
 )
-from env.params import NUM_MOTOR_BINDINGS, NUM_THRUSTER_BINDINGS, EnvParams, StaticEnvParams
-from env.state import NUM_ROLES, Level
+from kforge.env.params import NUM_MOTOR_BINDINGS, NUM_THRUSTER_BINDINGS, EnvParams, StaticEnvParams
+from kforge.env.state import NUM_ROLES, Level
 
 NUM_COLLISION_MODES = 3
 """Collision modes 0, 1 and 2."""

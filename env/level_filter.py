@@ -14,10 +14,10 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from engine import manifolds, modes_collide, pair_layout, world_geometry
-from env.params import EnvParams, StaticEnvParams
-from env.rollout import Outcome, Policy, first_episode_outcomes
-from env.state import Level, Role
+from kforge.engine import manifolds, modes_collide, pair_layout, world_geometry
+from kforge.env.params import EnvParams, StaticEnvParams
+from kforge.env.rollout import Outcome, Policy, first_episode_outcomes
+from kforge.env.state import Level, Role
 
 
 class FilterReason(enum.IntEnum):

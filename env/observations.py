@@ -31,10 +31,10 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from engine import NO_FEATURE, empty_state, pair_layout
-from env.params import NUM_MOTOR_BINDINGS, NUM_THRUSTER_BINDINGS, StaticEnvParams
-from env.pixels import GRAVITY_SCALE, pixel_observation
-from env.state import NUM_ROLES, EnvState, Level, empty_task, initial_state
+from kforge.engine import NO_FEATURE, empty_state, pair_layout
+from kforge.env.params import NUM_MOTOR_BINDINGS, NUM_THRUSTER_BINDINGS, StaticEnvParams
+from kforge.env.pixels import GRAVITY_SCALE, pixel_observation
+from kforge.env.state import NUM_ROLES, EnvState, Level, empty_task, initial_state
 
 FLAT_CLIP = 10.0
 """Symbolic flat observations are clipped to [-FLAT_CLIP, FLAT_CLIP] (after which NaN becomes 0)."""

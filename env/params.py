@@ -6,7 +6,7 @@ import dataclasses
 
 from flax import struct
 
-from engine import PhysicsScheme, SimParams, StaticSimParams
+from kforge.engine import PhysicsScheme, SimParams, StaticSimParams
 
 NUM_MOTOR_BINDINGS = 4
 """Motor colours: the first four slots of the unified action."""

@@ -17,9 +17,9 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from engine import ARENA_SIZE
-from env.params import StaticEnvParams
-from env.state import EnvState
+from kforge.engine import ARENA_SIZE
+from kforge.env.params import StaticEnvParams
+from kforge.env.state import EnvState
 
 PIXEL_OBSERVATION_RESOLUTION = 125
 """Side [px] of the PIXELS observation: Kinetix's 500 px screen downscaled by 4 (25 px/m)."""

@@ -8,11 +8,11 @@ import functools
 import jax
 import jax.numpy as jnp
 
-from env.actions import ActionType, noop_action, random_action
-from env.episode import StepResult, reset, step
-from env.params import EnvParams, StaticEnvParams
-from env.rollout import Policy
-from env.state import EnvState, Level
+from kforge.env.actions import ActionType, noop_action, random_action
+from kforge.env.episode import StepResult, reset, step
+from kforge.env.params import EnvParams, StaticEnvParams
+from kforge.env.rollout import Policy
+from kforge.env.state import EnvState, Level
 
 GIF_FPS = 30.0  # [frames/s]; one frame per env step of 2/60 s plays at about real time
 

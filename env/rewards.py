@@ -5,8 +5,8 @@ from __future__ import annotations
 import jax.numpy as jnp
 import numpy as np
 
-from engine import StaticSimParams, pair_layout
-from env.state import Role, Task
+from kforge.engine import StaticSimParams, pair_layout
+from kforge.env.state import Role, Task
 
 SUCCESS_REWARD = 1.0
 """Reward of a physics step in which green touches blue (and not red)."""

@@ -9,10 +9,10 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from env.actions import ActionType, noop_action, random_action
-from env.episode import advance, reset
-from env.params import EnvParams, StaticEnvParams
-from env.state import Level
+from kforge.env.actions import ActionType, noop_action, random_action
+from kforge.env.episode import advance, reset
+from kforge.env.params import EnvParams, StaticEnvParams
+from kforge.env.state import Level
 
 
 class Outcome(enum.IntEnum):

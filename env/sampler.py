@@ -16,9 +16,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from engine import KINETIX_SIZES, SceneBuilder, joint_collision_matrix
-from env.params import StaticEnvParams
-from env.sampler_shapes import (
+from kforge.engine import KINETIX_SIZES, SceneBuilder, joint_collision_matrix
+from kforge.env.params import StaticEnvParams
+from kforge.env.sampler_shapes import (
     HIDDEN_PENALTY,
     NUM_DRAWS,
     NUM_JOINT_DRAWS,
@@ -33,7 +33,7 @@ from env.sampler_shapes import (
     propose_connected_shape,
     propose_free_shape,
 )
-from env.state import Level, Role, empty_task
+from kforge.env.state import Level, Role, empty_task
 
 FLOOR_ROLE_WEIGHTS = (0.90, 0.00, 0.02, 0.08)
 """[-] probability of each `Role` for the floor (default, green, blue, red)."""

@@ -12,7 +12,7 @@ import math
 import jax.numpy as jnp
 from flax import struct
 
-from engine import (
+from kforge.engine import (
     ARENA_SIZE,
     FLOOR_TOP,
     MAX_POLYGON_VERTICES,
@@ -21,8 +21,8 @@ from engine import (
     polygon_mass_properties,
     rotate,
 )
-from env.params import NUM_MOTOR_BINDINGS, NUM_THRUSTER_BINDINGS, StaticEnvParams
-from env.state import Level, Role
+from kforge.env.params import NUM_MOTOR_BINDINGS, NUM_THRUSTER_BINDINGS, StaticEnvParams
+from kforge.env.state import Level, Role
 
 # Shape dimensions (Kinetix `sample_dimensions` with max_shape_size 1 m).
 MIN_HALF_EXTENT = 0.05  # [m] smallest rectangle half side

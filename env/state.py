@@ -7,7 +7,7 @@ import enum
 import jax.numpy as jnp
 from flax import struct
 
-from engine import SimState
+from kforge.engine import SimState
 
 
 class Role(enum.IntEnum):

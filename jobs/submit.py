@@ -1,4 +1,5 @@
-"""`python -m jobs.submit CONFIG [key=value ...] [--scale NAME]`: run `kforge run` as a Ray job on a running cluster.
+"""`python -m kforge.jobs.submit CONFIG [key=value ...] [--scale NAME]`: `kforge run` as a Ray job on a running
+cluster.
 
 What `ray job submit` does, with the job's command built and checked here: the config and overrides are validated
 before anything is sent, the checkout is uploaded as the job's working dir (`runtime_env`), the job's logs stream to
@@ -24,7 +25,7 @@ import time
 from collections.abc import Sequence
 from pathlib import Path
 
-from pipeline.generation import ConfigError, absolute_output_dir, load_config
+from kforge.pipeline.generation import ConfigError, absolute_output_dir, load_config
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 """The checkout this module belongs to: the default working dir of submitted jobs."""
@@ -65,7 +66,7 @@ def build_submission(
     working_dir = Path(working_dir).resolve()
     job = load_config(config, overrides, scale=scale)
     output_dir = absolute_output_dir(job.output_dir)
-    command = ["python", "-m", "pipeline", "run", "--no-progress", "--json"]
+    command = ["python", "-m", "kforge", "run", "--no-progress", "--json"]
     if scale is not None:
         is_path = scale.endswith((".yaml", ".yml"))  # else a preset name, resolved in the job's configs/scales
         command += ["--scale", _inside(Path(scale), working_dir, "scale") if is_path else scale]
@@ -121,7 +122,7 @@ def follow(client, job_id: str) -> int:
 
 def main(argv: Sequence[str] | None = None) -> None:
     """Submit `kforge run CONFIG [key=value ...]` to a Ray cluster and follow it; exits with the job's status."""
-    parser = argparse.ArgumentParser(prog="python -m jobs.submit", description=__doc__.split("\n\n")[0])
+    parser = argparse.ArgumentParser(prog="python -m kforge.jobs.submit", description=__doc__.split("\n\n")[0])
     parser.add_argument("config", help="job YAML inside the working dir, e.g. configs/splits/1M/s.yaml")
     parser.add_argument("overrides", nargs="*", help="dotlist overrides, e.g. output_dir=/shared/ds ray.num_workers=8")
     parser.add_argument("--scale", help="`kforge run --scale`: a preset name (tiny, local, full) or a YAML path")

@@ -7,7 +7,7 @@ import os
 
 import pytest
 
-from pipeline.generation.compile_cache import MIN_COMPILE_SECONDS, NO_MIN_ENTRY_SIZE, enable_compile_cache
+from kforge.pipeline.generation.compile_cache import MIN_COMPILE_SECONDS, NO_MIN_ENTRY_SIZE, enable_compile_cache
 
 WANDB_DIR_VARIABLES = ("WANDB_DIR", "WANDB_CONFIG_DIR", "WANDB_CACHE_DIR", "WANDB_DATA_DIR")
 """wandb's environment variables for where it writes runs, settings, caches and artifacts."""

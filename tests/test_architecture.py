@@ -53,13 +53,19 @@ def import_problems(source: str, module: str) -> list[str]:
     own = package_of(module)
     problems = []
     for node in ast.walk(ast.parse(source)):
-        if isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+        if isinstance(node, ast.ImportFrom) and node.level == 0 and node.module == "kforge":
+            targets = [f"kforge.{alias.name}" for alias in node.names]
+        elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
             targets = [node.module]
         elif isinstance(node, ast.Import):
             targets = [alias.name for alias in node.names]
         else:
             continue
         for target in targets:
+            if package_of(target) is not None:
+                problems.append(f"{module}:{node.lineno} imports {target}: packages import as kforge.{target}")
+                continue
+            target = target.removeprefix("kforge.")
             package = package_of(target)
             if package is None or package == own:
                 continue
@@ -78,13 +84,17 @@ def package_modules():
 
 
 def test_the_checker_finds_private_and_upward_imports():
-    source = "from env.level_files import load_level\nimport pipeline.storage.layout\nfrom agents import PPOConfig\n"
+    source = (
+        "from kforge.env.level_files import load_level\nimport kforge.pipeline.storage.layout\n"
+        "from kforge.agents import PPOConfig\nfrom engine import step\n"
+    )
     problems = import_problems(source, "pipeline.reading.loader")
-    assert len(problems) == 3
+    assert len(problems) == 4
     assert "private module of env" in problems[0]
     assert "private module of pipeline.storage" in problems[1]
     assert "pipeline.reading may not depend on agents" in problems[2]
-    public = "from env import load_level\nfrom pipeline.storage import DONE\n"
+    assert "import as kforge.engine" in problems[3]
+    public = "from kforge.env import load_level\nfrom kforge.pipeline.storage import DONE\nfrom kforge import engine\n"
     assert import_problems(public, "pipeline.reading.x") == []
 
 
@@ -108,7 +118,7 @@ def test_every_package_names_its_public_surface(package):
 )
 def test_the_command_line_answers_help_without_jax_or_ray(arguments):
     probe = (
-        "import sys\nfrom pipeline.cli import main\n"
+        "import sys\nfrom kforge.pipeline.cli import main\n"
         f"try:\n    main({arguments!r})\nexcept SystemExit:\n    pass\n"
         "heavy = sorted(name for name in ('jax', 'ray', 'tensorstore', 'zarr') if name in sys.modules)\n"
         "print('HEAVY', heavy)\n"
@@ -137,3 +147,16 @@ def test_sim_params_hold_only_continuous_constants_and_the_laws_are_static():
     laws = [f.name for f in dataclasses.fields(static) if isinstance(getattr(static, f.name), enum.Enum)]
     assert {"force_timing", "motor_law", "contact_law", "contact_points", "collision_rules", "limit_law"} <= set(laws)
     assert set(laws) <= set(static.physics_options())
+
+
+def test_every_package_folder_of_the_checkout_is_installed():
+    """pyproject.toml lists the packages (the package-dir mapping needs them named); a new subpackage must be added."""
+    import tomllib
+
+    declared = set(tomllib.loads((REPO / "pyproject.toml").read_text())["tool"]["setuptools"]["packages"])
+    folders = {
+        "kforge." + ".".join(init.parent.relative_to(REPO).parts)
+        for top in ("engine", "env", "agents", "configs", "pipeline")
+        for init in (REPO / top).rglob("__init__.py")
+    }
+    assert declared == folders | {"kforge"}

@@ -26,16 +26,17 @@ def wheel(tmp_path_factory) -> Path:
     return path
 
 
-def test_the_wheel_holds_every_package_the_configs_and_the_bundled_levels(wheel):
+def test_the_wheel_holds_one_top_level_package_with_every_subpackage_the_configs_and_the_bundled_levels(wheel):
     names = set(zipfile.ZipFile(wheel).namelist())
-    for module in ("engine/__init__.py", "env/__init__.py", "agents/__init__.py", "pipeline/cli/__init__.py"):
-        assert module in names
-    for config in ("configs/splits/1M/s.yaml", "configs/splits/10M/m.yaml", "configs/scales/tiny.yaml"):
-        assert config in names
-    levels = [name for name in names if name.startswith("env/levels/") and name.endswith(".json")]
-    assert len(levels) == 74 and "env/levels/l/h4_cartpole.json" in levels
-    assert {"env/levels/LICENSE", "env/levels/README.md"} <= names
-    assert not any(name.startswith(("tests/", "benchmarks/")) for name in names)
+    top_level = {name.split("/")[0] for name in names if not name.split("/")[0].endswith(".dist-info")}
+    assert top_level == {"kforge"}
+    for package in ("engine", "env", "agents", "configs", "pipeline", "pipeline/cli", "pipeline/storage"):
+        assert f"kforge/{package}/__init__.py" in names
+    for config in ("splits/1M/s.yaml", "splits/10M/m.yaml", "scales/tiny.yaml"):
+        assert f"kforge/configs/{config}" in names
+    levels = [name for name in names if name.startswith("kforge/env/levels/") and name.endswith(".json")]
+    assert len(levels) == 74 and "kforge/env/levels/l/h4_cartpole.json" in levels
+    assert {"kforge/env/levels/LICENSE", "kforge/env/levels/README.md"} <= names
 
 
 def test_an_installed_wheel_runs_the_tiny_split_from_outside_the_checkout(wheel, tmp_path):
@@ -57,7 +58,7 @@ def test_an_installed_wheel_runs_the_tiny_split_from_outside_the_checkout(wheel,
     work.mkdir()
     env = {**os.environ, "WANDB_MODE": "disabled", "PYTHONPATH": ""}
     where = subprocess.run(
-        [python, "-c", "import configs, pipeline; print(configs.CONFIGS_DIR); print(pipeline.__file__)"],
+        [python, "-c", "from kforge import configs, pipeline; print(configs.CONFIGS_DIR); print(pipeline.__file__)"],
         cwd=work,
         env=env,
         check=True,

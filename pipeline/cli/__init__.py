@@ -49,22 +49,22 @@ HELP_OPTIONS = {"-h", "--help"}
 VERBOSE_OPTION = "--verbose"
 
 COMMANDS: dict[str, tuple[str, str]] = {
-    "run": ("generate (or resume, or grow) a dataset from a release split or a job config", "pipeline.cli.run"),
-    "verify": ("check every shard of a dataset against its commit records (--repair)", "pipeline.cli.verify"),
-    "stats": ("write a dataset card: counts, bytes, timings, config and plots", "pipeline.cli.stats"),
-    "export": ("write a dataset as Kinetix-Offline zarr v2 shards (--format kinetix)", "pipeline.cli.export"),
-    "levels": ("list, sample, preview, import and export Kinetix level files", "pipeline.cli.levels"),
-    "bc": ("train a behaviour-cloning policy on a dataset (train), resumable", "pipeline.cli.bc"),
+    "run": ("generate (or resume, or grow) a dataset from a release split or a job config", "kforge.pipeline.cli.run"),
+    "verify": ("check every shard of a dataset against its commit records (--repair)", "kforge.pipeline.cli.verify"),
+    "stats": ("write a dataset card: counts, bytes, timings, config and plots", "kforge.pipeline.cli.stats"),
+    "export": ("write a dataset as Kinetix-Offline zarr v2 shards (--format kinetix)", "kforge.pipeline.cli.export"),
+    "levels": ("list, sample, preview, import and export Kinetix level files", "kforge.pipeline.cli.levels"),
+    "bc": ("train a behaviour-cloning policy on a dataset (train), resumable", "kforge.pipeline.cli.bc"),
     "evaluate": (
         "success rates of a BC policy beside no-op and random on seen, unseen and hand levels",
-        "pipeline.cli.evaluate",
+        "kforge.pipeline.cli.evaluate",
     ),
-    "render": ("play a Kinetix level with a simple policy and write a GIF", "pipeline.cli.render"),
-    "demo": ("simulate a small engine scene and write it as a GIF", "pipeline.cli.demo"),
+    "render": ("play a Kinetix level with a simple policy and write a GIF", "kforge.pipeline.cli.render"),
+    "demo": ("simulate a small engine scene and write it as a GIF", "kforge.pipeline.cli.demo"),
 }
 """Subcommand name -> (help line, module whose `main(argv, prog)` parses the remaining arguments)."""
 
-OWN_PARSERS = ("pipeline.cli.",)
+OWN_PARSERS = ("kforge.pipeline.cli.",)
 """Subcommand modules whose parsers take --debug and --verbose themselves (`add_common_options`); the others
 never see these two options."""
 
@@ -111,7 +111,7 @@ def require_dataset(location: str) -> str:
 def load_config_or_exit(load: Callable[[], Config], debug: bool) -> Config:
     """`load()`'s config; its `ConfigError` ends the command in one line with exit 2 (raised as is with --debug).
     Loading and checking a config imports nothing heavy, so these errors come before JAX is imported."""
-    from pipeline.generation import ConfigError
+    from kforge.pipeline.generation import ConfigError
 
     try:
         return load()

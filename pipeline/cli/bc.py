@@ -11,7 +11,7 @@ import signal
 import sys
 from collections.abc import Sequence
 
-from pipeline.cli import EXIT_INTERRUPTED, add_common_options, fail, load_config_or_exit, require_dataset
+from kforge.pipeline.cli import EXIT_INTERRUPTED, add_common_options, fail, load_config_or_exit, require_dataset
 
 
 def _terminate_as_interrupt(signum, frame):
@@ -48,17 +48,17 @@ def main(argv: Sequence[str] | None = None, prog: str | None = None) -> None:
         train.error(f"--stop-after must be >= 1, got {args.stop_after}")
     require_dataset(args.dataset)
 
-    from pipeline.generation import ConfigError, to_yaml
-    from pipeline.learning import load_bc_config
+    from kforge.pipeline.generation import ConfigError, to_yaml
+    from kforge.pipeline.learning import load_bc_config
 
     config = load_config_or_exit(lambda: load_bc_config(args.dataset, args.overrides, args.config), args.debug)
     if args.print_config:
         print(to_yaml(config), end="")
         return
 
-    from engine import use_deterministic_ops
-    from pipeline.learning import TrainingInterrupted, train_bc
-    from pipeline.storage import DatasetError
+    from kforge.engine import use_deterministic_ops
+    from kforge.pipeline.learning import TrainingInterrupted, train_bc
+    from kforge.pipeline.storage import DatasetError
 
     use_deterministic_ops()  # before the first computation: repeatable on GPUs too
 

@@ -6,7 +6,7 @@ from __future__ import annotations
 import argparse
 from collections.abc import Sequence
 
-from pipeline.cli import add_common_options
+from kforge.pipeline.cli import add_common_options
 
 DEFAULT_OUT = "outputs/engine_demo.gif"
 DEFAULT_STEPS = 240  # 4 s at the default dt of 1/60 s
@@ -23,7 +23,7 @@ def main(argv: Sequence[str] | None = None, prog: str | None = None) -> None:
     if args.steps < DEMO_RENDER_EVERY:
         parser.error(f"--steps must be at least {DEMO_RENDER_EVERY}")
 
-    from engine import write_demo
+    from kforge.engine import write_demo
 
     path, summary = write_demo(args.out, args.steps)
     print(path)

@@ -9,7 +9,7 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
-from pipeline.cli import add_common_options, fail
+from kforge.pipeline.cli import add_common_options, fail
 
 DEFAULT_SETS = "train,unseen,hand"
 REPORT_FILE = "evaluation.json"
@@ -44,7 +44,7 @@ def main(argv: Sequence[str] | None = None, prog: str | None = None) -> None:
     if args.max_levels is not None and args.max_levels < 1:
         parser.error(f"--max-levels must be >= 1, got {args.max_levels}")
 
-    from pipeline.learning import LEVEL_SETS, run_config_file
+    from kforge.pipeline.learning import LEVEL_SETS, run_config_file
 
     unknown = [name for name in sets if name not in LEVEL_SETS]
     if unknown or not sets:
@@ -56,9 +56,9 @@ def main(argv: Sequence[str] | None = None, prog: str | None = None) -> None:
     except FileNotFoundError as error:
         raise fail(error) from None
 
-    from engine import use_deterministic_ops
-    from pipeline.learning import evaluate_policy, load_policy, report_table
-    from pipeline.storage import DatasetError
+    from kforge.engine import use_deterministic_ops
+    from kforge.pipeline.learning import evaluate_policy, load_policy, report_table
+    from kforge.pipeline.storage import DatasetError
 
     use_deterministic_ops()  # before the first computation: repeatable on GPUs too
 

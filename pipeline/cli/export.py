@@ -6,7 +6,7 @@ import argparse
 import json
 from collections.abc import Sequence
 
-from pipeline.cli import add_common_options, fail, require_dataset
+from kforge.pipeline.cli import add_common_options, fail, require_dataset
 
 READING_HINT = """How to read it:
   - with Kinetix: in a virtualenv of its own, pip install kinetix-env==3.0.2 (it brings zarr 2.18; the zarr 3 that
@@ -47,8 +47,8 @@ def main(argv: Sequence[str] | None = None, prog: str | None = None) -> None:
     args = add_common_options(parser).parse_args(argv)
     require_dataset(args.dataset)
 
-    from pipeline.kinetix import DEFAULT_TRAJECTORIES_PER_SHARD, export_kinetix
-    from pipeline.storage import DatasetError
+    from kforge.pipeline.kinetix import DEFAULT_TRAJECTORIES_PER_SHARD, export_kinetix
+    from kforge.pipeline.storage import DatasetError
 
     try:
         summary = export_kinetix(

@@ -16,8 +16,8 @@ import numpy as np
 from PIL import Image
 from tqdm import tqdm
 
-from engine import KINETIX_SIZES, physics_scheme
-from env import (
+from kforge.engine import KINETIX_SIZES, physics_scheme
+from kforge.env import (
     BUNDLED_SIZES,
     GIF_FPS,
     GIF_RESOLUTION,
@@ -37,7 +37,7 @@ from env import (
     under_scheme,
     write_state_gif,
 )
-from pipeline.generation import EnvSection, KeyPurpose, environment, level_keys, sample_batch
+from kforge.pipeline.generation import EnvSection, KeyPurpose, environment, level_keys, sample_batch
 
 LEVELS_DIR = Path("outputs") / "levels"
 """Default parent folder of written levels and previews."""

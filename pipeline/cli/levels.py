@@ -19,7 +19,7 @@ import argparse
 from collections.abc import Sequence
 from pathlib import Path
 
-from pipeline.cli import (
+from kforge.pipeline.cli import (
     ENV_SIZES,
     EXIT_CODES_HELP,
     EXIT_USAGE,
@@ -161,7 +161,7 @@ def _check(args: argparse.Namespace, chosen: argparse.ArgumentParser) -> None:
         if not numbers:
             raise fail(InputError("no level ids given (e.g. kforge levels export 1M/s 0 1 2)"))
         args.level_ids = [int(item) for item in numbers]
-        from pipeline.generation import ConfigError, load_config
+        from kforge.pipeline.generation import ConfigError, load_config
 
         args.job = load_config(args.config, args.overrides, scale=args.scale)
         split = args.job.split
@@ -178,7 +178,7 @@ def main(argv: Sequence[str] | None = None, prog: str | None = None) -> None:
     args = parser.parse_args(argv)
     try:
         _check(args, subcommands[args.command])
-        from pipeline.cli import level_commands
+        from kforge.pipeline.cli import level_commands
 
         getattr(level_commands, f"{args.command}_command")(args)
     except Exception as error:  # the caller's mistakes (a level file, a config) end here in one line; others go up

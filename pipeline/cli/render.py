@@ -8,7 +8,7 @@ import time
 from collections.abc import Sequence
 from pathlib import Path
 
-from pipeline.cli import PHYSICS_SCHEME_NAMES, PLAY_PHYSICS_SCHEME, POLICY_NAMES, add_common_options
+from kforge.pipeline.cli import PHYSICS_SCHEME_NAMES, PLAY_PHYSICS_SCHEME, POLICY_NAMES, add_common_options
 
 DEFAULT_OUT_DIR = Path("outputs")
 """Folder of the GIF unless --out names one: outputs/<level name>.gif."""
@@ -45,8 +45,8 @@ def main(argv: Sequence[str] | None = None, prog: str | None = None) -> None:
     import jax
     import numpy as np
 
-    from engine import physics_scheme
-    from env import GIF_FPS, Policy, load_level, record_episode, under_scheme, write_state_gif
+    from kforge.engine import physics_scheme
+    from kforge.env import GIF_FPS, Policy, load_level, record_episode, under_scheme, write_state_gif
 
     loaded = load_level(args.level)
     params, static = under_scheme(physics_scheme(args.physics), loaded.params, loaded.static)

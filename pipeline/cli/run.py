@@ -9,8 +9,8 @@ import shlex
 import sys
 from collections.abc import Sequence
 
-import configs
-from pipeline.cli import EXIT_DATA, EXIT_INTERRUPTED, add_common_options, fail, load_config_or_exit
+from kforge import configs
+from kforge.pipeline.cli import EXIT_DATA, EXIT_INTERRUPTED, add_common_options, fail, load_config_or_exit
 
 
 def main(argv: Sequence[str] | None = None, prog: str | None = None) -> None:
@@ -37,15 +37,15 @@ def main(argv: Sequence[str] | None = None, prog: str | None = None) -> None:
     if args.max_batches is not None and args.max_batches < 1:
         parser.error(f"--max-batches must be >= 1, got {args.max_batches}")
 
-    from pipeline.generation import load_config, to_yaml
+    from kforge.pipeline.generation import load_config, to_yaml
 
     job = load_config_or_exit(lambda: load_config(args.config, args.overrides, scale=args.scale), args.debug)
     if args.print_config:
         print(to_yaml(job), end="")
         return
 
-    from pipeline.generation import JobInterrupted, ResumeRefused, closing_summary, run_job
-    from pipeline.storage import DatasetError
+    from kforge.pipeline.generation import JobInterrupted, ResumeRefused, closing_summary, run_job
+    from kforge.pipeline.storage import DatasetError
 
     try:
         summary = run_job(

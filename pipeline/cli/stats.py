@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from collections.abc import Sequence
 
-from pipeline.cli import add_common_options, fail, require_dataset
+from kforge.pipeline.cli import add_common_options, fail, require_dataset
 
 
 def main(argv: Sequence[str] | None = None, prog: str | None = None) -> None:
@@ -19,8 +19,8 @@ def main(argv: Sequence[str] | None = None, prog: str | None = None) -> None:
     args = add_common_options(parser).parse_args(argv)
     require_dataset(args.dataset)
 
-    from pipeline.reading import collect_stats, write_card
-    from pipeline.storage import DatasetError
+    from kforge.pipeline.reading import collect_stats, write_card
+    from kforge.pipeline.storage import DatasetError
 
     try:
         stats = collect_stats(args.dataset, show_progress=not args.no_progress)

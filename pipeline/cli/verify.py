@@ -7,7 +7,7 @@ import argparse
 import sys
 from collections.abc import Sequence
 
-from pipeline.cli import EXIT_DATA, add_common_options, fail, require_dataset
+from kforge.pipeline.cli import EXIT_DATA, add_common_options, fail, require_dataset
 
 
 def main(argv: Sequence[str] | None = None, prog: str | None = None) -> None:
@@ -28,7 +28,7 @@ def main(argv: Sequence[str] | None = None, prog: str | None = None) -> None:
     args = add_common_options(parser).parse_args(argv)
     require_dataset(args.dir)
 
-    from pipeline.storage import (
+    from kforge.pipeline.storage import (
         CONFIG_FILE,
         DatasetError,
         format_report,

@@ -5,24 +5,24 @@ Public surface: what the command line, Kinetix interop, jobs and benchmarks use.
 the name is first used, so that loading and checking a job config imports neither JAX nor Ray.
 """
 
-from pipeline.lazy import lazy_surface
+from kforge.pipeline.lazy import lazy_surface
 
 __getattr__, __all__ = lazy_surface(
     __name__,
     {
-        "pipeline.generation.config": (
+        "kforge.pipeline.generation.config": (
             "TRACKING_MODES ConfigError EnvSection JobConfig absolute_output_dir config_path data_definition "
             "data_fingerprint environment load_config load_yaml merge_layers parse_overrides ppo_config read_config "
             "to_schema_object to_yaml"
         ),
-        "pipeline.generation.console": "closing_summary seconds_left",
-        "pipeline.generation.coordinator": "Commit Coordinator",
-        "pipeline.generation.growth": "ResumeRefused",
-        "pipeline.generation.level_batch": (
+        "kforge.pipeline.generation.console": "closing_summary seconds_left",
+        "kforge.pipeline.generation.coordinator": "Commit Coordinator",
+        "kforge.pipeline.generation.growth": "ResumeRefused",
+        "kforge.pipeline.generation.level_batch": (
             "KeyPurpose batches_per_shard level_key level_keys num_shards run_level_batch sample_batch"
         ),
-        "pipeline.generation.run": "JobInterrupted prepare_output run_job summarize",
-        "pipeline.generation.tracking": "start_tracking tracking_mode",
-        "pipeline.generation.worker": "Worker",
+        "kforge.pipeline.generation.run": "JobInterrupted prepare_output run_job summarize",
+        "kforge.pipeline.generation.tracking": "start_tracking tracking_mode",
+        "kforge.pipeline.generation.worker": "Worker",
     },
 )

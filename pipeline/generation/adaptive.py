@@ -26,9 +26,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from agents import PPOConfig, check_segmented, put_slot, start_level, train_segments
-from pipeline.generation.config import ADAPTIVE_BUDGET_MODE, JobConfig, environment, ppo_config
-from pipeline.generation.level_batch import (
+from kforge.agents import PPOConfig, check_segmented, put_slot, start_level, train_segments
+from kforge.pipeline.generation.config import ADAPTIVE_BUDGET_MODE, JobConfig, environment, ppo_config
+from kforge.pipeline.generation.level_batch import (
     Experts,
     KeyPurpose,
     PhaseClock,
@@ -38,7 +38,7 @@ from pipeline.generation.level_batch import (
     sample_and_filter,
     windows_successful,
 )
-from pipeline.storage import BatchTrajectories
+from kforge.pipeline.storage import BatchTrajectories
 
 
 class Verdict(enum.Enum):

@@ -31,8 +31,8 @@ import yaml
 from omegaconf import MISSING, DictConfig, OmegaConf
 from omegaconf.errors import ConfigKeyError, MissingMandatoryValue, OmegaConfBaseException, ValidationError
 
-import configs
-from pipeline.generation.compile_cache import DEFAULT_COMPILE_CACHE_DIR
+from kforge import configs
+from kforge.pipeline.generation.compile_cache import DEFAULT_COMPILE_CACHE_DIR
 
 PHYSICS_SCHEME_NAMES = ("kforge", "kinetix")
 """Names of the engine's physics schemes (`engine.PHYSICS_SCHEMES`), the values of `env.physics`."""
@@ -338,7 +338,7 @@ def config_path(config: str | Path) -> Path | str:
     `config.yaml` of its latest run; a URL may also name a YAML object), or a release split's name such as "1M/s"
     (`configs.split_names`)."""
     if _is_url(config):
-        from pipeline.storage import join
+        from kforge.pipeline.storage import join
 
         return str(config) if str(config).endswith(configs.YAML_SUFFIXES) else join(config, DATASET_CONFIG_FILE)
     path = Path(config)
@@ -358,7 +358,7 @@ def _is_url(location: str | Path) -> bool:
     """True for an object-store URL (`pipeline.storage.is_remote`)."""
     if not isinstance(location, str) or "://" not in location:
         return False
-    from pipeline.storage import is_remote  # the storage layer imports JAX: only for URLs
+    from kforge.pipeline.storage import is_remote  # the storage layer imports JAX: only for URLs
 
     return is_remote(location)
 
@@ -378,7 +378,7 @@ def load_yaml(path: str | Path) -> DictConfig:
     """A YAML file's mapping; `path` is a local file or an object-store URL (read through the store layer)."""
     try:
         if _is_url(path):
-            from pipeline.storage import StoreError, open_store
+            from kforge.pipeline.storage import StoreError, open_store
 
             folder, _, name = str(path).rpartition("/")
             try:
@@ -519,7 +519,7 @@ def _check_finite(section, prefix: str = "") -> None:
 
 def check_training(job: JobConfig) -> None:
     """Errors naming the keys for PPO settings the training code cannot run (imports it: JAX)."""
-    from agents import check_segmented
+    from kforge.agents import check_segmented
 
     try:
         config = ppo_config(job)
@@ -535,7 +535,7 @@ def check_training(job: JobConfig) -> None:
 def ppo_config(job: JobConfig):
     """The specialists' `agents.PPOConfig`: the `ppo` section with the split's expert budget; experts are selected by
     episodes that act as the stored windows do (`collect.greedy`)."""
-    from agents import PPOConfig
+    from kforge.agents import PPOConfig
 
     return PPOConfig(
         env_steps_per_level=job.split.expert_budget, select_greedy=job.collect.greedy, **dataclasses.asdict(job.ppo)
@@ -545,8 +545,8 @@ def ppo_config(job: JobConfig):
 def environment(job: JobConfig):
     """The env parameters (`env.EnvParams`, `env.StaticEnvParams`) of the job's levels: the config's reward shaping
     and physics scheme."""
-    from engine import physics_scheme
-    from env import EnvParams, StaticEnvParams, under_scheme
+    from kforge.engine import physics_scheme
+    from kforge.env import EnvParams, StaticEnvParams, under_scheme
 
     params = EnvParams(dense_reward_scale=job.env.dense_reward_scale)
     return under_scheme(physics_scheme(job.env.physics), params, StaticEnvParams.for_size(job.split.size))

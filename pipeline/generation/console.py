@@ -11,8 +11,8 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from pipeline.generation.coordinator import COMPILING, STARTING
-from pipeline.storage import (
+from kforge.pipeline.generation.coordinator import COMPILING, STARTING
+from kforge.pipeline.storage import (
     CONFIG_FILE,
     DATA_DIR,
     FAILED,

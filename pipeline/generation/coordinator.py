@@ -12,7 +12,7 @@ from __future__ import annotations
 import dataclasses
 import os
 
-from pipeline.storage import DatasetError, all_committed, commit_record, read_record, require_lease
+from kforge.pipeline.storage import DatasetError, all_committed, commit_record, read_record, require_lease
 
 COMPILING = "compiling"
 """State of a claimed level batch before its first training report, while its worker has committed nothing in this

@@ -8,8 +8,8 @@ The grown dataset equals one generated at the larger count from the start. Lower
 
 from __future__ import annotations
 
-from pipeline.generation.config import GROWABLE_KEY, definition_fingerprint
-from pipeline.storage import DatasetSpec, committed_batches, grow_dataset, open_dataset, withdraw_commit
+from kforge.pipeline.generation.config import GROWABLE_KEY, definition_fingerprint
+from kforge.pipeline.storage import DatasetSpec, committed_batches, grow_dataset, open_dataset, withdraw_commit
 
 
 class ResumeRefused(ValueError):

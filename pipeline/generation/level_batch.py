@@ -20,12 +20,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from agents import collect_windows, initial_params, train_levels
-from env import FilterReason, Level, filter_levels, sample_levels
-from pipeline.generation.config import FIXED_BUDGET_MODE, JobConfig, environment, ppo_config
-from pipeline.generation.devices import over_local_devices
-from pipeline.generation.estimated_progress import ProgressListener, estimated_progress
-from pipeline.storage import BatchTrajectories, Outcome, learning_curves
+from kforge.agents import collect_windows, initial_params, train_levels
+from kforge.env import FilterReason, Level, filter_levels, sample_levels
+from kforge.pipeline.generation.config import FIXED_BUDGET_MODE, JobConfig, environment, ppo_config
+from kforge.pipeline.generation.devices import over_local_devices
+from kforge.pipeline.generation.estimated_progress import ProgressListener, estimated_progress
+from kforge.pipeline.storage import BatchTrajectories, Outcome, learning_curves
 
 
 class KeyPurpose(enum.IntEnum):

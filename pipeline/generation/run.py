@@ -11,22 +11,22 @@ import threading
 import time
 import warnings
 
-from engine import use_deterministic_ops
-from env import ActionType
-from pipeline.generation.config import (
+from kforge.engine import use_deterministic_ops
+from kforge.env import ActionType
+from kforge.pipeline.generation.config import (
     JobConfig,
     data_definition,
     data_fingerprint,
     environment,
     to_yaml,
 )
-from pipeline.generation.console import ProgressBar, resume_line, start_log_file
-from pipeline.generation.coordinator import Coordinator, ShardNotHeld
-from pipeline.generation.growth import reconcile_dataset
-from pipeline.generation.level_batch import batches_per_shard, num_shards
-from pipeline.generation.tracking import start_tracking
-from pipeline.generation.worker import Worker
-from pipeline.storage import (
+from kforge.pipeline.generation.console import ProgressBar, resume_line, start_log_file
+from kforge.pipeline.generation.coordinator import Coordinator, ShardNotHeld
+from kforge.pipeline.generation.growth import reconcile_dataset
+from kforge.pipeline.generation.level_batch import batches_per_shard, num_shards
+from kforge.pipeline.generation.tracking import start_tracking
+from kforge.pipeline.generation.worker import Worker
+from kforge.pipeline.storage import (
     CONFIG_FILE,
     DatasetDamaged,  # noqa: F401 (raised by `run_job` through `require_intact`; callers catch it from here)
     DatasetSpec,

@@ -17,12 +17,12 @@ import time
 from collections.abc import Iterable, Sequence
 from pathlib import Path
 
-from env import FilterReason
-from pipeline.generation.config import TRACKING_MODES, ConfigError, JobConfig, data_fingerprint
-from pipeline.generation.console import log_dir
-from pipeline.generation.coordinator import Commit
-from pipeline.generation.level_batch import batches_per_shard
-from pipeline.storage import FAILED, FILTERED_PREFIX, KEPT, PADDING, PROVENANCE, UNSOLVED, read_record_json
+from kforge.env import FilterReason
+from kforge.pipeline.generation.config import TRACKING_MODES, ConfigError, JobConfig, data_fingerprint
+from kforge.pipeline.generation.console import log_dir
+from kforge.pipeline.generation.coordinator import Commit
+from kforge.pipeline.generation.level_batch import batches_per_shard
+from kforge.pipeline.storage import FAILED, FILTERED_PREFIX, KEPT, PADDING, PROVENANCE, UNSOLVED, read_record_json
 
 WANDB_MODE_ENV = "WANDB_MODE"
 """Environment variable that overrides `tracking.wandb` when set (wandb's own name for it)."""

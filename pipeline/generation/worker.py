@@ -8,12 +8,12 @@ import time
 from collections.abc import Iterator
 from pathlib import Path
 
-from engine import use_deterministic_ops
-from pipeline.generation.adaptive import streamed_level_batches
-from pipeline.generation.compile_cache import enable_compile_cache
-from pipeline.generation.config import FIXED_BUDGET_MODE, JobConfig
-from pipeline.generation.level_batch import run_level_batch
-from pipeline.storage import (
+from kforge.engine import use_deterministic_ops
+from kforge.pipeline.generation.adaptive import streamed_level_batches
+from kforge.pipeline.generation.compile_cache import enable_compile_cache
+from kforge.pipeline.generation.config import FIXED_BUDGET_MODE, JobConfig
+from kforge.pipeline.generation.level_batch import run_level_batch
+from kforge.pipeline.storage import (
     PROVENANCE,
     BatchTrajectories,
     clean_uncommitted,

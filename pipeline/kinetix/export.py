@@ -26,10 +26,10 @@ import numcodecs
 import numpy as np
 from tqdm import tqdm
 
-from env import EnvState, StaticEnvParams, kinetix_leaf_specs, state_to_kinetix
-from pipeline.kinetix.zarr_v2 import RecordArray, create_group
-from pipeline.reading import TrajectoryDatasetManager
-from pipeline.storage import (
+from kforge.env import EnvState, StaticEnvParams, kinetix_leaf_specs, state_to_kinetix
+from kforge.pipeline.kinetix.zarr_v2 import RecordArray, create_group
+from kforge.pipeline.reading import TrajectoryDatasetManager
+from kforge.pipeline.storage import (
     ACTION,
     ACTION_MASK,
     DONE,

@@ -15,9 +15,9 @@ from typing import NamedTuple
 
 import numpy as np
 
-from env import EnvState, KinetixStateError, Level, StaticEnvParams, state_from_kinetix
-from pipeline.kinetix.zarr_v2 import ARRAY_FILE, GROUP_FILE, RecordArray, array_names
-from pipeline.storage import STATE_PREFIX, DatasetError, StoreError, join, open_store
+from kforge.env import EnvState, KinetixStateError, Level, StaticEnvParams, state_from_kinetix
+from kforge.pipeline.kinetix.zarr_v2 import ARRAY_FILE, GROUP_FILE, RecordArray, array_names
+from kforge.pipeline.storage import STATE_PREFIX, DatasetError, StoreError, join, open_store
 
 RECORD_NDIM = 3
 """Kinetix-Offline trajectory shards hold records of shape (trajectories, steps, 1)."""

@@ -29,7 +29,7 @@ from collections.abc import Mapping
 import numcodecs
 import numpy as np
 
-from pipeline.storage import DatasetError, StoreError, join, open_store
+from kforge.pipeline.storage import DatasetError, StoreError, join, open_store
 
 ZARR_FORMAT = 2
 GROUP_FILE = ".zgroup"

@@ -5,16 +5,18 @@ Public surface: what the command line and benchmarks use. Each name's module is 
 so that loading and checking a BC config imports neither JAX nor wandb.
 """
 
-from pipeline.lazy import lazy_surface
+from kforge.pipeline.lazy import lazy_surface
 
 __getattr__, __all__ = lazy_surface(
     __name__,
     {
-        "pipeline.learning.config": "LEVEL_SETS RUN_CONFIG_FILE BCConfig load_bc_config network_config run_config_file",
-        "pipeline.learning.evaluation": (
+        "kforge.pipeline.learning.config": (
+            "LEVEL_SETS RUN_CONFIG_FILE BCConfig load_bc_config network_config run_config_file"
+        ),
+        "kforge.pipeline.learning.evaluation": (
             "Baseline StartSet TrainedPolicy evaluate_policy hand_starts load_policy play play_physics report_table"
         ),
-        "pipeline.learning.train": (
+        "kforge.pipeline.learning.train": (
             "LEVELS_FILE METRICS_FILE SUMMARY_FILE Learner TrainingInterrupted TrainSummary train_bc"
         ),
     },

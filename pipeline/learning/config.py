@@ -9,8 +9,8 @@ from pathlib import Path
 
 from omegaconf import MISSING, OmegaConf
 
-import configs
-from pipeline.generation import (
+from kforge import configs
+from kforge.pipeline.generation import (
     TRACKING_MODES,
     ConfigError,
     load_yaml,
@@ -141,7 +141,7 @@ def run_config_file(run_dir: str | Path) -> Path:
 
 def network_config(config: BCConfig):
     """The network (`agents.NetworkConfig`) of the `model` section, checked by `check_bc_config`."""
-    from agents import Architecture, NetworkConfig
+    from kforge.agents import Architecture, NetworkConfig
 
     model = config.model
     try:

@@ -7,7 +7,7 @@ import math
 
 import numpy as np
 
-from pipeline.storage import iter_records, open_dataset, require_intact
+from kforge.pipeline.storage import iter_records, open_dataset, require_intact
 
 
 def kept_levels(dataset: str) -> dict[int, list[int]]:

@@ -24,9 +24,9 @@ import jax.numpy as jnp
 import numpy as np
 from omegaconf import OmegaConf
 
-from agents import NetworkConfig, make_bc_network, network_actor, run_episode
-from engine import PHYSICS_SCHEMES, PhysicsScheme, physics_scheme
-from env import (
+from kforge.agents import NetworkConfig, make_bc_network, network_actor, run_episode
+from kforge.engine import PHYSICS_SCHEMES, PhysicsScheme, physics_scheme
+from kforge.env import (
     ActionType,
     EnvParams,
     EnvState,
@@ -40,13 +40,13 @@ from env import (
     reset,
     under_scheme,
 )
-from pipeline.generation import EnvSection, JobConfig, environment, merge_layers, sample_batch, to_schema_object
-from pipeline.learning.checkpoints import checkpoint_steps, restore_checkpoint
-from pipeline.learning.config import LEVEL_SETS, BCConfig, network_config, run_config_file
-from pipeline.learning.data import kept_levels
-from pipeline.learning.train import LEVELS_FILE, Learner
-from pipeline.reading import TrajectoryDatasetManager
-from pipeline.storage import CONFIG_FILE, DatasetError, iter_records, open_dataset
+from kforge.pipeline.generation import EnvSection, JobConfig, environment, merge_layers, sample_batch, to_schema_object
+from kforge.pipeline.learning.checkpoints import checkpoint_steps, restore_checkpoint
+from kforge.pipeline.learning.config import LEVEL_SETS, BCConfig, network_config, run_config_file
+from kforge.pipeline.learning.data import kept_levels
+from kforge.pipeline.learning.train import LEVELS_FILE, Learner
+from kforge.pipeline.reading import TrajectoryDatasetManager
+from kforge.pipeline.storage import CONFIG_FILE, DatasetError, iter_records, open_dataset
 
 JOB_PHYSICS_SCHEME = EnvSection.physics
 """The scheme a job plays under unless its `env.physics` names another (the schema's default: kinetix)."""

@@ -27,11 +27,11 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from omegaconf import OmegaConf
 from tqdm import tqdm
 
-from agents import ImitationTerms, NetworkConfig, imitation_terms, make_bc_network
-from env import EnvState, StaticEnvParams, observation_shape, observe
-from pipeline.generation import ConfigError, seconds_left, to_schema_object, to_yaml, tracking_mode
-from pipeline.learning.checkpoints import checkpoint_steps, restore_checkpoint, save_checkpoint
-from pipeline.learning.config import (
+from kforge.agents import ImitationTerms, NetworkConfig, imitation_terms, make_bc_network
+from kforge.env import EnvState, StaticEnvParams, observation_shape, observe
+from kforge.pipeline.generation import ConfigError, seconds_left, to_schema_object, to_yaml, tracking_mode
+from kforge.pipeline.learning.checkpoints import checkpoint_steps, restore_checkpoint, save_checkpoint
+from kforge.pipeline.learning.config import (
     DEFAULT_BATCH_SIZE,
     RUN_CONFIG_FILE,
     BCConfig,
@@ -39,9 +39,9 @@ from pipeline.learning.config import (
     fit_batch_size,
     network_config,
 )
-from pipeline.learning.data import kept_levels, validation_split
-from pipeline.reading import TrajectoryDatasetManager
-from pipeline.storage import DatasetError, open_dataset
+from kforge.pipeline.learning.data import kept_levels, validation_split
+from kforge.pipeline.reading import TrajectoryDatasetManager
+from kforge.pipeline.storage import DatasetError, open_dataset
 
 LEVELS_FILE = "levels.json"
 """The run's training and validation level ids."""

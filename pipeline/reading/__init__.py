@@ -3,8 +3,8 @@
 Public surface: the loader and the card.
 """
 
-from pipeline.reading.loader import WHOLE_OBJECT_BYTES, ActionEnvStateMask, TrajectoryDatasetManager
-from pipeline.reading.stats import CARD_FILE, FIGURES_DIR, SHARDS_FILE, DatasetStats, collect_stats, write_card
+from kforge.pipeline.reading.loader import WHOLE_OBJECT_BYTES, ActionEnvStateMask, TrajectoryDatasetManager
+from kforge.pipeline.reading.stats import CARD_FILE, FIGURES_DIR, SHARDS_FILE, DatasetStats, collect_stats, write_card
 
 __all__ = [
     "CARD_FILE",

@@ -19,8 +19,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from env import EnvState, StaticEnvParams
-from pipeline.storage import (
+from kforge.env import EnvState, StaticEnvParams
+from kforge.pipeline.storage import (
     ACTION,
     ACTION_MASK,
     DATA_DIR,

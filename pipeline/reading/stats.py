@@ -22,7 +22,7 @@ import numpy as np
 from omegaconf import OmegaConf
 from tqdm import tqdm
 
-from pipeline.storage import (
+from kforge.pipeline.storage import (
     CONFIG_FILE,
     DATA_DIR,
     FAILED,

@@ -4,8 +4,8 @@ the writer of a level batch and verification.
 Public surface: what generation, reading, Kinetix interop and the command line use.
 """
 
-from pipeline.storage.growth import grow_dataset
-from pipeline.storage.layout import (
+from kforge.pipeline.storage.growth import grow_dataset
+from kforge.pipeline.storage.layout import (
     ACTION,
     ACTION_MASK,
     DONE,
@@ -23,7 +23,7 @@ from pipeline.storage.layout import (
     static_to_json,
     unflatten_state,
 )
-from pipeline.storage.lease import (
+from kforge.pipeline.storage.lease import (
     DEFAULT_HEARTBEAT_S,
     DEFAULT_STALE_AFTER_S,
     LEASE_KEY,
@@ -35,7 +35,7 @@ from pipeline.storage.lease import (
     read_holder,
     require_lease,
 )
-from pipeline.storage.manifest import (
+from kforge.pipeline.storage.manifest import (
     all_committed,
     commit_record,
     committed_batches,
@@ -49,7 +49,7 @@ from pipeline.storage.manifest import (
     shard_name,
     write_record,
 )
-from pipeline.storage.records import (
+from kforge.pipeline.storage.records import (
     FAILED,
     FILTERED_PREFIX,
     KEPT,
@@ -61,7 +61,7 @@ from pipeline.storage.records import (
     LevelRecord,
     Outcome,
 )
-from pipeline.storage.repair import (
+from kforge.pipeline.storage.repair import (
     DatasetDamaged,
     Withdrawal,
     damaged_commits,
@@ -69,7 +69,7 @@ from pipeline.storage.repair import (
     withdraw_bad_batches,
     withdraw_commit,
 )
-from pipeline.storage.shard_store import (
+from kforge.pipeline.storage.shard_store import (
     BLOSC_LEVEL,
     CONFIG_FILE,
     DATA_DIR,
@@ -81,10 +81,10 @@ from pipeline.storage.shard_store import (
     create_dataset,
     open_dataset,
 )
-from pipeline.storage.state_codec import encode, is_coded
-from pipeline.storage.store import Store, StoreError, is_remote, join, open_store
-from pipeline.storage.verify import ShardReport, format_report, verify_dataset
-from pipeline.storage.writer import (
+from kforge.pipeline.storage.state_codec import encode, is_coded
+from kforge.pipeline.storage.store import Store, StoreError, is_remote, join, open_store
+from kforge.pipeline.storage.verify import ShardReport, format_report, verify_dataset
+from kforge.pipeline.storage.writer import (
     BatchTrajectories,
     LearningCurves,
     clean_uncommitted,

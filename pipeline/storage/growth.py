@@ -10,9 +10,9 @@ from __future__ import annotations
 
 import json
 
-from pipeline.storage.layout import DatasetError
-from pipeline.storage.shard_store import DATA_DIR, SPEC_ATTRIBUTE, DatasetSpec, open_dataset
-from pipeline.storage.store import Location, Store, open_store
+from kforge.pipeline.storage.layout import DatasetError
+from kforge.pipeline.storage.shard_store import DATA_DIR, SPEC_ATTRIBUTE, DatasetSpec, open_dataset
+from kforge.pipeline.storage.store import Location, Store, open_store
 
 
 def grow_dataset(root: Location, spec: DatasetSpec) -> None:

@@ -14,8 +14,17 @@ from collections.abc import Mapping
 import jax
 import numpy as np
 
-from engine import Batching, StaticSimParams, empty_state
-from env import NUM_ACTION_SLOTS, ActionType, EnvState, Level, StaticEnvParams, empty_task, initial_state, noop_action
+from kforge.engine import Batching, StaticSimParams, empty_state
+from kforge.env import (
+    NUM_ACTION_SLOTS,
+    ActionType,
+    EnvState,
+    Level,
+    StaticEnvParams,
+    empty_task,
+    initial_state,
+    noop_action,
+)
 
 STATE_PREFIX = "env_state"
 """Stored name prefix of the state leaves: `env_state/sim/bodies/position` (Kinetix's convention)."""

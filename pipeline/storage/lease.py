@@ -26,8 +26,8 @@ import time
 import uuid
 from collections.abc import Callable
 
-from pipeline.storage.layout import DatasetError
-from pipeline.storage.store import Store, StoreError, open_store
+from kforge.pipeline.storage.layout import DatasetError
+from kforge.pipeline.storage.store import Store, StoreError, open_store
 
 LEASE_KEY = "lease.json"
 DEFAULT_STALE_AFTER_S = 300.0

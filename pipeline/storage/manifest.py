@@ -10,10 +10,10 @@ import json
 import re
 from collections.abc import Iterator
 
-from pipeline.storage.layout import DatasetError
-from pipeline.storage.records import BatchRecord
-from pipeline.storage.shard_store import MANIFEST_DIR
-from pipeline.storage.store import Location, StoreError, open_store
+from kforge.pipeline.storage.layout import DatasetError
+from kforge.pipeline.storage.records import BatchRecord
+from kforge.pipeline.storage.shard_store import MANIFEST_DIR
+from kforge.pipeline.storage.store import Location, StoreError, open_store
 
 RECORD_VERSION = 1
 """Version of the record format written by this code."""

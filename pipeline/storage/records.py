@@ -10,7 +10,7 @@ import dataclasses
 import enum
 from collections.abc import Mapping
 
-from pipeline.storage.layout import DatasetError
+from kforge.pipeline.storage.layout import DatasetError
 
 FILTERED_PREFIX = "filtered:"
 """Outcome prefix of a level dropped by the trivial-level filter, followed by the reason's name."""

@@ -11,11 +11,11 @@ import concurrent.futures
 import dataclasses
 from collections.abc import Sequence
 
-from pipeline.storage.layout import DatasetError
-from pipeline.storage.manifest import committed_batches, read_record, remove_record, shard_name
-from pipeline.storage.shard_store import CONFIG_FILE, DATA_DIR, object_digest, open_dataset
-from pipeline.storage.store import Location, Store, join
-from pipeline.storage.verify import ShardReport
+from kforge.pipeline.storage.layout import DatasetError
+from kforge.pipeline.storage.manifest import committed_batches, read_record, remove_record, shard_name
+from kforge.pipeline.storage.shard_store import CONFIG_FILE, DATA_DIR, object_digest, open_dataset
+from kforge.pipeline.storage.store import Location, Store, join
+from kforge.pipeline.storage.verify import ShardReport
 
 HASH_THREADS = 4
 """Objects read and hashed at once by `damaged_commits` (I/O and hashlib release the GIL)."""

@@ -27,9 +27,9 @@ import tensorstore as ts
 import zarr
 from zarr.codecs import BloscCodec, Crc32cCodec, TransposeCodec
 
-from pipeline.storage.layout import DONE, VALID, DatasetError, FieldSpec, Layout, check_layout
-from pipeline.storage.state_codec import decode_arrays, encode_arrays, is_coded, stored_dtype
-from pipeline.storage.store import Store, StoreError, open_store
+from kforge.pipeline.storage.layout import DONE, VALID, DatasetError, FieldSpec, Layout, check_layout
+from kforge.pipeline.storage.state_codec import decode_arrays, encode_arrays, is_coded, stored_dtype
+from kforge.pipeline.storage.store import Store, StoreError, open_store
 
 FORMAT_VERSION = 3
 """Version of the on-disk format written by this code; a dataset of another version is refused.

@@ -21,7 +21,7 @@ from collections.abc import Mapping
 
 import numpy as np
 
-from pipeline.storage.layout import DONE, VALID, FieldSpec, Layout
+from kforge.pipeline.storage.layout import DONE, VALID, FieldSpec, Layout
 
 STORED_DTYPE = "uint32"
 """dtype of a coded field on disk."""

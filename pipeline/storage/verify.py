@@ -14,7 +14,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from pipeline.storage.layout import (
+from kforge.pipeline.storage.layout import (
     DONE,
     EPISODE_LENGTHS,
     LEVEL_ID,
@@ -25,10 +25,10 @@ from pipeline.storage.layout import (
     VALID,
     DatasetError,
 )
-from pipeline.storage.manifest import committed_batches, read_record, shard_name, temp_records
-from pipeline.storage.records import BatchRecord
-from pipeline.storage.shard_store import Dataset, array_digest, object_digest, open_dataset
-from pipeline.storage.writer import episode_lengths
+from kforge.pipeline.storage.manifest import committed_batches, read_record, shard_name, temp_records
+from kforge.pipeline.storage.records import BatchRecord
+from kforge.pipeline.storage.shard_store import Dataset, array_digest, object_digest, open_dataset
+from kforge.pipeline.storage.writer import episode_lengths
 
 TIMESTEP = f"{STATE_PREFIX}/timestep"
 

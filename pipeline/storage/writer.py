@@ -11,8 +11,8 @@ from collections.abc import Sequence
 import jax
 import numpy as np
 
-from env import EnvState, action_mask
-from pipeline.storage.layout import (
+from kforge.env import EnvState, action_mask
+from kforge.pipeline.storage.layout import (
     ACTION,
     ACTION_MASK,
     DONE,
@@ -28,8 +28,8 @@ from pipeline.storage.layout import (
     flatten_state,
     unflatten_state,
 )
-from pipeline.storage.lease import require_lease
-from pipeline.storage.manifest import (
+from kforge.pipeline.storage.lease import require_lease
+from kforge.pipeline.storage.manifest import (
     committed_batches,
     record_exists,
     remove_record,
@@ -37,9 +37,9 @@ from pipeline.storage.manifest import (
     temp_records,
     write_record,
 )
-from pipeline.storage.records import KEPT, ArrayEntry, BatchRecord, LevelRecord, Outcome
-from pipeline.storage.shard_store import Dataset, array_digest, open_dataset
-from pipeline.storage.store import Store
+from kforge.pipeline.storage.records import KEPT, ArrayEntry, BatchRecord, LevelRecord, Outcome
+from kforge.pipeline.storage.shard_store import Dataset, array_digest, open_dataset
+from kforge.pipeline.storage.store import Store
 
 
 @dataclasses.dataclass(frozen=True)

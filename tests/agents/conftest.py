@@ -12,10 +12,10 @@ import jax
 import jax.numpy as jnp
 import pytest
 
-from agents import PPOConfig, train_levels
-from engine import SceneBuilder, SimParams
-from env import EnvParams, Role, StaticEnvParams
-from env.level_builder import build_level
+from kforge.agents import PPOConfig, train_levels
+from kforge.engine import SceneBuilder, SimParams
+from kforge.env import EnvParams, Role, StaticEnvParams
+from kforge.env.level_builder import build_level
 
 # Test modules import these helpers as `agents_test_helpers` (works under every pytest import mode).
 sys.modules["agents_test_helpers"] = sys.modules[__name__]

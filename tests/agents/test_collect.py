@@ -4,10 +4,10 @@ import jax
 import numpy as np
 from agents_test_helpers import ENV_PARAMS, STATIC, TRAIN_CONFIG, keys, mirrored_level, stack, thruster_level
 
-from agents import initial_params
-from agents.collect import collect_windows
-from engine import SceneBuilder
-from env import Role, build_level, step
+from kforge.agents import initial_params
+from kforge.agents.collect import collect_windows
+from kforge.engine import SceneBuilder
+from kforge.env import Role, build_level, step
 
 WINDOW = 96
 

@@ -5,8 +5,8 @@ from pathlib import Path
 import pytest
 import yaml
 
-from agents import PPOConfig
-from env.observations import ObservationType
+from kforge.agents import PPOConfig
+from kforge.env.observations import ObservationType
 
 pytestmark = pytest.mark.smoke
 

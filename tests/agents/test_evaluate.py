@@ -19,8 +19,8 @@ from agents_test_helpers import (
     thruster_level,
 )
 
-from agents import evaluate, initial_params
-from env import reset
+from kforge.agents import evaluate, initial_params
+from kforge.env import reset
 
 EPISODES = 8
 SURE_LOGIT = 30.0

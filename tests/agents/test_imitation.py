@@ -10,14 +10,14 @@ import optax
 import pytest
 from agents_test_helpers import ENV_PARAMS, STATIC, thruster_level
 
-from agents import (
+from kforge.agents import (
     Architecture,
     NetworkConfig,
     imitation_terms,
     make_bc_network,
     run_episode,
 )
-from env import (
+from kforge.env import (
     ActionType,
     ObservationType,
     StaticEnvParams,

@@ -8,11 +8,11 @@ import numpy as np
 import optax
 import pytest
 
-from agents import initial_params, policy
-from agents.config import PPOConfig
-from agents.networks import make_network
-from agents.ppo import Batch, gae, learn, make_optimizer, ppo_loss
-from env import StaticEnvParams, observation_shape
+from kforge.agents import initial_params, policy
+from kforge.agents.config import PPOConfig
+from kforge.agents.networks import make_network
+from kforge.agents.ppo import Batch, gae, learn, make_optimizer, ppo_loss
+from kforge.env import StaticEnvParams, observation_shape
 
 pytestmark = pytest.mark.smoke
 

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from agents_test_helpers import ENV_PARAMS, STATIC, TRAIN_CONFIG, keys, mirrored_level, stack, thruster_level
 
-from agents import PPOConfig, train_levels
+from kforge.agents import PPOConfig, train_levels
 
 
 def test_specialist_learns_to_fire_the_thruster(trained_mixed):

@@ -15,7 +15,7 @@ from benchmarks import fidelity
 from benchmarks.env import DEFAULT_KINETIX_VENV, kinetix_python
 from benchmarks.fidelity import KinetixStore, compare, summarize
 from benchmarks.kinetix_variants import parse_variant
-from env import bundled_level_path, load_level
+from kforge.env import bundled_level_path, load_level
 
 
 def counts(success: int, failure: int, episodes: int = 100) -> dict:

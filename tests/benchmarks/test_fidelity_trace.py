@@ -14,8 +14,8 @@ from benchmarks.fidelity_trace import (
     trace_kinetix,
     trace_ours,
 )
-from engine import SimParams
-from env import MULTI_DISCRETE_SIZES, bundled_level_path, load_level
+from kforge.engine import SimParams
+from kforge.env import MULTI_DISCRETE_SIZES, bundled_level_path, load_level
 
 
 def _trace(done_at: dict, reward_at: dict, episodes: int = 3) -> dict:

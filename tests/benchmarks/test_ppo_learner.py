@@ -6,9 +6,9 @@ from __future__ import annotations
 import jax
 import pytest
 
-from agents import PPOConfig
 from benchmarks import ppo
-from env import StaticEnvParams, observation_shape
+from kforge.agents import PPOConfig
+from kforge.env import StaticEnvParams, observation_shape
 
 CONFIG = PPOConfig(num_envs=4, num_steps=8, num_minibatches=2, update_epochs=3, env_steps_per_level=3 * 32)
 

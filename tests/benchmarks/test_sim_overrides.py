@@ -12,7 +12,7 @@ import pytest
 
 from benchmarks import engine as engine_benchmark
 from benchmarks.sim_overrides import sim_override, with_sim_overrides
-from engine import ContactLaw, SimParams, StaticSimParams
+from kforge.engine import ContactLaw, SimParams, StaticSimParams
 
 
 def test_a_field_and_a_number_parse():

@@ -20,8 +20,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-import engine
-from engine import SceneBuilder, SimParams, SimState, StaticSimParams, StepInfo
+from kforge import engine
+from kforge.engine import SceneBuilder, SimParams, SimState, StaticSimParams, StepInfo
 
 # Test modules import these helpers as `engine_test_helpers`, which works under every pytest import mode
 # (`from conftest import ...` breaks under --import-mode=importlib and when several conftest.py files exist).

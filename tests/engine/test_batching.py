@@ -20,10 +20,10 @@ from engine_test_helpers import (
     stack_states,
 )
 
-import engine
 from benchmarks.kernels import count_hlo_kernels
-from engine import SceneBuilder, SimParams
-from engine.batch_last import BATCH_CHUNK, vmap_in_chunks
+from kforge import engine
+from kforge.engine import SceneBuilder, SimParams
+from kforge.engine.batch_last import BATCH_CHUNK, vmap_in_chunks
 
 COMPARE_STEPS = 50
 VMAP_ATOL = 1e-6

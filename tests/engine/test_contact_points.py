@@ -14,9 +14,9 @@ import numpy as np
 import pytest
 from engine_test_helpers import SIZE_S, pair_index, run, zero_gravity
 
-from engine import FLOOR_TOP, ContactLaw, ContactPoints, SceneBuilder, SimParams, StaticSimParams, pair_layout
-from engine.collision import manifolds, world_geometry
-from engine.params import ContactPoints as ContactPointsFromParams
+from kforge.engine import FLOOR_TOP, ContactLaw, ContactPoints, SceneBuilder, SimParams, StaticSimParams, pair_layout
+from kforge.engine.collision import manifolds, world_geometry
+from kforge.engine.params import ContactPoints as ContactPointsFromParams
 
 FLOOR = 0
 """A `SceneBuilder`'s floor: reserved polygon slot 0, its top at `engine.FLOOR_TOP`."""

@@ -25,7 +25,7 @@ from engine_test_helpers import (
     zero_gravity,
 )
 
-from engine import ContactLaw, SceneBuilder, SimParams, StaticSimParams
+from kforge.engine import ContactLaw, SceneBuilder, SimParams, StaticSimParams
 
 PARAMS = SimParams()
 DT = PARAMS.dt
@@ -764,8 +764,8 @@ def test_collision_modes(mode_static, mode_falling):
 def test_each_body_receives_its_slots_changes_in_slot_order(static):
     """The warm start sums, per real body, the changes of exactly the slots it belongs to (as body a, then as body
     b, each in slot order) and nothing of padding: the same order on every backend."""
-    from engine.contact_solver import received_changes
-    from engine.pairs import pair_layout
+    from kforge.engine.contact_solver import received_changes
+    from kforge.engine.pairs import pair_layout
 
     layout = pair_layout(static)
     indices, real = received_changes(layout)
@@ -782,9 +782,9 @@ def test_warm_start_equals_every_slots_impulse_added_to_its_bodies():
     scatter-add (numpy's add.at) of each slot's change onto its bodies a and b; the dummy body N is left alone."""
     import jax.numpy as jnp
 
-    from engine.contact_solver import ContactImpulses, ContactRows, _velocity_changes, warm_start_contacts
-    from engine.pairs import pair_layout
-    from engine.softness import Softness
+    from kforge.engine.contact_solver import ContactImpulses, ContactRows, _velocity_changes, warm_start_contacts
+    from kforge.engine.pairs import pair_layout
+    from kforge.engine.softness import Softness
 
     layout = pair_layout(SIZE_M)
     rng = np.random.default_rng(3)

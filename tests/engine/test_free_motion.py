@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 from engine_test_helpers import PARAMS, SIZE_M, cross, rotate, run_batch
 
-import engine
-from engine import SceneBuilder
+from kforge import engine
+from kforge.engine import SceneBuilder
 
 pytestmark = pytest.mark.smoke
 

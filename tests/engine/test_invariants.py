@@ -25,8 +25,8 @@ from engine_test_helpers import (
     to_numpy,
 )
 
-from engine import SceneBuilder, pair_layout
-from engine.collision_filter import modes_collide
+from kforge.engine import SceneBuilder, pair_layout
+from kforge.engine.collision_filter import modes_collide
 
 NUM_OVERLAPPING = BATCH // 2
 SLOP = PARAMS.touch_distance  # [m] 0.005

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 from engine_test_helpers import SIZE_L, SIZE_S, G, crossings, elliptic_k, joint_anchor_error, masses, rotate, run
 
-from engine import ContactLaw, LimitLaw, MotorLaw, SceneBuilder, SimParams
+from kforge.engine import ContactLaw, LimitLaw, MotorLaw, SceneBuilder, SimParams
 
 STATIC = SIZE_L
 PARAMS = SimParams()

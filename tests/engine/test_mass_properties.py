@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from engine import SceneBuilder, StaticSimParams
-from engine.geometry import circle_mass_properties, polygon_mass_properties
+from kforge.engine import SceneBuilder, StaticSimParams
+from kforge.engine.geometry import circle_mass_properties, polygon_mass_properties
 
 pytestmark = pytest.mark.smoke
 

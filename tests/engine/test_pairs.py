@@ -9,8 +9,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from engine import StaticSimParams, empty_state, pair_layout
-from engine.collision_filter import joint_collision_matrix
+from kforge.engine import StaticSimParams, empty_state, pair_layout
+from kforge.engine.collision_filter import joint_collision_matrix
 
 SIZES = [
     StaticSimParams.for_size("s"),

@@ -5,8 +5,8 @@ from __future__ import annotations
 import imageio.v3 as iio
 import numpy as np
 
-from engine import SceneBuilder, StaticSimParams, write_demo
-from engine.render import BACKGROUND, STATIC_COLOUR, render_frame
+from kforge.engine import SceneBuilder, StaticSimParams, write_demo
+from kforge.engine.render import BACKGROUND, STATIC_COLOUR, render_frame
 
 PIXELS_PER_METRE = 100
 ARENA_PIXELS = 500

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from engine import SceneBuilder, StaticSimParams
+from kforge.engine import SceneBuilder, StaticSimParams
 
 pytestmark = pytest.mark.smoke
 

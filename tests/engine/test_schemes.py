@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from engine_test_helpers import SIZE_M, SIZE_S, run, zero_gravity
 
-from engine import (
+from kforge.engine import (
     DEFAULT_PHYSICS_SCHEME,
     FLOOR_TOP,
     PHYSICS_SCHEMES,

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from benchmarks.kernels import count_kernels
-from engine.sweep import SWEEPS, pipelined_sweep
+from kforge.engine.sweep import SWEEPS, pipelined_sweep
 
 NUM_BODIES = 6
 PAIRS = np.array([[0, 1], [1, 2], [2, 3], [3, 4], [4, 5], [0, 5], [1, 4]])

@@ -10,8 +10,8 @@ from pathlib import Path
 
 import pytest
 
-from env import BUNDLED_SIZES
-from env.bundled_levels import LEVELS_DIR
+from kforge.env import BUNDLED_SIZES
+from kforge.env.bundled_levels import LEVELS_DIR
 
 
 def fixture_files(size: str | None = None) -> list[Path]:

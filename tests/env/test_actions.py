@@ -5,8 +5,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from engine import SceneBuilder
-from env import (
+from kforge.engine import SceneBuilder
+from kforge.env import (
     MULTI_DISCRETE_SIZES,
     NUM_DISCRETE_ACTIONS,
     ActionType,
@@ -18,8 +18,8 @@ from env import (
     random_action,
     reset,
 )
-from env.actions import unified_action
-from env.level_builder import build_level
+from kforge.env.actions import unified_action
+from kforge.env.level_builder import build_level
 
 pytestmark = pytest.mark.smoke
 

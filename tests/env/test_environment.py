@@ -4,8 +4,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from engine import SceneBuilder
-from env import Environment, EnvParams, ObservationType, Role, build_level, reset, step
+from kforge.engine import SceneBuilder
+from kforge.env import Environment, EnvParams, ObservationType, Role, build_level, reset, step
 
 
 def test_environment_observes_the_state_it_returns():

@@ -7,10 +7,10 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from engine import SceneBuilder, SimParams
-from engine import step as physics_step
-from env import ActionType, EnvParams, Role, StaticEnvParams, advance, noop_action, reset, step
-from env.level_builder import build_level
+from kforge.engine import SceneBuilder, SimParams
+from kforge.engine import step as physics_step
+from kforge.env import ActionType, EnvParams, Role, StaticEnvParams, advance, noop_action, reset, step
+from kforge.env.level_builder import build_level
 
 STATIC = StaticEnvParams.for_size("m")
 PARAMS = EnvParams()

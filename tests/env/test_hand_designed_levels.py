@@ -14,8 +14,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-import env
-from env.level_files import LoadedLevel, load_level
+from kforge import env
+from kforge.env.level_files import LoadedLevel, load_level
 
 EPISODE_STEPS = 256
 """Env steps per rollout: one full Kinetix episode."""

@@ -9,8 +9,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from env import StaticEnvParams, initial_state, load_level
-from env.kinetix_state import KinetixStateError, kinetix_leaf_specs, state_from_kinetix, state_to_kinetix
+from kforge.env import StaticEnvParams, initial_state, load_level
+from kforge.env.kinetix_state import KinetixStateError, kinetix_leaf_specs, state_from_kinetix, state_to_kinetix
 
 REFERENCE_STATE_BYTES = {"s": 1456, "m": 2442, "l": 8022}
 """Bytes of one full Kinetix EnvState per size (measured with kinetix-env 3.0.2; docs/kinetix.md)."""

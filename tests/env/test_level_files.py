@@ -11,10 +11,10 @@ import jax
 import numpy as np
 import pytest
 
-from engine import SceneBuilder, StaticSimParams
-from engine.geometry import polygon_mass_properties, rotate_host
-from env import EnvParams, Level, Role, StaticEnvParams, Task, bundled_level_path, list_levels
-from env.level_files import LevelFileError, level_to_dict, load_level, save_level
+from kforge.engine import SceneBuilder, StaticSimParams
+from kforge.engine.geometry import polygon_mass_properties, rotate_host
+from kforge.env import EnvParams, Level, Role, StaticEnvParams, Task, bundled_level_path, list_levels
+from kforge.env.level_files import LevelFileError, level_to_dict, load_level, save_level
 
 # Kinetix's values of the env_params our engine does not model (Kinetix `EnvParams` defaults).
 KINETIX_DEFAULT_ENV_PARAMS = {

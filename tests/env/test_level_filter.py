@@ -9,10 +9,10 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from engine import SceneBuilder
-from env import EnvParams, Level, Role, StaticEnvParams, empty_task
-from env.level_filter import FilterReason, filter_levels, goals_touching, has_actuator
-from env.rollout import Outcome, Policy, first_episode_outcomes
+from kforge.engine import SceneBuilder
+from kforge.env import EnvParams, Level, Role, StaticEnvParams, empty_task
+from kforge.env.level_filter import FilterReason, filter_levels, goals_touching, has_actuator
+from kforge.env.rollout import Outcome, Policy, first_episode_outcomes
 
 STATIC = StaticEnvParams.for_size("s")
 PARAMS = EnvParams()

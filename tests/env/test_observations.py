@@ -8,10 +8,10 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from engine import SceneBuilder, pair_layout
-from env import Role, StaticEnvParams, reset
-from env.observations import EntityObservation, ObservationType, observation_shape, observe
-from env.state import EnvState, Level, Task
+from kforge.engine import SceneBuilder, pair_layout
+from kforge.env import Role, StaticEnvParams, reset
+from kforge.env.observations import EntityObservation, ObservationType, observation_shape, observe
+from kforge.env.state import EnvState, Level, Task
 
 S_STATIC = StaticEnvParams.for_size("s")
 M_STATIC = StaticEnvParams.for_size("m")

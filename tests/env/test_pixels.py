@@ -6,12 +6,12 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from engine import SceneBuilder
-from env import Role, StaticEnvParams, reset
-from env.gif import write_state_gif
-from env.observations import ObservationType, observe
-from env.pixels import render_image
-from env.state import EnvState, Level, Task
+from kforge.engine import SceneBuilder
+from kforge.env import Role, StaticEnvParams, reset
+from kforge.env.gif import write_state_gif
+from kforge.env.observations import ObservationType, observe
+from kforge.env.pixels import render_image
+from kforge.env.state import EnvState, Level, Task
 
 STATIC = StaticEnvParams.for_size("s")
 RESOLUTION = 125

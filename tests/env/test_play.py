@@ -2,7 +2,7 @@
 
 import imageio.v3 as iio
 
-from pipeline.cli import main
+from kforge.pipeline.cli import main
 
 
 def test_render_command_writes_one_frame_per_state(levels_dir, tmp_path, capsys):

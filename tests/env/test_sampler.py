@@ -13,10 +13,10 @@ import jax
 import numpy as np
 import pytest
 
-from engine import SceneBuilder, StaticSimParams
-from env import EnvParams, Role, StaticEnvParams
-from env.rollout import Outcome, Policy, first_episode_outcomes
-from env.sampler import sample_level, sample_levels
+from kforge.engine import SceneBuilder, StaticSimParams
+from kforge.env import EnvParams, Role, StaticEnvParams
+from kforge.env.rollout import Outcome, Policy, first_episode_outcomes
+from kforge.env.sampler import sample_level, sample_levels
 
 NUM_LEVELS = 1024
 TABLE_LEVELS = 1024  # levels behind each figure of Kinetix's table

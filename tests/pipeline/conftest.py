@@ -24,11 +24,11 @@ import numpy as np
 import pytest
 import zarr
 
-from engine import SceneBuilder
-from env import ActionType, EnvParams, Role, StaticEnvParams, build_level, random_action, reset, step
-from pipeline.generation.config import load_config
-from pipeline.generation.run import run_job
-from pipeline.storage import (
+from kforge.engine import SceneBuilder
+from kforge.env import ActionType, EnvParams, Role, StaticEnvParams, build_level, random_action, reset, step
+from kforge.pipeline.generation.config import load_config
+from kforge.pipeline.generation.run import run_job
+from kforge.pipeline.storage import (
     LEASE_KEY,
     PROVENANCE,
     Lease,
@@ -38,9 +38,9 @@ from pipeline.storage import (
     open_store,
     read_holder,
 )
-from pipeline.storage.layout import make_layout
-from pipeline.storage.shard_store import DatasetSpec, Geometry, create_dataset
-from pipeline.storage.writer import KEPT, BatchTrajectories, write_level_batch
+from kforge.pipeline.storage.layout import make_layout
+from kforge.pipeline.storage.shard_store import DatasetSpec, Geometry, create_dataset
+from kforge.pipeline.storage.writer import KEPT, BatchTrajectories, write_level_batch
 
 # Test modules import these helpers as `pipeline_test_helpers` (works under every pytest import mode).
 sys.modules["pipeline_test_helpers"] = sys.modules[__name__]
@@ -237,10 +237,10 @@ def as_a_terminal_job() -> None:
 
 
 def run_job_process(config_file: Path, until=None) -> str:
-    """Run `python -m pipeline run` in a session of its own; with `until`, SIGKILL the whole session as soon as
+    """Run `python -m kforge run` in a session of its own; with `until`, SIGKILL the whole session as soon as
     `until()` holds (the job dies mid-work), else wait for it to finish and check it succeeded."""
     process = subprocess.Popen(
-        [sys.executable, "-m", "pipeline", "run", str(config_file), "--no-progress"],
+        [sys.executable, "-m", "kforge", "run", str(config_file), "--no-progress"],
         start_new_session=True,
         stdout=subprocess.PIPE,
         stderr=subprocess.STDOUT,

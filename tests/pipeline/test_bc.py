@@ -15,12 +15,12 @@ import numpy as np
 import pytest
 from pipeline_test_helpers import PARAMS, STATIC, as_a_terminal_job
 
-import configs
-from engine import physics_scheme
-from env import EnvParams, StaticEnvParams, action_mask, list_levels, load_level, reset, under_scheme
-from pipeline.cli import main
-from pipeline.generation import ConfigError
-from pipeline.learning import (
+from kforge import configs
+from kforge.engine import physics_scheme
+from kforge.env import EnvParams, StaticEnvParams, action_mask, list_levels, load_level, reset, under_scheme
+from kforge.pipeline.cli import main
+from kforge.pipeline.generation import ConfigError
+from kforge.pipeline.learning import (
     Baseline,
     BCConfig,
     StartSet,
@@ -30,8 +30,8 @@ from pipeline.learning import (
     play,
     train_bc,
 )
-from pipeline.learning.checkpoints import checkpoint_steps
-from pipeline.storage import DatasetError
+from kforge.pipeline.learning.checkpoints import checkpoint_steps
+from kforge.pipeline.storage import DatasetError
 
 SMALL = [
     "train.batch_size=2",
@@ -177,7 +177,7 @@ def test_bc_train_and_evaluate_run_end_to_end_on_the_command_line(dataset_dir, t
 
 
 def _train_command(dataset, run_dir, *extra):
-    return [sys.executable, "-m", "pipeline", "bc", "train", str(dataset), f"output_dir={run_dir}", *SMALL, *extra]
+    return [sys.executable, "-m", "kforge", "bc", "train", str(dataset), f"output_dir={run_dir}", *SMALL, *extra]
 
 
 @pytest.mark.slow
@@ -224,9 +224,9 @@ def test_sigint_checkpoints_and_the_resumed_run_ends_as_an_uninterrupted_one(dat
 def test_unseen_levels_are_the_split_levels_past_the_dataset_that_the_filter_keeps(tmp_path):
     from pipeline_test_helpers import tiny_job
 
-    from env import filter_levels
-    from pipeline.generation import environment, sample_batch
-    from pipeline.learning.evaluation import UNSEEN_SAMPLE_CHUNK, unseen_starts
+    from kforge.env import filter_levels
+    from kforge.pipeline.generation import environment, sample_batch
+    from kforge.pipeline.learning.evaluation import UNSEEN_SAMPLE_CHUNK, unseen_starts
 
     job = tiny_job(tmp_path)
     starts = unseen_starts(job, count=5)

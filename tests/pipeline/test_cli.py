@@ -7,8 +7,8 @@ import json
 
 import pytest
 
-from env import LevelFileError
-from pipeline.cli import DATASET_METADATA, EXIT_USAGE, main
+from kforge.env import LevelFileError
+from kforge.pipeline.cli import DATASET_METADATA, EXIT_USAGE, main
 
 pytestmark = pytest.mark.smoke
 
@@ -25,7 +25,7 @@ PIPELINE_SUBCOMMANDS = (
 
 
 def test_the_dataset_metadata_file_is_the_one_storage_writes():
-    from pipeline.storage.shard_store import GROUP_METADATA
+    from kforge.pipeline.storage.shard_store import GROUP_METADATA
 
     assert DATASET_METADATA == GROUP_METADATA
 

@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 from pipeline_test_helpers import as_a_terminal_job
 
-from pipeline.cli import EXIT_INTERRUPTED
+from kforge.pipeline.cli import EXIT_INTERRUPTED
 
 REPO = Path(__file__).resolve().parents[2]
 SIGINT_AFTER_SECONDS = 1.5
@@ -48,7 +48,7 @@ def interruptible(dataset: Path, tmp: Path) -> dict[str, list[str]]:
 def test_sigint_exits_130_with_one_line(name, dataset_dir, tmp_path):
     argv = interruptible(dataset_dir, tmp_path)[name]
     process = subprocess.Popen(
-        [sys.executable, "-m", "pipeline", *argv],
+        [sys.executable, "-m", "kforge", *argv],
         cwd=REPO,
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,

@@ -10,8 +10,8 @@ from pathlib import Path
 
 import pytest
 
-from pipeline.cli import DATASET_METADATA, ENV_SIZES, PHYSICS_SCHEME_NAMES, PLAY_PHYSICS_SCHEME, POLICY_NAMES
-from pipeline.cli.demo import DEMO_RENDER_EVERY
+from kforge.pipeline.cli import DATASET_METADATA, ENV_SIZES, PHYSICS_SCHEME_NAMES, PLAY_PHYSICS_SCHEME, POLICY_NAMES
+from kforge.pipeline.cli.demo import DEMO_RENDER_EVERY
 
 pytestmark = pytest.mark.smoke
 
@@ -75,9 +75,9 @@ def test_argument_errors_exit_2_before_any_heavy_import(tmp_path):
 
 
 def test_the_names_parsed_are_the_engines_and_envs():
-    from engine import KINETIX_SIZES, PHYSICS_SCHEMES
-    from engine.demo import RENDER_EVERY
-    from env import BUNDLED_SIZES, Policy
+    from kforge.engine import KINETIX_SIZES, PHYSICS_SCHEMES
+    from kforge.engine.demo import RENDER_EVERY
+    from kforge.env import BUNDLED_SIZES, Policy
 
     assert ENV_SIZES == tuple(KINETIX_SIZES) == tuple(BUNDLED_SIZES)
     assert set(PHYSICS_SCHEME_NAMES) == set(PHYSICS_SCHEMES) and PLAY_PHYSICS_SCHEME in PHYSICS_SCHEMES
@@ -86,9 +86,9 @@ def test_the_names_parsed_are_the_engines_and_envs():
 
 
 def test_the_bc_names_checked_without_jax_are_the_networks_and_evaluations():
-    from agents import Architecture
-    from pipeline.learning import evaluate_policy
-    from pipeline.learning.config import ARCHITECTURES, LEVEL_SETS
+    from kforge.agents import Architecture
+    from kforge.pipeline.learning import evaluate_policy
+    from kforge.pipeline.learning.config import ARCHITECTURES, LEVEL_SETS
 
     assert ARCHITECTURES == tuple(architecture.value for architecture in Architecture)
     with pytest.raises(ValueError, match="unknown level set 'seen'; expected some of train, validation, unseen, hand"):
@@ -97,7 +97,7 @@ def test_the_bc_names_checked_without_jax_are_the_networks_and_evaluations():
 
 
 def test_render_and_preview_play_kinetix_unless_told_otherwise():
-    from pipeline.cli import levels, render
+    from kforge.pipeline.cli import levels, render
 
     assert PLAY_PHYSICS_SCHEME == "kinetix"
     _, subcommands = levels._parser("kforge levels")

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from pipeline.generation.console import seconds_left
+from kforge.pipeline.generation.console import seconds_left
 
 BC_STEPS = 2000
 BC_COMPILE_SECONDS = 30.0  # [s] the first step compiles

@@ -7,9 +7,9 @@ import sys
 import pytest
 from pipeline_test_helpers import tiny_job
 
-from pipeline.generation.compile_cache import cache_folder
-from pipeline.generation.config import load_config, to_yaml
-from pipeline.storage import iter_records
+from kforge.pipeline.generation.compile_cache import cache_folder
+from kforge.pipeline.generation.config import load_config, to_yaml
+from kforge.pipeline.storage import iter_records
 from tests.conftest import COMPILATION_CACHE_VARIABLES
 
 JOB_TIMEOUT_SECONDS = 1800  # [s] a busy 2-core machine compiles slowly
@@ -25,7 +25,7 @@ def run_job_in_subprocess(tmp_path, name: str, *overrides) -> list:
     config_file = tmp_path / f"{name}.yaml"
     job = tiny_job(output, "split.num_levels=2", "work.levels_per_shard=2", *overrides)
     config_file.write_text(to_yaml(job))
-    command = [sys.executable, "-m", "pipeline", "run", str(config_file), "--no-progress"]
+    command = [sys.executable, "-m", "kforge", "run", str(config_file), "--no-progress"]
     environment = {k: v for k, v in os.environ.items() if k not in COMPILATION_CACHE_VARIABLES}  # the job's own cache
     environment["RAY_AUTH_MODE"] = "disabled"
     subprocess.run(command, check=True, capture_output=True, timeout=JOB_TIMEOUT_SECONDS, env=environment)
@@ -57,7 +57,7 @@ def test_the_cache_folder_expands_the_home_directory_and_null_turns_it_off(monke
 def test_a_worker_told_to_turns_on_deterministic_gpu_ops_before_it_computes(tmp_path, monkeypatch):
     import dataclasses
 
-    from pipeline.generation import Worker
+    from kforge.pipeline.generation import Worker
 
     monkeypatch.setenv("XLA_FLAGS", "--xla_force_host_platform_device_count=1")
     job = tiny_job(tmp_path / "out")
@@ -69,7 +69,7 @@ def test_a_worker_told_to_turns_on_deterministic_gpu_ops_before_it_computes(tmp_
 
 
 def test_a_worker_leaves_xla_flags_alone_by_default(tmp_path, monkeypatch):
-    from pipeline.generation import Worker
+    from kforge.pipeline.generation import Worker
 
     monkeypatch.setenv("XLA_FLAGS", "--xla_force_host_platform_device_count=1")
     Worker(tiny_job(tmp_path / "out"), "local")

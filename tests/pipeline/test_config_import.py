@@ -8,20 +8,20 @@ import json
 import subprocess
 import sys
 
-from engine import KINETIX_SIZES, PHYSICS_SCHEMES
-from pipeline.generation.config import (
+from kforge.engine import KINETIX_SIZES, PHYSICS_SCHEMES
+from kforge.pipeline.generation.config import (
     DATASET_CONFIG_FILE,
     ENV_SIZES,
     PHYSICS_SCHEME_NAMES,
     LeaseConfig,
 )
-from pipeline.storage import CONFIG_FILE, DEFAULT_HEARTBEAT_S, DEFAULT_STALE_AFTER_S
+from kforge.pipeline.storage import CONFIG_FILE, DEFAULT_HEARTBEAT_S, DEFAULT_STALE_AFTER_S
 
 HEAVY_MODULES = ("jax", "ray", "wandb", "flax", "optax")
 
 CHECK_WITHOUT_HEAVY_MODULES = f"""
 import json, sys
-from pipeline.generation.config import ConfigError, load_config, read_config, to_yaml
+from kforge.pipeline.generation.config import ConfigError, load_config, read_config, to_yaml
 errors = []
 for overrides in (["split.size=xl"], ["env.dense_reward_scale=nan"], ["lease.stale_after_s=inf"]):
     try:

@@ -10,8 +10,8 @@ from pathlib import Path
 import pytest
 import yaml
 
-import configs
-from pipeline.generation.config import load_config
+from kforge import configs
+from kforge.pipeline.generation.config import load_config
 
 pytestmark = pytest.mark.smoke
 
@@ -28,7 +28,7 @@ def test_every_split_at_every_scale_plays_under_the_kinetix_scheme():
 
 
 def test_the_quickstart_job_plays_under_the_kinetix_scheme(tmp_path):
-    command = [sys.executable, "-m", "pipeline", *QUICKSTART, "--print-config"]
+    command = [sys.executable, "-m", "kforge", *QUICKSTART, "--print-config"]
     printed = subprocess.run(command, capture_output=True, text=True, cwd=tmp_path, timeout=120, check=True)
     config = yaml.safe_load(printed.stdout)
     assert config["env"]["physics"] == "kinetix"

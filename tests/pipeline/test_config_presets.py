@@ -10,9 +10,9 @@ from pathlib import Path
 import pytest
 from omegaconf import OmegaConf
 
-from agents import PPOConfig
-from pipeline.cli.run import main as run_main
-from pipeline.generation.config import ConfigError, JobConfig, PPOSection, load_config, ppo_config, to_yaml
+from kforge.agents import PPOConfig
+from kforge.pipeline.cli.run import main as run_main
+from kforge.pipeline.generation.config import ConfigError, JobConfig, PPOSection, load_config, ppo_config, to_yaml
 
 pytestmark = pytest.mark.smoke
 

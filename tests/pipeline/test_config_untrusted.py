@@ -13,7 +13,7 @@ import typing
 import pytest
 from pipeline_test_helpers import environment
 
-from pipeline.generation.config import ConfigError, JobConfig, read_config, to_yaml
+from kforge.pipeline.generation.config import ConfigError, JobConfig, read_config, to_yaml
 from tests.pipeline.test_object_storage import BUCKET, S3_ENV
 
 EXIT_USAGE = 2
@@ -50,7 +50,7 @@ def s3():
 
 
 def run_cli(*argv: str, cwd, **env) -> subprocess.CompletedProcess:
-    command = [sys.executable, "-m", "pipeline", *argv]
+    command = [sys.executable, "-m", "kforge", *argv]
     environment = {**os.environ, **env}
     return subprocess.run(command, capture_output=True, text=True, cwd=cwd, env=environment, timeout=120)
 

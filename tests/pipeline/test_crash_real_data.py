@@ -7,9 +7,9 @@ from __future__ import annotations
 import pytest
 from pipeline_test_helpers import assert_same_dataset, kill_at_points, run_in_process, run_job_process, tiny_job
 
-from pipeline.generation.config import to_yaml
-from pipeline.storage import all_committed, iter_records
-from pipeline.storage.verify import verify_dataset
+from kforge.pipeline.generation.config import to_yaml
+from kforge.pipeline.storage import all_committed, iter_records
+from kforge.pipeline.storage.verify import verify_dataset
 
 KEEPS_TRAJECTORIES = ["split.num_levels=16", "filter.enabled=false"]
 """Levels 9-12 of split seed 0 are kept: batches 0 and 1 of shard 2 and batch 0 of shard 3."""

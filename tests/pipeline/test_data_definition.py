@@ -7,8 +7,8 @@ import json
 
 import pytest
 
-from engine import SimParams, StaticSimParams
-from pipeline.generation.config import (
+from kforge.engine import SimParams, StaticSimParams
+from kforge.pipeline.generation.config import (
     ConfigError,
     data_definition,
     data_fingerprint,
@@ -16,9 +16,9 @@ from pipeline.generation.config import (
     load_config,
     physics_definition,
 )
-from pipeline.generation.run import prepare_output
-from pipeline.storage import DatasetError
-from pipeline.storage.shard_store import open_dataset
+from kforge.pipeline.generation.run import prepare_output
+from kforge.pipeline.storage import DatasetError
+from kforge.pipeline.storage.shard_store import open_dataset
 
 SPLIT_1M_S = ["split.name=1M/s"]
 

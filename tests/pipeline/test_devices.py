@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 from pipeline_test_helpers import TINY_JOB
 
-from pipeline.generation import load_config
-from pipeline.generation.level_batch import run_level_batch
+from kforge.pipeline.generation import load_config
+from kforge.pipeline.generation.level_batch import run_level_batch
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
 DEVICES = 2
@@ -19,9 +19,9 @@ DEVICES = 2
 RUN_ON_DEVICES = """
 import json, sys
 import jax, numpy as np
-from pipeline.generation import load_config
-from pipeline.generation.devices import level_devices
-from pipeline.generation.level_batch import run_level_batch
+from kforge.pipeline.generation import load_config
+from kforge.pipeline.generation.devices import level_devices
+from kforge.pipeline.generation.level_batch import run_level_batch
 
 overrides, out = json.loads(sys.argv[1]), sys.argv[2]
 job = load_config(None, overrides)

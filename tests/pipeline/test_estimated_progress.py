@@ -10,9 +10,9 @@ import jax.numpy as jnp
 import pytest
 from pipeline_test_helpers import tiny_job
 
-import pipeline.generation.estimated_progress as estimated
-from pipeline.generation.estimated_progress import estimated_progress
-from pipeline.generation.level_batch import (
+import kforge.pipeline.generation.estimated_progress as estimated
+from kforge.pipeline.generation.estimated_progress import estimated_progress
+from kforge.pipeline.generation.level_batch import (
     KeyPurpose,
     _compiling_train_program,
     batch_level_indices,

@@ -7,9 +7,9 @@ import jax
 import numpy as np
 from pipeline_test_helpers import tiny_job
 
-from engine import physics_scheme
-from env import EnvParams, StaticEnvParams, list_levels, load_level, under_scheme
-from pipeline.learning import hand_starts, play_physics
+from kforge.engine import physics_scheme
+from kforge.env import EnvParams, StaticEnvParams, list_levels, load_level, under_scheme
+from kforge.pipeline.learning import hand_starts, play_physics
 
 SIZE_S = StaticEnvParams.for_size("s")
 KINETIX_PARAMS, KINETIX_S = under_scheme(physics_scheme("kinetix"), EnvParams(), SIZE_S)

@@ -18,10 +18,10 @@ import time
 import pytest
 from pipeline_test_helpers import assert_same_dataset, run_in_process, tiny_job
 
-from pipeline.cli import EXIT_DATA
-from pipeline.generation.config import to_yaml
-from pipeline.generation.coordinator import Coordinator, ShardNotHeld
-from pipeline.storage import (
+from kforge.pipeline.cli import EXIT_DATA
+from kforge.pipeline.generation.config import to_yaml
+from kforge.pipeline.generation.coordinator import Coordinator, ShardNotHeld
+from kforge.pipeline.storage import (
     LEASE_KEY,
     Lease,
     LeaseLost,
@@ -32,8 +32,8 @@ from pipeline.storage import (
     read_record_json,
     record_key,
 )
-from pipeline.storage.manifest import remove_record
-from pipeline.storage.verify import verify_dataset
+from kforge.pipeline.storage.manifest import remove_record
+from kforge.pipeline.storage.verify import verify_dataset
 
 STALE_AFTER_S = 1.5  # [s] the lease's stale limit in these tests
 HEARTBEAT_S = 0.2  # [s]
@@ -41,10 +41,10 @@ NUM_SHARDS, BATCHES_PER_SHARD = 2, 2  # the shared test dataset's geometry
 
 PAUSED_JOB = """
 import json, sys
-from pipeline.generation.coordinator import Coordinator
-from pipeline.storage import Lease, LeaseLost, commit_age_limit, read_record_json
-from pipeline.storage.manifest import remove_record
-from pipeline.storage.writer import clean_uncommitted
+from kforge.pipeline.generation.coordinator import Coordinator
+from kforge.pipeline.storage import Lease, LeaseLost, commit_age_limit, read_record_json
+from kforge.pipeline.storage.manifest import remove_record
+from kforge.pipeline.storage.writer import clean_uncommitted
 
 root, stale, beat = sys.argv[1], float(sys.argv[2]), float(sys.argv[3])
 records = json.loads(sys.argv[4])
@@ -173,7 +173,7 @@ def test_a_real_job_paused_past_its_lease_is_fenced_and_the_job_that_took_over_f
     config_file = tmp_path / "job.yaml"
     config_file.write_text(to_yaml(tiny_job(output, "ray.num_workers=0", *JOB_LEASE)))
     paused = subprocess.Popen(
-        [sys.executable, "-m", "pipeline", "run", str(config_file), "--no-progress"],
+        [sys.executable, "-m", "kforge", "run", str(config_file), "--no-progress"],
         start_new_session=True,
         stdout=subprocess.PIPE,
         stderr=subprocess.STDOUT,

@@ -28,12 +28,12 @@ from pipeline_test_helpers import (
     write_all,
 )
 
-from pipeline.cli.verify import main as verify_main
-from pipeline.generation import load_config
-from pipeline.kinetix import export_kinetix, load_kinetix_levels
-from pipeline.reading import TrajectoryDatasetManager, collect_stats
-from pipeline.storage import LEASE_KEY, open_dataset, open_store
-from pipeline.storage.verify import verify_dataset
+from kforge.pipeline.cli.verify import main as verify_main
+from kforge.pipeline.generation import load_config
+from kforge.pipeline.kinetix import export_kinetix, load_kinetix_levels
+from kforge.pipeline.reading import TrajectoryDatasetManager, collect_stats
+from kforge.pipeline.storage import LEASE_KEY, open_dataset, open_store
+from kforge.pipeline.storage.verify import verify_dataset
 
 BUCKET = "kforge-test"
 GCS_ENV = {"GOOGLE_AUTH_TOKEN_FOR_TESTING": "test-token"}

@@ -1,4 +1,4 @@
-"""jobs/: what `python -m jobs.submit` sends, the cluster-launcher template, and (slow) real runs on this machine: a
+"""jobs/: what `kforge.jobs.submit` sends, the cluster-launcher template, and (slow) real runs on this machine: a
 tiny job submitted through the Ray Jobs API to a `ray start --head` cluster, and jobs/slurm.sbatch under a fake
 one-node SLURM. Each slow test checks the dataset and that every process it started, and no other, is gone.
 """
@@ -23,10 +23,10 @@ import pytest
 import yaml
 from pipeline_test_helpers import TINY_JOB
 
-from jobs.submit import REPO_ROOT, UPLOAD_EXCLUDES, build_submission, parse_env_vars
-from pipeline.generation.config import ConfigError
-from pipeline.storage.manifest import committed_batches
-from pipeline.storage.verify import verify_dataset
+from kforge.jobs.submit import REPO_ROOT, UPLOAD_EXCLUDES, build_submission, parse_env_vars
+from kforge.pipeline.generation.config import ConfigError
+from kforge.pipeline.storage.manifest import committed_batches
+from kforge.pipeline.storage.verify import verify_dataset
 from tests.pipeline.test_tracking import wandb_history
 
 SPLIT_CONFIG = "configs/splits/1M/s.yaml"
@@ -59,7 +59,7 @@ def test_the_submission_runs_kforge_in_the_uploaded_checkout_against_its_own_clu
     )
     assert submission.output_dir == tmp_path / "data" / "tiny"  # relative: resolved where the submitter runs
     command = submission.entrypoint.split()
-    assert command[:8] == ["python", "-m", "pipeline", "run", "--no-progress", "--json", "--scale", "tiny"]
+    assert command[:8] == ["python", "-m", "kforge", "run", "--no-progress", "--json", "--scale", "tiny"]
     assert command[8] == SPLIT_CONFIG  # relative to the working dir, which is the job's cwd
     assert command[-2:] == [f"output_dir={tmp_path / 'data' / 'tiny'}", "ray.address=auto"]  # last: they win
     assert submission.runtime_env == {
@@ -116,7 +116,7 @@ def test_a_job_submitted_to_a_local_ray_cluster_writes_a_dataset_that_verifies(t
     env = cluster_env(tmp_path / "home")
     with ray_head(env) as address:
         result = subprocess.run(
-            [sys.executable, "-m", "jobs.submit", "--address", address, SPLIT_CONFIG, *TINY_JOB]
+            [sys.executable, "-m", "kforge.jobs.submit", "--address", address, SPLIT_CONFIG, *TINY_JOB]
             + [f"output_dir={output}", "tracking.wandb=offline"],
             cwd=REPO_ROOT,
             env=env,

@@ -14,13 +14,13 @@ import numpy as np
 import pytest
 from pipeline_test_helpers import NUM_STEPS
 
-import pipeline.kinetix.export
-from env import initial_state
-from pipeline.cli import main as kforge
-from pipeline.kinetix.export import export_kinetix
-from pipeline.kinetix.importer import load_kinetix_levels
-from pipeline.kinetix.zarr_v2 import RecordArray
-from pipeline.storage.layout import DatasetError
+import kforge.pipeline.kinetix.export
+from kforge.env import initial_state
+from kforge.pipeline.cli import main as kforge
+from kforge.pipeline.kinetix.export import export_kinetix
+from kforge.pipeline.kinetix.importer import load_kinetix_levels
+from kforge.pipeline.kinetix.zarr_v2 import RecordArray
+from kforge.pipeline.storage.layout import DatasetError
 
 P, C, J, T = 5, 2, 1, 1  # size s slots (docs/kinetix.md, sizes)
 NRR, NCR, NCC = 4, 10, 1  # contact-pair slots of size s: P(P-1)/2 - 6, C P, C(C-1)/2
@@ -267,7 +267,7 @@ def test_shuffle_is_seeded_and_spreads_levels_over_shards(exported, dataset_dir,
     for path in exported.group.rglob("*"):
         if path.is_file():
             assert path.read_bytes() == (again.group / path.relative_to(exported.group)).read_bytes(), path
-    monkeypatch.setattr(pipeline.kinetix.export, "TRAJECTORIES_PER_CHUNK", 2)
+    monkeypatch.setattr(kforge.pipeline.kinetix.export, "TRAJECTORIES_PER_CHUNK", 2)
     other = export_kinetix(
         dataset_dir, tmp_path / "other", seed=1, trajectories_per_shard=PER_SHARD, show_progress=False
     )

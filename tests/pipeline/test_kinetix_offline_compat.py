@@ -22,11 +22,11 @@ import numpy as np
 import pytest
 
 from benchmarks.env import DEFAULT_KINETIX_VENV, kinetix_python
-from env import bundled_level_path, initial_state, list_levels, load_level
-from pipeline.kinetix.export import export_kinetix, kept_trajectories
-from pipeline.kinetix.importer import load_kinetix_levels
-from pipeline.reading.loader import TrajectoryDatasetManager
-from pipeline.storage.layout import ACTION, ACTION_MASK, DONE, STATE_PREFIX, flatten_state
+from kforge.env import bundled_level_path, initial_state, list_levels, load_level
+from kforge.pipeline.kinetix.export import export_kinetix, kept_trajectories
+from kforge.pipeline.kinetix.importer import load_kinetix_levels
+from kforge.pipeline.reading.loader import TrajectoryDatasetManager
+from kforge.pipeline.storage.layout import ACTION, ACTION_MASK, DONE, STATE_PREFIX, flatten_state
 
 KINETIX_VENV_VARIABLE = "KFORGE_KINETIX_VENV"
 """Environment variable naming an existing virtualenv with kinetix-env 3.0.2 (default: build `.venv-kinetix`)."""

@@ -4,8 +4,15 @@ from __future__ import annotations
 
 import pytest
 
-from env import ActionType, StaticEnvParams
-from pipeline.storage.layout import DYNAMIC_STATE_FIELDS, DatasetError, FieldSpec, Layout, check_layout, make_layout
+from kforge.env import ActionType, StaticEnvParams
+from kforge.pipeline.storage.layout import (
+    DYNAMIC_STATE_FIELDS,
+    DatasetError,
+    FieldSpec,
+    Layout,
+    check_layout,
+    make_layout,
+)
 
 pytestmark = pytest.mark.smoke
 

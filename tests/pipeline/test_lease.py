@@ -15,9 +15,9 @@ import time
 import pytest
 from pipeline_test_helpers import as_a_terminal_job, assert_same_dataset, run_in_process, tiny_job
 
-from pipeline.generation import ResumeRefused, run_job, to_yaml
-from pipeline.storage import LEASE_KEY, Lease, LeaseHeld, LeaseHolder, LeaseLost, read_holder
-from pipeline.storage.verify import verify_dataset
+from kforge.pipeline.generation import ResumeRefused, run_job, to_yaml
+from kforge.pipeline.storage import LEASE_KEY, Lease, LeaseHeld, LeaseHolder, LeaseLost, read_holder
+from kforge.pipeline.storage.verify import verify_dataset
 
 RACERS = 4
 
@@ -66,7 +66,7 @@ def test_the_heartbeat_is_renewed_and_a_take_over_is_noticed(tmp_path):
 
 RACER = """
 import sys, time
-from pipeline.storage import Lease, LeaseHeld
+from kforge.pipeline.storage import Lease, LeaseHeld
 root, start = sys.argv[1], float(sys.argv[2])
 time.sleep(max(0.0, start - time.time()))
 try:
@@ -122,7 +122,7 @@ def test_the_lease_is_gone_after_success_and_after_sigint(uninterrupted, tmp_pat
     config_file.write_text(to_yaml(tiny_job(tmp_path / "dataset")))
     lease = tmp_path / "dataset" / LEASE_KEY
     process = subprocess.Popen(
-        [sys.executable, "-m", "pipeline", "run", str(config_file), "--no-progress"],
+        [sys.executable, "-m", "kforge", "run", str(config_file), "--no-progress"],
         stdout=subprocess.PIPE,
         stderr=subprocess.STDOUT,
         env={**os.environ, "RAY_AUTH_MODE": "disabled"},
@@ -138,7 +138,7 @@ def test_the_lease_is_gone_after_success_and_after_sigint(uninterrupted, tmp_pat
     assert process.returncode != 0, output[-3000:]
     assert not lease.exists(), output[-3000:]
     finished = subprocess.run(
-        [sys.executable, "-m", "pipeline", "run", str(config_file), "--no-progress"],
+        [sys.executable, "-m", "kforge", "run", str(config_file), "--no-progress"],
         capture_output=True,
         env={**os.environ, "RAY_AUTH_MODE": "disabled"},
         timeout=900,

@@ -5,16 +5,16 @@ import numpy as np
 import pytest
 from pipeline_test_helpers import tiny_job
 
-from pipeline.generation.config import ppo_config
-from pipeline.generation.level_batch import (
+from kforge.pipeline.generation.config import ppo_config
+from kforge.pipeline.generation.level_batch import (
     batch_level_indices,
     batches_per_shard,
     num_shards,
     run_level_batch,
     sample_batch,
 )
-from pipeline.storage import FILTERED_PREFIX, KEPT, PADDING, UNSOLVED
-from pipeline.storage.writer import MAX_CURVE_POINTS, learning_curves
+from kforge.pipeline.storage import FILTERED_PREFIX, KEPT, PADDING, UNSOLVED
+from kforge.pipeline.storage.writer import MAX_CURVE_POINTS, learning_curves
 
 
 @pytest.fixture(scope="module")

@@ -6,16 +6,16 @@ import numpy as np
 import pytest
 from pipeline_test_helpers import tiny_job
 
-from agents import collect_windows, initial_params
-from pipeline.generation.config import environment, ppo_config
-from pipeline.generation.level_batch import (
+from kforge.agents import collect_windows, initial_params
+from kforge.pipeline.generation.config import environment, ppo_config
+from kforge.pipeline.generation.level_batch import (
     KeyPurpose,
     batch_level_indices,
     level_keys,
     sample_batch,
     windows_successful,
 )
-from pipeline.generation.level_batch import _windows as level_batch_windows
+from kforge.pipeline.generation.level_batch import _windows as level_batch_windows
 
 
 @pytest.fixture(scope="module")

@@ -12,10 +12,10 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from env import StaticEnvParams, load_level, sample_levels
-from pipeline.cli.levels import main
-from pipeline.generation.config import load_config
-from pipeline.generation.level_batch import KeyPurpose, level_keys, sample_batch
+from kforge.env import StaticEnvParams, load_level, sample_levels
+from kforge.pipeline.cli.levels import main
+from kforge.pipeline.generation.config import load_config
+from kforge.pipeline.generation.level_batch import KeyPurpose, level_keys, sample_batch
 
 SPLIT_CONFIG = Path(__file__).resolve().parents[2] / "configs" / "splits" / "1M" / "s.yaml"
 SEED = 7

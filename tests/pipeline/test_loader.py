@@ -9,11 +9,11 @@ import numpy as np
 import pytest
 from pipeline_test_helpers import STATIC, batch_file
 
-from env import ObservationType, StaticEnvParams, observe
-from pipeline.reading.loader import TrajectoryDatasetManager
-from pipeline.storage.layout import DatasetError
-from pipeline.storage.shard_store import open_dataset
-from pipeline.storage.verify import verify_dataset
+from kforge.env import ObservationType, StaticEnvParams, observe
+from kforge.pipeline.reading.loader import TrajectoryDatasetManager
+from kforge.pipeline.storage.layout import DatasetError
+from kforge.pipeline.storage.shard_store import open_dataset
+from kforge.pipeline.storage.verify import verify_dataset
 
 pytestmark = pytest.mark.smoke
 

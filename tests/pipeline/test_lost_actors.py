@@ -11,9 +11,9 @@ import time
 import pytest
 from pipeline_test_helpers import assert_same_dataset, tiny_job
 
-from pipeline.generation.run import COORDINATOR_ACTOR, run_job
-from pipeline.storage import LEASE_KEY, all_committed
-from pipeline.storage.verify import verify_dataset
+from kforge.pipeline.generation.run import COORDINATOR_ACTOR, run_job
+from kforge.pipeline.storage import LEASE_KEY, all_committed
+from kforge.pipeline.storage.verify import verify_dataset
 
 WAIT_SECONDS = 600.0
 POLL_SECONDS = 0.05

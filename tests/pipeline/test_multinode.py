@@ -15,9 +15,9 @@ import time
 import pytest
 from pipeline_test_helpers import assert_same_dataset, kill_session, tiny_job
 
-from pipeline.generation.config import to_yaml
-from pipeline.storage import all_committed
-from pipeline.storage.verify import verify_dataset
+from kforge.pipeline.generation.config import to_yaml
+from kforge.pipeline.storage import all_committed
+from kforge.pipeline.storage.verify import verify_dataset
 
 JOB_TIMEOUT_S = 900.0
 NODE_START_S = 120.0  # [s] at most, for `ray start` to bring a node up
@@ -71,7 +71,7 @@ def test_a_job_on_two_nodes_survives_the_loss_of_one_and_equals_an_uninterrupted
         config_file = tmp_path / "job.yaml"
         config_file.write_text(to_yaml(tiny_job(output, f"ray.address={address}", "ray.num_workers=2")))
         job = subprocess.Popen(
-            [sys.executable, "-m", "pipeline", "run", str(config_file), "--no-progress"],
+            [sys.executable, "-m", "kforge", "run", str(config_file), "--no-progress"],
             start_new_session=True,
             stdout=subprocess.PIPE,
             stderr=subprocess.STDOUT,

@@ -25,13 +25,13 @@ from pipeline_test_helpers import (
     write_all,
 )
 
-from pipeline.cli.levels import main as levels_main
-from pipeline.cli.verify import main as verify_main
-from pipeline.generation import ConfigError, ResumeRefused, load_config, run_job, to_yaml
-from pipeline.kinetix import export_kinetix, load_kinetix_levels
-from pipeline.reading import WHOLE_OBJECT_BYTES, TrajectoryDatasetManager
-from pipeline.reading.stats import collect_stats
-from pipeline.storage import (
+from kforge.pipeline.cli.levels import main as levels_main
+from kforge.pipeline.cli.verify import main as verify_main
+from kforge.pipeline.generation import ConfigError, ResumeRefused, load_config, run_job, to_yaml
+from kforge.pipeline.kinetix import export_kinetix, load_kinetix_levels
+from kforge.pipeline.reading import WHOLE_OBJECT_BYTES, TrajectoryDatasetManager
+from kforge.pipeline.reading.stats import collect_stats
+from kforge.pipeline.storage import (
     LEASE_KEY,
     Lease,
     LeaseLost,
@@ -43,9 +43,9 @@ from pipeline.storage import (
     read_record_json,
     record_key,
 )
-from pipeline.storage.layout import DatasetError
-from pipeline.storage.manifest import remove_record
-from pipeline.storage.verify import verify_dataset
+from kforge.pipeline.storage.layout import DatasetError
+from kforge.pipeline.storage.manifest import remove_record
+from kforge.pipeline.storage.verify import verify_dataset
 
 BUCKET = "kforge-test"
 S3_ENV = {
@@ -137,7 +137,7 @@ def test_a_tiny_job_on_s3_commits_everything_verifies_and_leaves_no_lease(s3, s3
 
 
 def test_a_location_with_an_unknown_scheme_or_no_bucket_is_named():
-    from pipeline.storage import StoreError, open_store
+    from kforge.pipeline.storage import StoreError, open_store
 
     with pytest.raises(StoreError, match="ftp://host/x: unsupported URL scheme"):
         open_store("ftp://host/x")
@@ -310,7 +310,7 @@ def test_readers_take_no_lease_and_see_only_committed_batches_while_a_job_writes
 
 def test_s3_honours_the_conditional_create(s3):
     """moto answers `If-None-Match: *` on an existing key with 412, so the lease's create is atomic there."""
-    from pipeline.storage import open_store
+    from kforge.pipeline.storage import open_store
 
     store = open_store(f"s3://{BUCKET}/conditional")
     assert store.create_exclusive("object", b"first") is not None

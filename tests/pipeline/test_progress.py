@@ -6,7 +6,7 @@ from pathlib import Path
 
 from pipeline_test_helpers import tiny_job
 
-from pipeline.generation.console import (
+from kforge.pipeline.generation.console import (
     QUIET_ENV,
     THIRD_PARTY_LOGGERS,
     closing_summary,
@@ -15,11 +15,11 @@ from pipeline.generation.console import (
     resume_line,
     start_log_file,
 )
-from pipeline.generation.coordinator import Coordinator
-from pipeline.generation.level_batch import batches_per_shard, num_shards
-from pipeline.generation.run import prepare_output
-from pipeline.generation.worker import Worker
-from pipeline.storage import Lease
+from kforge.pipeline.generation.coordinator import Coordinator
+from kforge.pipeline.generation.level_batch import batches_per_shard, num_shards
+from kforge.pipeline.generation.run import prepare_output
+from kforge.pipeline.generation.worker import Worker
+from kforge.pipeline.storage import Lease
 
 
 def _coordinator(tmp_path, max_batches=None):

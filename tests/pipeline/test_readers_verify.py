@@ -8,10 +8,10 @@ import shutil
 import pytest
 from pipeline_test_helpers import batch_file
 
-from pipeline.kinetix.export import export_kinetix
-from pipeline.learning import load_bc_config, train_bc
-from pipeline.storage import DatasetDamaged
-from pipeline.storage.shard_store import open_dataset
+from kforge.pipeline.kinetix.export import export_kinetix
+from kforge.pipeline.learning import load_bc_config, train_bc
+from kforge.pipeline.storage import DatasetDamaged
+from kforge.pipeline.storage.shard_store import open_dataset
 
 DAMAGED = "1 committed level batches have missing, unreadable or damaged files"
 

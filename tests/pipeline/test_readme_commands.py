@@ -23,7 +23,7 @@ NOT_RUN = {
     ". .venv/bin/activate": "the test runs inside the project's installed virtualenv",
     "pip install": "the test runs inside the project's installed virtualenv",
     "python -m pytest": "the test suite itself",
-    "python -m jobs.submit": "needs a Ray cluster's job server (HEAD:8265) and storage every node reaches",
+    "python -m kforge.jobs.submit": "needs a Ray cluster's job server (HEAD:8265) and storage every node reaches",
     "sbatch": "needs a SLURM cluster",
     "ray up": "needs cloud credentials: the cluster launcher starts machines",
 }

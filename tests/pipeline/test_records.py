@@ -7,9 +7,9 @@ import json
 
 import pytest
 
-from env import FilterReason
-from pipeline.storage import DatasetError, Outcome, read_record, write_record
-from pipeline.storage.records import BatchRecord
+from kforge.env import FilterReason
+from kforge.pipeline.storage import DatasetError, Outcome, read_record, write_record
+from kforge.pipeline.storage.records import BatchRecord
 
 pytestmark = pytest.mark.smoke
 

@@ -32,20 +32,20 @@ from pipeline_test_helpers import (
     tiny_job,
 )
 
-import pipeline.generation.worker
-from engine import SimParams
-from env import EnvParams
-from pipeline.cli import EXIT_DATA, EXIT_INTERRUPTED
-from pipeline.cli.verify import main as verify_main
-from pipeline.generation.config import data_fingerprint, load_config, to_yaml
-from pipeline.generation.growth import ResumeRefused
-from pipeline.generation.level_batch import run_level_batch
-from pipeline.generation.run import DatasetDamaged, prepare_output, run_job
-from pipeline.generation.worker import FAULT_INJECTION_ENV
-from pipeline.storage.manifest import committed_batches, iter_records, record_key
-from pipeline.storage.shard_store import open_dataset
-from pipeline.storage.verify import verify_dataset
-from pipeline.storage.writer import stage_level_batch
+import kforge.pipeline.generation.worker
+from kforge.engine import SimParams
+from kforge.env import EnvParams
+from kforge.pipeline.cli import EXIT_DATA, EXIT_INTERRUPTED
+from kforge.pipeline.cli.verify import main as verify_main
+from kforge.pipeline.generation.config import data_fingerprint, load_config, to_yaml
+from kforge.pipeline.generation.growth import ResumeRefused
+from kforge.pipeline.generation.level_batch import run_level_batch
+from kforge.pipeline.generation.run import DatasetDamaged, prepare_output, run_job
+from kforge.pipeline.generation.worker import FAULT_INJECTION_ENV
+from kforge.pipeline.storage.manifest import committed_batches, iter_records, record_key
+from kforge.pipeline.storage.shard_store import open_dataset
+from kforge.pipeline.storage.verify import verify_dataset
+from kforge.pipeline.storage.writer import stage_level_batch
 
 
 def test_uninterrupted_run_commits_every_batch_and_verifies(uninterrupted):
@@ -82,7 +82,7 @@ def test_a_failing_shard_of_a_job_without_ray_is_retried_abandoned_and_finished_
             raise FloatingPointError("injected")
         return run_level_batch(job, shard, batch, **kwargs)
 
-    monkeypatch.setattr(pipeline.generation.worker, "run_level_batch", failing_on_shard_1)
+    monkeypatch.setattr(kforge.pipeline.generation.worker, "run_level_batch", failing_on_shard_1)
     summary = run_in_process(tiny_job(tmp_path))
     assert summary["worker_failures"] == [{"shard": 1, "worker": "local", "error": "FloatingPointError: injected"}] * 3
     assert summary["abandoned_shards"] == [1] and summary["committed_in_run"] == 2
@@ -102,7 +102,7 @@ sys.meta_path.insert(0, NoRay())
 sys.argv = ["kforge", *sys.argv[1:]]
 runpy.run_module("pipeline", run_name="__main__")
 """
-"""`python -c` code that runs `python -m pipeline` with every import of Ray failing."""
+"""`python -c` code that runs `python -m kforge` with every import of Ray failing."""
 
 
 def test_a_job_without_ray_runs_where_ray_cannot_be_imported_and_makes_the_same_data(uninterrupted, tmp_path):
@@ -327,7 +327,7 @@ def test_a_signal_ends_the_job_with_one_line_naming_what_was_committed_and_how_t
     config_file.write_text(to_yaml(tiny_job(output, f"ray.num_workers={workers}")))
     run_in_process(tiny_job(output), max_batches=1)
     logs = _run_logs(output)
-    command = [sys.executable, "-m", "pipeline", "run", str(config_file), "--no-progress"]
+    command = [sys.executable, "-m", "kforge", "run", str(config_file), "--no-progress"]
     process = subprocess.Popen(
         command,
         start_new_session=True,

@@ -10,9 +10,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
-from env import ActionType, StaticEnvParams
-from pipeline.storage.layout import DONE, VALID, FieldSpec, make_layout
-from pipeline.storage.state_codec import decode, decode_arrays, encode, encode_arrays, is_coded, stored_dtype
+from kforge.env import ActionType, StaticEnvParams
+from kforge.pipeline.storage.layout import DONE, VALID, FieldSpec, make_layout
+from kforge.pipeline.storage.state_codec import decode, decode_arrays, encode, encode_arrays, is_coded, stored_dtype
 
 pytestmark = pytest.mark.smoke
 

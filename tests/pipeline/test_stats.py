@@ -19,11 +19,11 @@ import pytest
 from PIL import Image
 from pipeline_test_helpers import run_in_process, tiny_job
 
-from pipeline.cli.stats import main
-from pipeline.reading.stats import CARD_FILE, FIGURES_DIR, PLOTS, SHARDS_FILE, collect_stats, write_card
-from pipeline.storage.layout import VALID
-from pipeline.storage.manifest import iter_records
-from pipeline.storage.shard_store import open_dataset
+from kforge.pipeline.cli.stats import main
+from kforge.pipeline.reading.stats import CARD_FILE, FIGURES_DIR, PLOTS, SHARDS_FILE, collect_stats, write_card
+from kforge.pipeline.storage.layout import VALID
+from kforge.pipeline.storage.manifest import iter_records
+from kforge.pipeline.storage.shard_store import open_dataset
 
 DATASET_OVERRIDES = ("split.seed=7", "filter.noop_steps=1")
 WINDOW_STEPS = 24  # [env steps] collect.window_steps of the test job

@@ -12,13 +12,13 @@ import numpy as np
 import pytest
 from pipeline_test_helpers import ACTION_TYPE, GEOMETRY, PARAMS, STATIC, batch_file, batch_result, dataset_spec
 
-from env import step
-from pipeline.storage.layout import DatasetError, flatten_state, unflatten_state
-from pipeline.storage.lease import Lease, LeaseLost
-from pipeline.storage.manifest import committed_batches, read_record, record_key
-from pipeline.storage.shard_store import create_dataset, open_dataset
-from pipeline.storage.store import LOCAL_PARTIAL_SUFFIX
-from pipeline.storage.writer import KEPT, clean_uncommitted, stored_arrays, write_level_batch
+from kforge.env import step
+from kforge.pipeline.storage.layout import DatasetError, flatten_state, unflatten_state
+from kforge.pipeline.storage.lease import Lease, LeaseLost
+from kforge.pipeline.storage.manifest import committed_batches, read_record, record_key
+from kforge.pipeline.storage.shard_store import create_dataset, open_dataset
+from kforge.pipeline.storage.store import LOCAL_PARTIAL_SUFFIX
+from kforge.pipeline.storage.writer import KEPT, clean_uncommitted, stored_arrays, write_level_batch
 
 SHARD, BATCH = 1, 0
 SLOTS = GEOMETRY.slots(SHARD, BATCH)  # slots 6, 7, 8: levels 0 and 1 kept, level 2 empty

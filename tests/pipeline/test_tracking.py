@@ -9,11 +9,11 @@ from pathlib import Path
 import pytest
 from pipeline_test_helpers import tiny_job
 
-from pipeline.generation.config import ConfigError, data_fingerprint
-from pipeline.generation.coordinator import Commit
-from pipeline.generation.tracking import WANDB_MODE_ENV, batch_metrics, start_tracking, tracking_mode
-from pipeline.storage import PROVENANCE
-from pipeline.storage.manifest import write_record
+from kforge.pipeline.generation.config import ConfigError, data_fingerprint
+from kforge.pipeline.generation.coordinator import Commit
+from kforge.pipeline.generation.tracking import WANDB_MODE_ENV, batch_metrics, start_tracking, tracking_mode
+from kforge.pipeline.storage import PROVENANCE
+from kforge.pipeline.storage.manifest import write_record
 
 STEPS_PER_SLOT = 24 + 256 + 24
 """Env steps per level slot of the tiny job: no-op filter 24 + PPO budget 256 + stored window 24."""

@@ -10,13 +10,13 @@ import numpy as np
 import pytest
 from pipeline_test_helpers import GEOMETRY, batch_file, batch_result
 
-from pipeline.cli.verify import main
-from pipeline.storage import Lease
-from pipeline.storage.manifest import record_key
-from pipeline.storage.repair import damaged_commits
-from pipeline.storage.shard_store import open_dataset
-from pipeline.storage.verify import verify_dataset
-from pipeline.storage.writer import clean_uncommitted, write_level_batch
+from kforge.pipeline.cli.verify import main
+from kforge.pipeline.storage import Lease
+from kforge.pipeline.storage.manifest import record_key
+from kforge.pipeline.storage.repair import damaged_commits
+from kforge.pipeline.storage.shard_store import open_dataset
+from kforge.pipeline.storage.verify import verify_dataset
+from kforge.pipeline.storage.writer import clean_uncommitted, write_level_batch
 
 
 @pytest.fixture

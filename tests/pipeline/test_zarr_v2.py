@@ -9,8 +9,8 @@ import numcodecs
 import numpy as np
 import pytest
 
-from pipeline.kinetix.zarr_v2 import RecordArray, array_names, create_group
-from pipeline.storage.layout import DatasetError
+from kforge.pipeline.kinetix.zarr_v2 import RecordArray, array_names, create_group
+from kforge.pipeline.storage.layout import DatasetError
 
 pytestmark = pytest.mark.smoke
 
