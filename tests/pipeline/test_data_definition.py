@@ -53,6 +53,25 @@ KFORGE_SCHEME_SETTINGS = {
 """The engine's defaults, which the kforge scheme keeps."""
 
 
+RELEASE_FINGERPRINTS = {
+    ("1M/s", None): "9492933bef530a88",
+    ("1M/s", "tiny"): "21fa932ac7009dec",
+    ("1M/m", None): "64ef5953f2b95dfb",
+    ("1M/m", "tiny"): "0f33d8ab2179cf44",
+    ("1M/l", None): "60fd0b79658fcf20",
+    ("1M/l", "tiny"): "24b1210dd1d0b23d",
+    ("10M/s", None): "4fdc937dbd14c2cf",
+    ("10M/s", "tiny"): "b5cdb1e52c7b3018",
+    ("10M/m", None): "28f7157a69a6cb9a",
+    ("10M/m", "tiny"): "8cc509d5092a5949",
+}
+"""The data fingerprint of each release split as released and at the tiny scale: a change to the code that moves
+one makes other data under the same config (a new format version, not a refactoring)."""
+
+STREAMED_FINGERPRINTS = {"streamed": "72174c00cbdf02c2", "adaptive": "8d4d8538e7ec6a0a"}
+"""1M/s at the tiny scale under the budget modes that read the experts section."""
+
+
 def job_of(tmp_path, *overrides):
     return load_config(None, [*SPLIT_1M_S, f"output_dir={tmp_path}", *overrides])
 
@@ -119,6 +138,16 @@ def test_every_key_of_the_experts_section_defines_streamed_and_adaptive_data_and
         }
     adaptive = "experts.budget_mode=adaptive"
     assert fingerprint(adaptive, "experts.solved_window=false") != fingerprint(adaptive)
+
+
+@pytest.mark.parametrize(("split", "scale"), sorted(RELEASE_FINGERPRINTS, key=str))
+def test_the_fingerprint_of_every_release_split_is_unchanged(split, scale):
+    assert data_fingerprint(load_config(split, scale=scale)) == RELEASE_FINGERPRINTS[split, scale]
+
+
+def test_the_fingerprints_of_the_streamed_and_adaptive_modes_are_unchanged():
+    for mode, fingerprint in STREAMED_FINGERPRINTS.items():
+        assert data_fingerprint(load_config("1M/s", [f"experts.budget_mode={mode}"], scale="tiny")) == fingerprint
 
 
 def test_an_unknown_physics_scheme_is_refused_in_one_line(tmp_path):
