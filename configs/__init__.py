@@ -9,6 +9,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
+__all__ = ["BC", "YAML_SUFFIXES", "scale_names", "scale_path", "split_names", "split_path"]
+
 CONFIGS_DIR = Path(__file__).resolve().parent
 """The installed config folder."""
 

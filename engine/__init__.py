@@ -2,15 +2,11 @@
 
 Public surface: state and parameter types, the scene builder, `step`, how batched steps and the solver's loops run
 (`Batching`, a static option of each step: `StaticSimParams.batching`), named physics schemes (`physics_scheme`),
-bitwise-repeatable GPU execution (`use_deterministic_ops`), and the demo scene written as a GIF (`write_demo`).
+bitwise-repeatable GPU execution (`use_deterministic_ops`), and the demo scene written as a GIF (`write_demo`); for the
+env layer, the geometry, mass properties, contact manifolds and collision filter its levels are built and checked with.
 """
 
-from kforge.engine.batch_last import (
-    BATCHING_MODES,
-    SOLVER_LOOP_FORMS,
-    SOLVER_LOOP_MODES,
-    Batching,
-)
+from kforge.engine.batch_last import SOLVER_LOOP_FORMS, Batching
 from kforge.engine.collision import manifolds, world_geometry
 from kforge.engine.collision_filter import joint_collision_matrix, modes_collide
 from kforge.engine.demo import write_demo
@@ -24,7 +20,7 @@ from kforge.engine.geometry import (
     rotate,
     rotate_host,
 )
-from kforge.engine.pairs import PairLayout, pair_layout
+from kforge.engine.pairs import pair_layout
 from kforge.engine.params import (
     KINETIX_SIZES,
     MAX_POLYGON_VERTICES,
@@ -41,11 +37,10 @@ from kforge.engine.physics_step import StepInfo, step
 from kforge.engine.render import write_gif
 from kforge.engine.scene import ARENA_SIZE, FLOOR_TOP, SceneBuilder
 from kforge.engine.schemes import DEFAULT_PHYSICS_SCHEME, PHYSICS_SCHEMES, PhysicsScheme, physics_scheme
-from kforge.engine.state import NO_FEATURE, Bodies, ContactCache, Joints, SimState, Thrusters, empty_state
+from kforge.engine.state import NO_FEATURE, SimState, empty_state
 
 __all__ = [
     "ARENA_SIZE",
-    "BATCHING_MODES",
     "DEFAULT_PHYSICS_SCHEME",
     "Batching",
     "CONVEXITY_TOLERANCE",
@@ -56,24 +51,18 @@ __all__ = [
     "NO_FEATURE",
     "PHYSICS_SCHEMES",
     "SOLVER_LOOP_FORMS",
-    "SOLVER_LOOP_MODES",
-    "Bodies",
-    "ContactCache",
-    "Joints",
     "CollisionRules",
     "ContactLaw",
     "ContactPoints",
     "ForceTiming",
     "LimitLaw",
     "MotorLaw",
-    "PairLayout",
     "PhysicsScheme",
     "SceneBuilder",
     "SimParams",
     "SimState",
     "StaticSimParams",
     "StepInfo",
-    "Thrusters",
     "circle_mass_properties",
     "cross2",
     "empty_state",

@@ -4,8 +4,8 @@ A subcommand's module is imported only when it runs, so `kforge --help` and a su
 importing JAX or Ray. Every subcommand ends with one of the exit codes below, reports errors in one line (the
 traceback only with `--debug`), and takes config overrides as positional `key=value` arguments.
 
-Public surface: the exit codes, `EXIT_CODES_HELP`, `add_common_options`, `InputError`, `require_dataset`,
-`load_config_or_exit`, `fail` and `main`.
+Public surface: `main` (the `kforge` script, `python -m kforge`). The subcommand modules share the exit codes,
+`EXIT_CODES_HELP`, `add_common_options`, `InputError`, `require_dataset`, `load_config_or_exit` and `fail` from here.
 """
 
 from __future__ import annotations
@@ -22,6 +22,8 @@ import threading
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import NoReturn, TypeVar
+
+__all__ = ["main"]
 
 Config = TypeVar("Config")
 
@@ -96,9 +98,14 @@ class InputError(ValueError):
 
 
 def require_dataset(location: str) -> str:
-    """`location`; a local path that holds no dataset ends the command with a one-line `InputError` (exit 2), before
-    anything heavy is imported. URLs are checked when opened."""
+    """`location`; a location that holds no dataset ends the command with a one-line `InputError` (exit 2): a local
+    path before anything heavy is imported, a URL once its store answers (an unreadable store is left to the
+    command)."""
     if URL_MARK in location:
+        from kforge.pipeline.storage import open_store
+
+        if not open_store(location).exists(DATASET_METADATA):
+            raise fail(InputError(f"{location}: not a dataset (no {DATASET_METADATA})"))
         return location
     path = Path(location)
     if not path.exists():

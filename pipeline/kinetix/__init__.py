@@ -3,19 +3,11 @@
 Public surface: the exporter and the level loader.
 """
 
-from kforge.pipeline.kinetix.export import (
-    DEFAULT_TRAJECTORIES_PER_SHARD,
-    ExportSummary,
-    ExportTargetExists,
-    export_kinetix,
-)
-from kforge.pipeline.kinetix.importer import KinetixLevels, load_kinetix_levels
+from kforge.pipeline.kinetix.export import DEFAULT_TRAJECTORIES_PER_SHARD, export_kinetix
+from kforge.pipeline.kinetix.importer import load_kinetix_levels
 
 __all__ = [
     "DEFAULT_TRAJECTORIES_PER_SHARD",
-    "ExportSummary",
-    "ExportTargetExists",
-    "KinetixLevels",
     "export_kinetix",
     "load_kinetix_levels",
 ]

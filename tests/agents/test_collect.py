@@ -7,7 +7,8 @@ from agents_test_helpers import ENV_PARAMS, STATIC, TRAIN_CONFIG, keys, mirrored
 from kforge.agents import initial_params
 from kforge.agents.collect import collect_windows
 from kforge.engine import SceneBuilder
-from kforge.env import Role, build_level, step
+from kforge.env import Role, step
+from kforge.env.level_builder import build_level
 
 WINDOW = 96
 

@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 from agents_test_helpers import ENV_PARAMS, STATIC, TRAIN_CONFIG, keys, mirrored_level, stack, thruster_level
 
-from kforge.agents import evaluate, train_from, train_levels
+from kforge.agents import evaluate, train_levels
+from kforge.agents.ppo import train_from
 
 UNLEARN_UPDATES = 8
 UNLEARN_CONFIG = dataclasses.replace(

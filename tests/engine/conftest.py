@@ -22,6 +22,7 @@ import pytest
 
 from kforge import engine
 from kforge.engine import SceneBuilder, SimParams, SimState, StaticSimParams, StepInfo
+from kforge.engine.state import Bodies, ContactCache, Joints
 
 # Test modules import these helpers as `engine_test_helpers`, which works under every pytest import mode
 # (`from conftest import ...` breaks under --import-mode=importlib and when several conftest.py files exist).
@@ -46,9 +47,9 @@ class Trajectory(NamedTuple):
     """Per-step results, leading axes ([batch,] steps): bodies, joints and contact cache after each step, and the
     step's info (with the initial state, everything needed to restart from any step)."""
 
-    bodies: engine.Bodies
-    joints: engine.Joints
-    contacts: engine.ContactCache
+    bodies: Bodies
+    joints: Joints
+    contacts: ContactCache
     info: StepInfo
 
 

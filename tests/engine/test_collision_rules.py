@@ -17,9 +17,10 @@ from engine_test_helpers import SIZE_M, SIZE_S, pair_index
 from jax2d.collision import generate_manifold_circle_polygon, generate_manifolds_polygon_polygon
 from jax2d.sim_state import CollisionManifold, RigidBody
 
-from kforge.engine import NO_FEATURE, CollisionRules, ContactCache, SceneBuilder, pair_layout
+from kforge.engine import NO_FEATURE, CollisionRules, SceneBuilder, pair_layout
 from kforge.engine.collision import WorldGeometry, manifolds, polygon_circle, polygon_polygon, world_geometry
 from kforge.engine.physics_step import match_warm_start
+from kforge.engine.state import ContactCache
 
 PAIRS = 600
 """Random pairs drawn per comparison; about half of them overlap."""

@@ -8,17 +8,15 @@ import pytest
 from kforge.engine import SceneBuilder
 from kforge.env import (
     MULTI_DISCRETE_SIZES,
-    NUM_DISCRETE_ACTIONS,
     ActionType,
     Role,
     StaticEnvParams,
     action_mask,
-    actuator_actions,
     noop_action,
     random_action,
     reset,
 )
-from kforge.env.actions import unified_action
+from kforge.env.actions import NUM_DISCRETE_ACTIONS, actuator_actions, unified_action
 from kforge.env.level_builder import build_level
 
 pytestmark = pytest.mark.smoke

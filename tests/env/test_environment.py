@@ -5,7 +5,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from kforge.engine import SceneBuilder
-from kforge.env import Environment, EnvParams, ObservationType, Role, build_level, reset, step
+from kforge.env import Environment, EnvParams, ObservationType, Role, reset, step
+from kforge.env.level_builder import build_level
 
 
 def test_environment_observes_the_state_it_returns():

@@ -13,8 +13,9 @@ import pytest
 
 from kforge.engine import SceneBuilder, StaticSimParams
 from kforge.engine.geometry import polygon_mass_properties, rotate_host
-from kforge.env import EnvParams, Level, Role, StaticEnvParams, Task, bundled_level_path, list_levels
+from kforge.env import EnvParams, Level, Role, StaticEnvParams, bundled_level_path, list_levels
 from kforge.env.level_files import LevelFileError, level_to_dict, load_level, save_level
+from kforge.env.state import Task
 
 # Kinetix's values of the env_params our engine does not model (Kinetix `EnvParams` defaults).
 KINETIX_DEFAULT_ENV_PARAMS = {

@@ -25,20 +25,13 @@ import pytest
 import zarr
 
 from kforge.engine import SceneBuilder
-from kforge.env import ActionType, EnvParams, Role, StaticEnvParams, build_level, random_action, reset, step
+from kforge.env import ActionType, EnvParams, Role, StaticEnvParams, random_action, reset, step
+from kforge.env.level_builder import build_level
 from kforge.pipeline.generation.config import load_config
 from kforge.pipeline.generation.run import run_job
-from kforge.pipeline.storage import (
-    LEASE_KEY,
-    PROVENANCE,
-    Lease,
-    LeaseHeld,
-    LeaseHolder,
-    iter_records,
-    open_store,
-    read_holder,
-)
+from kforge.pipeline.storage import PROVENANCE, Lease, iter_records, open_store
 from kforge.pipeline.storage.layout import make_layout
+from kforge.pipeline.storage.lease import LEASE_KEY, LeaseHeld, LeaseHolder, read_holder
 from kforge.pipeline.storage.shard_store import DatasetSpec, Geometry, create_dataset
 from kforge.pipeline.storage.writer import KEPT, BatchTrajectories, write_level_batch
 

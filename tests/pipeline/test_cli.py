@@ -7,7 +7,7 @@ import json
 
 import pytest
 
-from kforge.env import LevelFileError
+from kforge.env.level_files import LevelFileError
 from kforge.pipeline.cli import DATASET_METADATA, EXIT_USAGE, main
 
 pytestmark = pytest.mark.smoke

@@ -15,7 +15,8 @@ from kforge.pipeline.generation.config import (
     PHYSICS_SCHEME_NAMES,
     LeaseConfig,
 )
-from kforge.pipeline.storage import CONFIG_FILE, DEFAULT_HEARTBEAT_S, DEFAULT_STALE_AFTER_S
+from kforge.pipeline.storage import CONFIG_FILE
+from kforge.pipeline.storage.lease import DEFAULT_HEARTBEAT_S, DEFAULT_STALE_AFTER_S
 
 HEAVY_MODULES = ("jax", "ray", "wandb", "flax", "optax")
 

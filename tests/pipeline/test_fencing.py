@@ -22,16 +22,15 @@ from kforge.pipeline.cli import EXIT_DATA
 from kforge.pipeline.generation.config import to_yaml
 from kforge.pipeline.generation.coordinator import Coordinator, ShardNotHeld
 from kforge.pipeline.storage import (
-    LEASE_KEY,
     Lease,
     LeaseLost,
     all_committed,
     commit_age_limit,
     commit_record,
-    read_holder,
     read_record_json,
     record_key,
 )
+from kforge.pipeline.storage.lease import LEASE_KEY, read_holder
 from kforge.pipeline.storage.manifest import remove_record
 from kforge.pipeline.storage.verify import verify_dataset
 

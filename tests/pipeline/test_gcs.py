@@ -32,7 +32,8 @@ from kforge.pipeline.cli.verify import main as verify_main
 from kforge.pipeline.generation import load_config
 from kforge.pipeline.kinetix import export_kinetix, load_kinetix_levels
 from kforge.pipeline.reading import TrajectoryDatasetManager, collect_stats
-from kforge.pipeline.storage import LEASE_KEY, open_dataset, open_store
+from kforge.pipeline.storage import open_dataset, open_store
+from kforge.pipeline.storage.lease import LEASE_KEY
 from kforge.pipeline.storage.verify import verify_dataset
 
 BUCKET = "kforge-test"

@@ -16,7 +16,8 @@ import pytest
 from pipeline_test_helpers import as_a_terminal_job, assert_same_dataset, run_in_process, tiny_job
 
 from kforge.pipeline.generation import ResumeRefused, run_job, to_yaml
-from kforge.pipeline.storage import LEASE_KEY, Lease, LeaseHeld, LeaseHolder, LeaseLost, read_holder
+from kforge.pipeline.storage import Lease, LeaseLost
+from kforge.pipeline.storage.lease import LEASE_KEY, LeaseHeld, LeaseHolder, read_holder
 from kforge.pipeline.storage.verify import verify_dataset
 
 RACERS = 4
@@ -66,7 +67,7 @@ def test_the_heartbeat_is_renewed_and_a_take_over_is_noticed(tmp_path):
 
 RACER = """
 import sys, time
-from kforge.pipeline.storage import Lease, LeaseHeld
+from kforge.pipeline.storage.lease import Lease, LeaseHeld
 root, start = sys.argv[1], float(sys.argv[2])
 time.sleep(max(0.0, start - time.time()))
 try:

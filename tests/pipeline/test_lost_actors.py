@@ -12,7 +12,8 @@ import pytest
 from pipeline_test_helpers import assert_same_dataset, tiny_job
 
 from kforge.pipeline.generation.run import COORDINATOR_ACTOR, run_job
-from kforge.pipeline.storage import LEASE_KEY, all_committed
+from kforge.pipeline.storage import all_committed
+from kforge.pipeline.storage.lease import LEASE_KEY
 from kforge.pipeline.storage.verify import verify_dataset
 
 WAIT_SECONDS = 600.0

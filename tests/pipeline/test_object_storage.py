@@ -29,21 +29,21 @@ from kforge.pipeline.cli.levels import main as levels_main
 from kforge.pipeline.cli.verify import main as verify_main
 from kforge.pipeline.generation import ConfigError, ResumeRefused, load_config, run_job, to_yaml
 from kforge.pipeline.kinetix import export_kinetix, load_kinetix_levels
-from kforge.pipeline.reading import WHOLE_OBJECT_BYTES, TrajectoryDatasetManager
+from kforge.pipeline.reading import TrajectoryDatasetManager
+from kforge.pipeline.reading.loader import WHOLE_OBJECT_BYTES
 from kforge.pipeline.reading.stats import collect_stats
 from kforge.pipeline.storage import (
-    LEASE_KEY,
     Lease,
     LeaseLost,
     Store,
     commit_record,
     iter_records,
     open_dataset,
-    read_holder,
     read_record_json,
     record_key,
 )
 from kforge.pipeline.storage.layout import DatasetError
+from kforge.pipeline.storage.lease import LEASE_KEY, read_holder
 from kforge.pipeline.storage.manifest import remove_record
 from kforge.pipeline.storage.verify import verify_dataset
 
