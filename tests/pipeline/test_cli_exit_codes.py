@@ -1,5 +1,6 @@
 """One rule for exit codes in every subcommand: Ctrl-C (a real SIGINT) ends each with 130 and one line; argument and
-input errors exit 2 (tests/pipeline/test_cli_fast.py), damaged data 1 (tests/pipeline/test_verify.py)."""
+input errors exit 2 (tests/pipeline/test_cli_fast.py; here a URL that holds no dataset, against a real S3 API server),
+damaged data 1 (tests/pipeline/test_verify.py)."""
 
 from __future__ import annotations
 
@@ -10,9 +11,9 @@ import time
 from pathlib import Path
 
 import pytest
-from pipeline_test_helpers import as_a_terminal_job
+from pipeline_test_helpers import as_a_terminal_job, environment
 
-from kforge.pipeline.cli import EXIT_INTERRUPTED
+from kforge.pipeline.cli import EXIT_INTERRUPTED, EXIT_USAGE, main
 
 REPO = Path(__file__).resolve().parents[2]
 SIGINT_AFTER_SECONDS = 1.5
@@ -62,3 +63,44 @@ def test_sigint_exits_130_with_one_line(name, dataset_dir, tmp_path):
     assert process.returncode == EXIT_INTERRUPTED, err
     lines = err.strip().splitlines()
     assert "Traceback" not in err and len(lines) >= 1 and "interrupted" in lines[-1], err
+
+
+S3_ENV = {
+    "AWS_ACCESS_KEY_ID": "testing",
+    "AWS_SECRET_ACCESS_KEY": "not-a-real-secret",
+    "AWS_REGION": "us-east-1",
+    "AWS_EC2_METADATA_DISABLED": "true",
+}
+BUCKET = "kforge-exit-codes"
+
+
+def test_a_url_that_holds_no_dataset_exits_2_in_every_subcommand(tmp_path, capsys):
+    """A prefix that holds other objects and one that holds nothing: input errors, not damaged data."""
+    import boto3
+    from moto.server import ThreadedMotoServer
+
+    server = ThreadedMotoServer(ip_address="127.0.0.1", port=0, verbose=False)
+    server.start()
+    host, port = server.get_host_and_port()
+    try:
+        with environment(**S3_ENV, AWS_ENDPOINT_URL=f"http://{host}:{port}"):
+            client = boto3.client("s3", endpoint_url=f"http://{host}:{port}", region_name=S3_ENV["AWS_REGION"])
+            client.create_bucket(Bucket=BUCKET)
+            client.put_object(Bucket=BUCKET, Key="notes/readme.txt", Body=b"not a dataset")
+            codes = {}
+            for url in (f"s3://{BUCKET}/notes", f"s3://{BUCKET}/empty"):
+                for argv in (
+                    ["verify", url],
+                    ["stats", url, "--out", str(tmp_path / "card")],
+                    ["export", "--format", "kinetix", url, str(tmp_path / "export")],
+                    ["bc", "train", url, f"output_dir={tmp_path / 'bc'}", "tracking.wandb=disabled"],
+                    ["run", url],
+                ):
+                    with pytest.raises(SystemExit) as stop:
+                        main(argv)
+                    codes[" ".join(argv)] = stop.value.code
+                    assert url in capsys.readouterr().err.strip().splitlines()[-1]
+    finally:
+        server.stop()
+    assert set(codes.values()) == {EXIT_USAGE}, codes
+    assert not (tmp_path / "card").exists() and not (tmp_path / "export").exists() and not (tmp_path / "bc").exists()
