@@ -343,7 +343,7 @@ def measure_pipeline(
     """A tiny job end to end into `scratch`, `kforge run` in a fresh process: one Ray worker on the accelerator, or
     where Ray is not installed the job's own process (`ray.num_workers=0`); programs go to `compile_cache`, so a
     second run loads them."""
-    from kforge.pipeline.generation.config import load_config, to_yaml
+    from kforge.pipeline.generation import load_config, to_yaml
 
     with_ray = _importable("ray")
     gpus = 1.0 if jax.default_backend() == "gpu" else 0.0

@@ -55,7 +55,7 @@ from benchmarks.env import REPO_ROOT  # noqa: E402
 from benchmarks.machine import describe_machine  # noqa: E402
 from kforge.agents import collect_windows, evaluate, train_levels  # noqa: E402
 from kforge.env import FilterReason, Level, StaticEnvParams, bundled_level_path, filter_levels, load_level  # noqa: E402
-from kforge.pipeline.generation.config import (  # noqa: E402
+from kforge.pipeline.generation import (  # noqa: E402
     JobConfig,
     environment,  # noqa: E402
     load_config,

@@ -10,11 +10,14 @@ from kforge.pipeline.lazy import lazy_surface
 __getattr__, __all__ = lazy_surface(
     __name__,
     {
-        "kforge.pipeline.generation.config": (
-            "TRACKING_MODES ConfigError EnvSection JobConfig absolute_output_dir config_path data_definition "
-            "data_fingerprint environment load_config load_yaml merge_layers parse_overrides ppo_config read_config "
-            "to_schema_object to_yaml"
+        "kforge.pipeline.generation.config_yaml": "to_yaml",
+        "kforge.pipeline.generation.definition": "data_definition data_fingerprint",
+        "kforge.pipeline.generation.loading": (
+            "load_config load_yaml merge_layers parse_overrides read_config to_schema_object"
         ),
+        "kforge.pipeline.generation.resolved": "environment ppo_config",
+        "kforge.pipeline.generation.schema": "TRACKING_MODES ConfigError EnvSection JobConfig",
+        "kforge.pipeline.generation.sources": "absolute_output_dir config_path",
         "kforge.pipeline.generation.console": "closing_summary seconds_left",
         "kforge.pipeline.generation.coordinator": "Commit Coordinator",
         "kforge.pipeline.generation.growth": "ResumeRefused",

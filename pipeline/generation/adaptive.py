@@ -27,7 +27,6 @@ import jax.numpy as jnp
 import numpy as np
 
 from kforge.agents import PPOConfig, check_segmented, put_slot, start_level, train_segments
-from kforge.pipeline.generation.config import ADAPTIVE_BUDGET_MODE, JobConfig, environment, ppo_config
 from kforge.pipeline.generation.level_batch import (
     Experts,
     KeyPurpose,
@@ -38,6 +37,8 @@ from kforge.pipeline.generation.level_batch import (
     sample_and_filter,
     windows_successful,
 )
+from kforge.pipeline.generation.resolved import environment, ppo_config
+from kforge.pipeline.generation.schema import ADAPTIVE_BUDGET_MODE, JobConfig
 from kforge.pipeline.storage import BatchTrajectories
 
 

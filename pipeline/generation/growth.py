@@ -8,7 +8,7 @@ The grown dataset equals one generated at the larger count from the start. Lower
 
 from __future__ import annotations
 
-from kforge.pipeline.generation.config import GROWABLE_KEY, definition_fingerprint
+from kforge.pipeline.generation.definition import GROWABLE_KEY, definition_fingerprint
 from kforge.pipeline.storage import DatasetSpec, committed_batches, grow_dataset, open_dataset, withdraw_commit
 
 

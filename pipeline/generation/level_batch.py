@@ -22,9 +22,10 @@ import numpy as np
 
 from kforge.agents import collect_windows, initial_params, train_levels
 from kforge.env import FilterReason, Level, filter_levels, sample_levels
-from kforge.pipeline.generation.config import FIXED_BUDGET_MODE, JobConfig, environment, ppo_config
 from kforge.pipeline.generation.devices import over_local_devices
 from kforge.pipeline.generation.estimated_progress import ProgressListener, estimated_progress
+from kforge.pipeline.generation.resolved import environment, ppo_config
+from kforge.pipeline.generation.schema import FIXED_BUDGET_MODE, JobConfig
 from kforge.pipeline.storage import BatchTrajectories, Outcome, learning_curves
 
 

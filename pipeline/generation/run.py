@@ -13,17 +13,14 @@ import warnings
 
 from kforge.engine import use_deterministic_ops
 from kforge.env import ActionType
-from kforge.pipeline.generation.config import (
-    JobConfig,
-    data_definition,
-    data_fingerprint,
-    environment,
-    to_yaml,
-)
+from kforge.pipeline.generation.config_yaml import to_yaml
 from kforge.pipeline.generation.console import ProgressBar, resume_line, start_log_file
 from kforge.pipeline.generation.coordinator import Coordinator, ShardNotHeld
+from kforge.pipeline.generation.definition import data_definition, data_fingerprint
 from kforge.pipeline.generation.growth import reconcile_dataset
 from kforge.pipeline.generation.level_batch import batches_per_shard, num_shards
+from kforge.pipeline.generation.resolved import environment
+from kforge.pipeline.generation.schema import JobConfig
 from kforge.pipeline.generation.tracking import start_tracking
 from kforge.pipeline.generation.worker import Worker
 from kforge.pipeline.storage import (

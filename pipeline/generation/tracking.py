@@ -18,10 +18,11 @@ from collections.abc import Iterable, Sequence
 from pathlib import Path
 
 from kforge.env import FilterReason
-from kforge.pipeline.generation.config import TRACKING_MODES, ConfigError, JobConfig, data_fingerprint
 from kforge.pipeline.generation.console import log_dir
 from kforge.pipeline.generation.coordinator import Commit
+from kforge.pipeline.generation.definition import data_fingerprint
 from kforge.pipeline.generation.level_batch import batches_per_shard
+from kforge.pipeline.generation.schema import TRACKING_MODES, ConfigError, JobConfig
 from kforge.pipeline.storage import FAILED, FILTERED_PREFIX, KEPT, PADDING, PROVENANCE, UNSOLVED, read_record_json
 
 WANDB_MODE_ENV = "WANDB_MODE"

@@ -11,8 +11,8 @@ from pathlib import Path
 from kforge.engine import use_deterministic_ops
 from kforge.pipeline.generation.adaptive import streamed_level_batches
 from kforge.pipeline.generation.compile_cache import enable_compile_cache
-from kforge.pipeline.generation.config import FIXED_BUDGET_MODE, JobConfig
 from kforge.pipeline.generation.level_batch import run_level_batch
+from kforge.pipeline.generation.schema import FIXED_BUDGET_MODE, JobConfig
 from kforge.pipeline.storage import (
     PROVENANCE,
     BatchTrajectories,

@@ -27,7 +27,7 @@ import zarr
 from kforge.engine import SceneBuilder
 from kforge.env import ActionType, EnvParams, Role, StaticEnvParams, random_action, reset, step
 from kforge.env.level_builder import build_level
-from kforge.pipeline.generation.config import load_config
+from kforge.pipeline.generation import load_config
 from kforge.pipeline.generation.run import run_job
 from kforge.pipeline.storage import PROVENANCE, Lease, iter_records, open_store
 from kforge.pipeline.storage.layout import make_layout

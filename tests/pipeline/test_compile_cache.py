@@ -7,8 +7,8 @@ import sys
 import pytest
 from pipeline_test_helpers import tiny_job
 
+from kforge.pipeline.generation import load_config, to_yaml
 from kforge.pipeline.generation.compile_cache import cache_folder
-from kforge.pipeline.generation.config import load_config, to_yaml
 from kforge.pipeline.storage import iter_records
 from tests.conftest import COMPILATION_CACHE_VARIABLES
 

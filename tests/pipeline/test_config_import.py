@@ -9,12 +9,8 @@ import subprocess
 import sys
 
 from kforge.engine import KINETIX_SIZES, PHYSICS_SCHEMES
-from kforge.pipeline.generation.config import (
-    DATASET_CONFIG_FILE,
-    ENV_SIZES,
-    PHYSICS_SCHEME_NAMES,
-    LeaseConfig,
-)
+from kforge.pipeline.generation.schema import ENV_SIZES, PHYSICS_SCHEME_NAMES, LeaseConfig
+from kforge.pipeline.generation.sources import DATASET_CONFIG_FILE
 from kforge.pipeline.storage import CONFIG_FILE
 from kforge.pipeline.storage.lease import DEFAULT_HEARTBEAT_S, DEFAULT_STALE_AFTER_S
 
@@ -22,7 +18,7 @@ HEAVY_MODULES = ("jax", "ray", "wandb", "flax", "optax")
 
 CHECK_WITHOUT_HEAVY_MODULES = f"""
 import json, sys
-from kforge.pipeline.generation.config import ConfigError, load_config, read_config, to_yaml
+from kforge.pipeline.generation import ConfigError, load_config, read_config, to_yaml
 errors = []
 for overrides in (["split.size=xl"], ["env.dense_reward_scale=nan"], ["lease.stale_after_s=inf"]):
     try:

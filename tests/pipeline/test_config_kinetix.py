@@ -11,7 +11,7 @@ import pytest
 import yaml
 
 from kforge import configs
-from kforge.pipeline.generation.config import load_config
+from kforge.pipeline.generation import load_config
 
 pytestmark = pytest.mark.smoke
 

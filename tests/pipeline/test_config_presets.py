@@ -12,7 +12,8 @@ from omegaconf import OmegaConf
 
 from kforge.agents import PPOConfig
 from kforge.pipeline.cli.run import main as run_main
-from kforge.pipeline.generation.config import ConfigError, JobConfig, PPOSection, load_config, ppo_config, to_yaml
+from kforge.pipeline.generation import ConfigError, JobConfig, load_config, ppo_config, to_yaml
+from kforge.pipeline.generation.schema import PPOSection
 
 pytestmark = pytest.mark.smoke
 

@@ -13,7 +13,7 @@ import typing
 import pytest
 from pipeline_test_helpers import environment
 
-from kforge.pipeline.generation.config import ConfigError, JobConfig, read_config, to_yaml
+from kforge.pipeline.generation import ConfigError, JobConfig, read_config, to_yaml
 from tests.pipeline.test_object_storage import BUCKET, S3_ENV
 
 EXIT_USAGE = 2

@@ -7,7 +7,7 @@ from __future__ import annotations
 import pytest
 from pipeline_test_helpers import assert_same_dataset, kill_at_points, run_in_process, run_job_process, tiny_job
 
-from kforge.pipeline.generation.config import to_yaml
+from kforge.pipeline.generation import to_yaml
 from kforge.pipeline.storage import all_committed, iter_records
 from kforge.pipeline.storage.verify import verify_dataset
 

@@ -8,14 +8,8 @@ import json
 import pytest
 
 from kforge.engine import SimParams, StaticSimParams
-from kforge.pipeline.generation.config import (
-    ConfigError,
-    data_definition,
-    data_fingerprint,
-    definition_fingerprint,
-    load_config,
-    physics_definition,
-)
+from kforge.pipeline.generation import ConfigError, data_definition, data_fingerprint, load_config
+from kforge.pipeline.generation.definition import definition_fingerprint, physics_definition
 from kforge.pipeline.generation.run import prepare_output
 from kforge.pipeline.storage import DatasetError
 from kforge.pipeline.storage.shard_store import open_dataset

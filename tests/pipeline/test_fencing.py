@@ -19,7 +19,7 @@ import pytest
 from pipeline_test_helpers import assert_same_dataset, run_in_process, tiny_job
 
 from kforge.pipeline.cli import EXIT_DATA
-from kforge.pipeline.generation.config import to_yaml
+from kforge.pipeline.generation import to_yaml
 from kforge.pipeline.generation.coordinator import Coordinator, ShardNotHeld
 from kforge.pipeline.storage import (
     Lease,

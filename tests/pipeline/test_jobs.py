@@ -24,7 +24,7 @@ import yaml
 from pipeline_test_helpers import TINY_JOB
 
 from kforge.jobs.submit import REPO_ROOT, UPLOAD_EXCLUDES, build_submission, parse_env_vars
-from kforge.pipeline.generation.config import ConfigError
+from kforge.pipeline.generation import ConfigError
 from kforge.pipeline.storage.manifest import committed_batches
 from kforge.pipeline.storage.verify import verify_dataset
 from tests.pipeline.test_tracking import wandb_history

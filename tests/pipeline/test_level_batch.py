@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 from pipeline_test_helpers import tiny_job
 
-from kforge.pipeline.generation.config import ppo_config
+from kforge.pipeline.generation import ppo_config
 from kforge.pipeline.generation.level_batch import (
     batch_level_indices,
     batches_per_shard,

@@ -7,7 +7,7 @@ import pytest
 from pipeline_test_helpers import tiny_job
 
 from kforge.agents import collect_windows, initial_params
-from kforge.pipeline.generation.config import environment, ppo_config
+from kforge.pipeline.generation import environment, ppo_config
 from kforge.pipeline.generation.level_batch import (
     KeyPurpose,
     batch_level_indices,

@@ -14,7 +14,7 @@ from PIL import Image
 
 from kforge.env import StaticEnvParams, load_level, sample_levels
 from kforge.pipeline.cli.levels import main
-from kforge.pipeline.generation.config import load_config
+from kforge.pipeline.generation import load_config
 from kforge.pipeline.generation.level_batch import KeyPurpose, level_keys, sample_batch
 
 SPLIT_CONFIG = Path(__file__).resolve().parents[2] / "configs" / "splits" / "1M" / "s.yaml"

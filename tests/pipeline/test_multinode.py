@@ -15,7 +15,7 @@ import time
 import pytest
 from pipeline_test_helpers import assert_same_dataset, kill_session, tiny_job
 
-from kforge.pipeline.generation.config import to_yaml
+from kforge.pipeline.generation import to_yaml
 from kforge.pipeline.storage import all_committed
 from kforge.pipeline.storage.verify import verify_dataset
 
