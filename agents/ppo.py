@@ -329,8 +329,21 @@ def _initial_carry(level: Level, params, key: jax.Array, config: PPOConfig, stat
 
 def _segment_program(level: Level, config: PPOConfig, env_params: EnvParams, static: StaticEnvParams) -> Callable:
     """`train_and_evaluate(carry, best, index, updates_done, selection_key, num_updates)` on `level`:
-    `num_updates` PPO updates, then evaluation `index` of the policy, kept as best unless a better one was;
+    `num_updates` PPO updates (`_update_program`), then evaluation `index` of the policy (`_evaluation_program`);
     returns (carry, best, per-update metrics, (success rate, mean return) of the evaluation)."""
+    updates = _update_program(level, config, env_params, static)
+    evaluate_and_keep = _evaluation_program(level, config, env_params, static)
+
+    def train_and_evaluate(carry: _TrainCarry, best: _Best, index, updates_done, selection_key, num_updates: int):
+        carry, metrics = updates(carry, num_updates)
+        best, evaluation = evaluate_and_keep(carry.params, best, index, updates_done, selection_key)
+        return carry, best, metrics, evaluation
+
+    return train_and_evaluate
+
+
+def _update_program(level: Level, config: PPOConfig, env_params: EnvParams, static: StaticEnvParams) -> Callable:
+    """`updates(carry, num_updates)` on `level`: `num_updates` PPO updates; returns (carry, per-update metrics)."""
     network = make_network(config)
     mask = action_mask(level)
     start = reset(level)
@@ -387,11 +400,21 @@ def _segment_program(level: Level, config: PPOConfig, env_params: EnvParams, sta
         )
         return carry._replace(params=params, opt_state=opt_state), metrics
 
-    def train_and_evaluate(carry: _TrainCarry, best: _Best, index, updates_done, selection_key, num_updates: int):
-        """The episodes' key depends on the updates done, so a policy gets the same episodes whatever the period."""
-        carry, metrics = jax.lax.scan(update, carry, None, length=num_updates)
+    def updates(carry: _TrainCarry, num_updates: int):
+        return jax.lax.scan(update, carry, None, length=num_updates)
+
+    return updates
+
+
+def _evaluation_program(level: Level, config: PPOConfig, env_params: EnvParams, static: StaticEnvParams) -> Callable:
+    """`evaluate_and_keep(params, best, index, updates_done, selection_key)` on `level`: evaluation `index` of the
+    policy, kept as best unless a better one was; returns (best, (success rate, mean return) of the evaluation).
+    The episodes' key depends on the updates done, so a policy gets the same episodes whatever the period."""
+    start = reset(level)
+
+    def evaluate_and_keep(params, best: _Best, index, updates_done, selection_key):
         episodes = level_episodes(
-            carry.params,
+            params,
             level,
             start,
             jax.random.fold_in(selection_key, updates_done),
@@ -403,12 +426,10 @@ def _segment_program(level: Level, config: PPOConfig, env_params: EnvParams, sta
         )
         success_rate = jnp.mean(episodes.success.astype(jnp.float32))
         better = success_rate >= best.success_rate
-        best = jax.tree.map(
-            lambda new, old: jnp.where(better, new, old), _Best(carry.params, success_rate, index), best
-        )
-        return carry, best, metrics, (success_rate, jnp.mean(episodes.episode_return))
+        best = jax.tree.map(lambda new, old: jnp.where(better, new, old), _Best(params, success_rate, index), best)
+        return best, (success_rate, jnp.mean(episodes.episode_return))
 
-    return train_and_evaluate
+    return evaluate_and_keep
 
 
 @functools.partial(jax.jit, static_argnames=("config", "static"))
