@@ -14,7 +14,12 @@ __getattr__, __all__ = lazy_surface(
             "LEVEL_SETS RUN_CONFIG_FILE BCConfig load_bc_config network_config run_config_file"
         ),
         "kforge.pipeline.learning.evaluation": (
-            "Baseline StartSet TrainedPolicy evaluate_policy hand_starts load_policy play play_physics report_table"
+            "Baseline TrainedPolicy evaluate_policy load_policy play play_level_files play_physics play_set rates "
+            "report_table"
+        ),
+        "kforge.pipeline.learning.evaluation_sets": (
+            "UNSEEN_FIRST_LEVEL UNSEEN_LEVELS StartSet check_unseen_disjoint dataset_level_ids hand_starts "
+            "level_file_starts unseen_starts"
         ),
         "kforge.pipeline.learning.train": (
             "LEVELS_FILE METRICS_FILE SUMMARY_FILE Learner TrainingInterrupted TrainSummary train_bc"

@@ -1,14 +1,18 @@
-"""Evaluation of a trained BC policy beside its baselines, on three sets of levels:
+"""Evaluation of a trained BC policy beside its baselines, on the sets of `evaluation_sets`:
 
 - train: the dataset's levels the policy was trained on (`validation`: those it held out), from each level's start
   and from stored states in the middle of the experts' trajectories, with the experts' recorded success beside;
-- unseen: levels of the dataset's split that the dataset does not hold (ids from `split.num_levels` on), passed
-  through the split's trivial-level filter;
-- hand: Kinetix's hand-designed levels of the dataset's size.
+- unseen: levels of the dataset's split from the fixed range `UNSEEN_FIRST_LEVEL` on that pass the split's
+  trivial-level filter, checked disjoint from every level of the dataset;
+- hand: Kinetix's hand-designed levels: all 74 (s, m and l) for the entity transformer, which reads any number of
+  entities; those of the dataset's size for the MLP, whose input has the size's width.
 
 Every set is played, on the same levels with the same episode keys, by the BC policy, the no-op policy and the
-uniform random policy. An episode is a level's first episode from its start state (no reset): success if green
-touched blue, failure if green touched red, timeout otherwise.
+uniform random policy, under the dataset's physics scheme (Kinetix's unless its job named another). An episode is a
+level's first episode from its start state (no reset): success if green touched blue, failure if green touched red,
+timeout otherwise. Success is the mean over starts of each start's success rate, with its standard error across
+starts; the BC policy's difference to random is paired by start (same start, same keys), with the standard error of
+the per-start differences.
 """
 
 from __future__ import annotations
@@ -24,43 +28,36 @@ import jax.numpy as jnp
 import numpy as np
 from omegaconf import OmegaConf
 
-from kforge.agents import NetworkConfig, make_bc_network, network_actor, run_episode
-from kforge.engine import PHYSICS_SCHEMES, PhysicsScheme, physics_scheme
-from kforge.env import (
-    ActionType,
-    EnvParams,
-    EnvState,
-    StaticEnvParams,
-    action_mask,
-    filter_levels,
-    list_levels,
-    load_level,
-    noop_action,
-    random_action,
-    reset,
-    under_scheme,
-)
-from kforge.pipeline.generation import EnvSection, JobConfig, environment, merge_layers, sample_batch, to_schema_object
+from kforge.agents import Architecture, NetworkConfig, make_bc_network, network_actor, run_episode
+from kforge.engine import PhysicsScheme, physics_scheme
+from kforge.env import ActionType, EnvParams, StaticEnvParams, list_levels, noop_action, random_action, under_scheme
+from kforge.pipeline.generation import JobConfig, environment, merge_layers, to_schema_object
 from kforge.pipeline.learning.checkpoints import checkpoint_steps, restore_checkpoint
 from kforge.pipeline.learning.config import LEVEL_SETS, BCConfig, network_config, run_config_file
-from kforge.pipeline.learning.data import kept_levels
+from kforge.pipeline.learning.evaluation_sets import (
+    JOB_PHYSICS_SCHEME,
+    KINETIX_SIZES,
+    UNSEEN_FIRST_LEVEL,
+    UNSEEN_LEVELS,
+    StartSet,
+    check_unseen_disjoint,
+    dataset_level_ids,
+    dataset_starts,
+    level_file_starts,
+    scheme_static,
+    size_of,
+    unseen_starts,
+)
 from kforge.pipeline.learning.train import LEVELS_FILE, Learner
-from kforge.pipeline.reading import TrajectoryDatasetManager
-from kforge.pipeline.storage import CONFIG_FILE, DatasetError, iter_records, open_dataset
-
-JOB_PHYSICS_SCHEME = EnvSection.physics
-"""The scheme a job plays under unless its `env.physics` names another (the schema's default: kinetix)."""
+from kforge.pipeline.storage import CONFIG_FILE, DatasetError, open_dataset
 
 ACTION_TYPE = ActionType.MULTI_DISCRETE
 
-STORED_STARTS_PER_TRAJECTORY = 4
-"""Mid-trajectory start states drawn from each stored expert trajectory (states with timestep > 0)."""
-
-UNSEEN_SAMPLE_CHUNK = 64
-"""Split levels sampled and filtered at a time while collecting unseen levels."""
-
 EVAL_CHUNK_LEVELS = 64
 """Start states played together in one compiled program (bounds memory)."""
+
+PLAYERS = ("bc", "noop", "random")
+"""Every set's players: the BC policy, then the baselines."""
 
 
 class Baseline(enum.Enum):
@@ -99,16 +96,6 @@ def load_policy(run_dir: str | Path, step: int | None = None) -> TrainedPolicy:
     learner = Learner(config, static, layout.num_steps, devices=jax.local_devices()[:1])
     state = restore_checkpoint(run_dir, step, jax.device_get(learner.init(config.train.seed)))
     return TrainedPolicy(run_dir, config, network_config(config), state.params, step, static)
-
-
-@dataclasses.dataclass
-class StartSet:
-    """Start states of one set of levels, with each level's action mask and env params (leading axis S)."""
-
-    states: EnvState
-    masks: jnp.ndarray  # (S, 6) bool
-    params: EnvParams  # leaves (S, ...)
-    level_ids: list  # (S,) the level of each start (split id, or hand-designed level name)
 
 
 @functools.partial(jax.jit, static_argnames=("network", "static", "num_episodes", "greedy"))
@@ -183,10 +170,6 @@ def play(
     return np.concatenate(successes), np.concatenate(failures)
 
 
-def _broadcast(params: EnvParams, count: int) -> EnvParams:
-    return jax.tree.map(lambda x: jnp.broadcast_to(jnp.asarray(x), (count,) + jnp.shape(x)), params)
-
-
 def dataset_job(dataset: str) -> JobConfig | None:
     """The generation config stored with the dataset (None if it has none: a dataset not made by `kforge run`)."""
     text = open_dataset(dataset).store.read(CONFIG_FILE)
@@ -197,107 +180,80 @@ def dataset_job(dataset: str) -> JobConfig | None:
     )
 
 
-def dataset_starts(
-    dataset: str, level_ids: list[int], env_params: EnvParams, seed: int
-) -> tuple[StartSet, StartSet, np.ndarray]:
-    """(level starts, mid-trajectory starts, experts' recorded success rate per level) of dataset levels.
-
-    A stored trajectory begins at its level's start (the experts' windows start with a reset); mid-trajectory
-    starts are `STORED_STARTS_PER_TRAJECTORY` stored states per trajectory with timestep > 0, drawn with `seed`.
-    """
-    levels = kept_levels(dataset)
-    slots = [levels[level][0] for level in level_ids]
-    expert = {
-        level.level_id: level.expert_success_rate
-        for r in iter_records(open_dataset(dataset).store)
-        for level in r.levels
-    }
-    reader = TrajectoryDatasetManager(dataset, batch_size=1)
-    batch = reader.load_slots(np.asarray(slots))
-    starts = StartSet(
-        jax.tree.map(lambda x: x[:, 0], batch.env_state),
-        batch.action_mask[:, 0],
-        _broadcast(env_params, len(slots)),
-        list(level_ids),
-    )
-    timestep = np.asarray(batch.env_state.timestep)
-    rng = np.random.default_rng(seed)
-    rows, columns = [], []
-    for row in range(len(slots)):
-        candidates = np.flatnonzero(timestep[row] > 0)
-        if len(candidates):
-            picked = rng.choice(candidates, size=min(STORED_STARTS_PER_TRAJECTORY, len(candidates)), replace=False)
-            rows += [row] * len(picked)
-            columns += sorted(picked.tolist())
-    rows, columns = np.asarray(rows, np.int64), np.asarray(columns, np.int64)
-    stored = StartSet(
-        jax.tree.map(lambda x: x[rows, columns], batch.env_state),
-        batch.action_mask[rows, columns],
-        _broadcast(env_params, len(rows)),
-        [level_ids[row] for row in rows],
-    )
-    rates = np.array([np.nan if expert[level] is None else expert[level] for level in level_ids], np.float64)
-    return starts, stored, rates
+Outcomes = dict[str, tuple[np.ndarray, np.ndarray]]
+"""Player name -> (success, failure) (S, K) bool of K first episodes from each of S starts."""
 
 
-def unseen_starts(job: JobConfig, count: int) -> StartSet:
-    """Start states of the first `count` split levels past the dataset's (ids from `split.num_levels` on) that the
-    split's filter keeps."""
-    env_params, static = environment(job)
-    kept_ids, kept_levels_ = [], []
-    first = job.split.num_levels
-    while len(kept_ids) < count:
-        ids = np.arange(first, first + UNSEEN_SAMPLE_CHUNK)
-        levels = sample_batch(job, ids)
-        keep = np.asarray(filter_levels(levels, env_params, static, noop_steps=job.filter.noop_steps).keep)
-        if not job.filter.enabled:
-            keep[:] = True
-        for row in np.flatnonzero(keep)[: count - len(kept_ids)]:
-            kept_ids.append(int(ids[row]))
-            kept_levels_.append(jax.tree.map(lambda x, r=row: x[r], levels))
-        first += UNSEEN_SAMPLE_CHUNK
-    stacked = jax.tree.map(lambda *xs: jnp.stack(xs), *kept_levels_)
-    return StartSet(jax.vmap(reset)(stacked), jax.vmap(action_mask)(stacked), _broadcast(env_params, count), kept_ids)
+def _standard_error(values: np.ndarray) -> float:
+    return float(values.std(ddof=1) / np.sqrt(len(values))) if len(values) > 1 else 0.0
 
 
-def hand_starts(
-    static: StaticEnvParams,
-    scheme: PhysicsScheme = PHYSICS_SCHEMES[JOB_PHYSICS_SCHEME],
-    max_levels: int | None = None,
-) -> StartSet:
-    """Start states of the bundled hand-designed Kinetix levels of the dataset's size (the first `max_levels` by
-    name), each with its own params under the dataset's physics `scheme` (which `static` was made with)."""
-    sizes = {name: under_scheme(scheme, EnvParams(), StaticEnvParams.for_size(name))[1] for name in ("s", "m", "l")}
-    size = next((name for name, sized in sizes.items() if sized == static), None)
-    if size is None:
-        raise DatasetError(f"the dataset's static parameters {static} are none of Kinetix's s, m and l in its scheme")
-    names = list_levels(size)[:max_levels]
-    loaded = [load_level(name) for name in names]
-    stacked = jax.tree.map(lambda *xs: jnp.stack(xs), *(entry.level for entry in loaded))
-    own = [under_scheme(scheme, entry.params, static)[0] for entry in loaded]
-    params = jax.tree.map(lambda *xs: jnp.stack([jnp.asarray(x) for x in xs]), *own)
-    return StartSet(jax.vmap(reset)(stacked), jax.vmap(action_mask)(stacked), params, names)
+def rates(outcomes: Outcomes) -> dict:
+    """Per player: success (mean over starts of each start's success rate) with its standard error across starts,
+    failure and timeout rates; and `bc_minus_random`, the BC policy's success minus random's paired by start, with
+    the standard error of the per-start differences (when the BC policy played)."""
+    summary = {}
+    for name, (success, failure) in outcomes.items():
+        per_start = success.mean(axis=1)
+        summary[name] = {
+            "success": float(per_start.mean()),
+            "success_se": _standard_error(per_start),
+            "failure": float(failure.mean()),
+            "timeout": float(1.0 - success.mean() - failure.mean()),
+        }
+    if "bc" in outcomes:
+        difference = outcomes["bc"][0].mean(axis=1) - outcomes["random"][0].mean(axis=1)
+        summary["bc_minus_random"] = {"difference": float(difference.mean()), "se": _standard_error(difference)}
+    return summary
 
 
-def _rates(success: np.ndarray, failure: np.ndarray) -> dict:
-    """Mean over starts of the per-start rates, with the standard error of the success rate across starts."""
-    per_start = success.mean(axis=1)
+def play_set(
+    policy: TrainedPolicy | None, starts: StartSet, static: StaticEnvParams, episodes: int, seed: int, greedy: bool
+) -> Outcomes:
+    """Outcomes of the BC policy (unless `policy` is None) and both baselines on the same starts with the same keys."""
+    players = (("bc", None),) if policy is not None else ()
+    players += (("noop", Baseline.NOOP), ("random", Baseline.RANDOM))
+    return {name: play(player, starts, static, episodes, seed, greedy, policy) for name, player in players}
+
+
+def _concatenate(parts: list[Outcomes]) -> Outcomes:
+    return {name: tuple(np.concatenate([part[name][i] for part in parts]) for i in range(2)) for name in parts[0]}
+
+
+def readable_sizes(policy: TrainedPolicy, scheme: PhysicsScheme) -> tuple[str, ...]:
+    """Kinetix sizes the policy's network can read: all of them for the entity transformer, the dataset's own for
+    the MLP (its input width is the size's)."""
+    if policy.network.architecture is Architecture.TRANSFORMER:
+        return KINETIX_SIZES
+    return (size_of(policy.static, scheme),)
+
+
+def play_level_files(
+    policy: TrainedPolicy | None,
+    files: dict[str, list[str]],
+    scheme: PhysicsScheme,
+    episodes: int,
+    seed: int,
+    greedy: bool = False,
+) -> dict:
+    """The set entry of Kinetix level files (paths or bundled names) by size, each played under `scheme` with its own
+    params: rates over all files and per size, and per-file BC success (baselines only when `policy` is None)."""
+    parts, per_size, per_level = [], {}, {}
+    for size, sources in files.items():
+        if not sources:
+            continue
+        static = scheme_static(scheme, size)
+        outcomes = play_set(policy, level_file_starts(sources, static, scheme), static, episodes, seed, greedy)
+        parts.append(outcomes)
+        per_size[size] = {"levels": len(sources), "from_start": rates(outcomes)}
+        first = "bc" if policy is not None else "random"
+        per_level.update(zip(sources, map(float, outcomes[first][0].mean(axis=1)), strict=True))
     return {
-        "success": float(per_start.mean()),
-        "success_se": float(per_start.std(ddof=1) / np.sqrt(len(per_start))) if len(per_start) > 1 else 0.0,
-        "failure": float(failure.mean()),
-        "timeout": float(1.0 - success.mean() - failure.mean()),
+        "levels": len(per_level),
+        "from_start": rates(_concatenate(parts)),
+        "sizes": per_size,
+        "per_level": per_level,
     }
-
-
-def _play_all(policy, starts, static, episodes, seed, greedy) -> tuple[dict, dict]:
-    """Rates of the BC policy and the baselines on one start set, and the BC policy's per-start success rate."""
-    rates, per_start = {}, {}
-    for name, player in (("bc", None), ("noop", Baseline.NOOP), ("random", Baseline.RANDOM)):
-        success, failure = play(player, starts, static, episodes, seed, greedy, policy)
-        rates[name] = _rates(success, failure)
-        per_start[name] = success.mean(axis=1)
-    return rates, per_start
 
 
 def play_physics(job: JobConfig | None, static: StaticEnvParams) -> tuple[str, EnvParams]:
@@ -313,7 +269,7 @@ def evaluate_policy(
     policy: TrainedPolicy,
     level_sets: tuple[str, ...] = ("train", "unseen", "hand"),
     episodes: int = 16,
-    unseen_levels: int = 256,
+    unseen_levels: int = UNSEEN_LEVELS,
     greedy: bool = False,
     seed: int = 0,
     max_levels: int | None = None,
@@ -350,15 +306,14 @@ def evaluate_policy(
                 result["sets"][name] = {"levels": 0}
                 continue
             starts, stored, expert = dataset_starts(dataset, ids, env_params, seed)
-            from_start, per_start = _play_all(policy, starts, policy.static, episodes, seed, greedy)
-            from_stored, _ = _play_all(policy, stored, policy.static, episodes, seed + 1, greedy)
-            from_start["expert_recorded"] = {"success": float(np.nanmean(expert))}
+            from_start = play_set(policy, starts, policy.static, episodes, seed, greedy)
+            from_stored = play_set(policy, stored, policy.static, episodes, seed + 1, greedy)
             result["sets"][name] = {
                 "levels": len(ids),
                 "stored_starts": len(stored.level_ids),
-                "from_start": from_start,
-                "from_stored_states": from_stored,
-                "per_level": {str(i): float(s) for i, s in zip(ids, per_start["bc"], strict=True)},
+                "from_start": rates(from_start) | {"expert_recorded": {"success": float(np.nanmean(expert))}},
+                "from_stored_states": rates(from_stored),
+                "per_level": {str(i): float(s) for i, s in zip(ids, from_start["bc"][0].mean(axis=1), strict=True)},
             }
         elif name == "unseen":
             if job is None:
@@ -366,27 +321,27 @@ def evaluate_policy(
                     f"{dataset}: no {CONFIG_FILE} (not made by kforge run), so its split's unseen levels are unknown"
                 )
             starts = unseen_starts(job, unseen_levels if max_levels is None else min(unseen_levels, max_levels))
-            from_start, per_start = _play_all(policy, starts, policy.static, episodes, seed, greedy)
+            check_unseen_disjoint(starts, dataset, dataset_level_ids(dataset))
+            outcomes = play_set(policy, starts, policy.static, episodes, seed, greedy)
             result["sets"][name] = {
                 "levels": len(starts.level_ids),
-                "first_level_id": job.split.num_levels,
-                "from_start": from_start,
-                "per_level": {str(i): float(s) for i, s in zip(starts.level_ids, per_start["bc"], strict=True)},
+                "first_level_id": UNSEEN_FIRST_LEVEL,
+                "from_start": rates(outcomes),
+                "per_level": {
+                    str(i): float(s) for i, s in zip(starts.level_ids, outcomes["bc"][0].mean(axis=1), strict=True)
+                },
             }
         else:
-            starts = hand_starts(policy.static, scheme, max_levels)
-            from_start, per_start = _play_all(policy, starts, policy.static, episodes, seed, greedy)
-            result["sets"][name] = {
-                "levels": len(starts.level_ids),
-                "from_start": from_start,
-                "per_level": dict(zip(starts.level_ids, map(float, per_start["bc"]), strict=True)),
-            }
+            files = {size: list_levels(size)[:max_levels] for size in readable_sizes(policy, scheme)}
+            result["sets"][name] = play_level_files(policy, files, scheme, episodes, seed, greedy)
     return result
 
 
 def report_table(result: dict) -> str:
     """The report as a text table: one row per set and start kind, success rates of each policy."""
-    header = f"{'levels':<12} {'starts':<18} {'n':>5} {'BC':>12} {'no-op':>7} {'random':>7} {'expert':>7}"
+    header = (
+        f"{'levels':<12} {'starts':<18} {'n':>5} {'BC':>12} {'no-op':>7} {'random':>7} {'BC-random':>14} {'expert':>7}"
+    )
     lines = [
         f"policy {result['policy']} at step {result['step']}, {result['episodes']} episodes per start"
         + (", greedy" if result["greedy"] else ""),
@@ -399,11 +354,12 @@ def report_table(result: dict) -> str:
         for kind, count in (("from_start", entry["levels"]), ("from_stored_states", entry.get("stored_starts"))):
             if kind not in entry:
                 continue
-            rates = entry[kind]
-            bc = f"{rates['bc']['success']:.3f}±{rates['bc']['success_se']:.3f}"
-            expert = rates.get("expert_recorded", {}).get("success")
+            played = entry[kind]
+            bc = f"{played['bc']['success']:.3f}±{played['bc']['success_se']:.3f}"
+            gain = f"{played['bc_minus_random']['difference']:+.3f}±{played['bc_minus_random']['se']:.3f}"
+            expert = played.get("expert_recorded", {}).get("success")
             lines.append(
-                f"{name:<12} {kind.replace('_', ' '):<18} {count:>5} {bc:>12} {rates['noop']['success']:>7.3f} "
-                f"{rates['random']['success']:>7.3f} {'' if expert is None else f'{expert:.3f}':>7}"
+                f"{name:<12} {kind.replace('_', ' '):<18} {count:>5} {bc:>12} {played['noop']['success']:>7.3f} "
+                f"{played['random']['success']:>7.3f} {gain:>14} {'' if expert is None else f'{expert:.3f}':>7}"
             )
     return "\n".join(lines)

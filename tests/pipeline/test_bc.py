@@ -221,27 +221,6 @@ def test_sigint_checkpoints_and_the_resumed_run_ends_as_an_uninterrupted_one(dat
         np.testing.assert_array_equal(resumed, uninterrupted)
 
 
-def test_unseen_levels_are_the_split_levels_past_the_dataset_that_the_filter_keeps(tmp_path):
-    from pipeline_test_helpers import tiny_job
-
-    from kforge.env import filter_levels
-    from kforge.pipeline.generation import environment, sample_batch
-    from kforge.pipeline.learning.evaluation import UNSEEN_SAMPLE_CHUNK, unseen_starts
-
-    job = tiny_job(tmp_path)
-    starts = unseen_starts(job, count=5)
-    ids = starts.level_ids
-    assert len(ids) == 5 and ids == sorted(ids) and ids[0] >= job.split.num_levels
-    # one chunk of candidates (the shape unseen_starts compiled its filter for) covers the five
-    candidates = np.arange(job.split.num_levels, job.split.num_levels + UNSEEN_SAMPLE_CHUNK)
-    assert ids[-1] <= candidates[-1]
-    params, static = environment(job)
-    keep = np.asarray(filter_levels(sample_batch(job, candidates), params, static, job.filter.noop_steps).keep)
-    assert candidates[keep][:5].tolist() == ids  # every kept id in the range, in order, and no filtered one
-    expected = jax.vmap(reset)(sample_batch(job, np.asarray(ids)))
-    np.testing.assert_array_equal(starts.states.sim.bodies.position, expected.sim.bodies.position)
-
-
 def test_hand_levels_are_played_under_the_datasets_physics_scheme():
     """A dataset made with env.physics=kinetix is evaluated on the hand-designed levels with that scheme's parameters
     (its laws live in the static parameters), each level keeping its own constants; the engine's own scheme's static
