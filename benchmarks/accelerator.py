@@ -10,7 +10,7 @@ Measures, on the default JAX backend (a GPU or TPU when one is installed, else t
 - env: env steps/s of our env (step, auto-reset, symbolic observation) at large batches;
 - PPO: training env steps/s of `agents.train_levels` at pipeline-sized level batches (configs/ppo_specialist.yaml,
   a few updates), and Kinetix's own PPO in the same run when `--kinetix-venv` holds kinetix-env (see
-  benchmarks/env.py; it is not built here, so that the run stays unattended and offline) or `--kinetix-site` a
+  benchmarks/kinetix_venv.py; it is not built here, so that the run stays unattended and offline) or `--kinetix-site` a
   folder of its packages (benchmarks/offline_wheels.py);
 - pipeline: a tiny `kforge run` end to end in a fresh process (one Ray worker with the accelerator, or the job's own
   process where Ray is not installed; zarr output), its wall time and level outcomes;
@@ -24,8 +24,8 @@ It prints one JSON document with every figure and, under "targets", each target 
 Kinetix's PPO. `--quick` runs every section at toy sizes (a CPU check that the script works end to end);
 `--dry-run` prints the plan without measuring.
 
-    python benchmarks/accelerator.py > accelerator.json
-    python benchmarks/accelerator.py --quick
+    python -m benchmarks.accelerator > accelerator.json
+    python -m benchmarks.accelerator --quick
 """
 
 from __future__ import annotations
@@ -52,12 +52,13 @@ os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
 import jax  # noqa: E402
 import numpy as np  # noqa: E402
 
-sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-
-from benchmarks.engine import JAX2D_PUBLISHED_PEAK_STEPS_PER_SECOND  # noqa: E402
+from benchmarks.engine_speed import JAX2D_PUBLISHED_PEAK_STEPS_PER_SECOND  # noqa: E402
+from benchmarks.kinetix_venv import REPOSITORY  # noqa: E402
 from benchmarks.machine import describe_machine  # noqa: E402
 from kforge.engine import SOLVER_LOOP_FORMS  # noqa: E402
 
+XLA_FLAGS = "XLA_FLAGS"
+"""The environment variable XLA reads its flags from, once per process."""
 ENGINE_SPEEDUP_TARGET = 2.0
 """Engine steps/s at least this many times Jax2D's, measured in the same run."""
 PPO_SPEEDUP_TARGET = 5.0
@@ -218,7 +219,7 @@ def compile_engine_programs(
     """Every engine program of one batch, for every size, compiled at once (`compile_concurrently`); per size its
     programs, or the error that stopped one of them."""
     from benchmarks import jax2d_baseline
-    from benchmarks.engine import compile_rollout_ours
+    from benchmarks.engine_speed import compile_rollout_ours
     from kforge.engine import Batching
 
     batching = Batching().resolved()
@@ -287,15 +288,15 @@ def measure_engine(programs: EnginePrograms | Exception, batch: int, plan: Plan,
 
 
 def measure_env(size: str, batch: int, plan: Plan) -> dict:
-    from benchmarks.env import measure_steps
+    from benchmarks.env_speed import measure_steps
 
     return measure_steps(size, batch, plan.env_steps, plan.repeats)
 
 
 def _ppo_config(plan: Plan):
-    from benchmarks.ppo import DEFAULT_CONFIG, load_ppo_config
+    from benchmarks.ppo import load_ppo_config
 
-    return load_ppo_config(DEFAULT_CONFIG, list(plan.ppo_overrides), plan.ppo_updates)
+    return load_ppo_config(None, list(plan.ppo_overrides), plan.ppo_updates)
 
 
 def compile_ppo_programs(plan: Plan, threads: int) -> dict:
@@ -363,8 +364,7 @@ def measure_pipeline(
     scratch.mkdir(parents=True, exist_ok=True)
     config_file.write_text(to_yaml(load_config(None, overrides)))
     command = [sys.executable, "-m", "kforge", "run", str(config_file), "--no-progress", "--json"]
-    root = Path(__file__).resolve().parents[1]
-    finished = subprocess.run(command, capture_output=True, text=True, env=_with_path_first(root), cwd=root)
+    finished = subprocess.run(command, capture_output=True, text=True, env=_with_path_first(REPOSITORY), cwd=REPOSITORY)
     if finished.returncode != 0:
         raise RuntimeError(f"kforge run exited {finished.returncode}: {finished.stderr.strip()[-2000:]}")
     summary = json.loads(finished.stdout)
@@ -379,8 +379,7 @@ def measure_pipeline(
 def engine_determinism(size: str, batch: int, steps: int) -> dict:
     """A rollout of `steps` with random motor and thruster actions: run twice on the default backend (and timed
     there), and once on the CPU."""
-    from benchmarks.engine import _batched_states
-    from benchmarks.scenes import build_scene
+    from benchmarks.scenes import batched_scenes, build_scene
     from benchmarks.timing import best_time
     from kforge.engine import SimParams, step
 
@@ -398,7 +397,7 @@ def engine_determinism(size: str, batch: int, steps: int) -> dict:
         return jax.lax.scan(one, states, jax.random.split(key, steps))[0]
 
     key = jax.random.key(0)
-    states = _batched_states(size, batch)
+    states = batched_scenes(size, batch)
     compiled = jax.jit(rollout).lower(states, key).compile()
     first, second = compiled(states, key), compiled(states, key)
     seconds, _ = best_time(lambda: compiled(states, key), repeats=3)
@@ -425,14 +424,14 @@ def engine_determinism(size: str, batch: int, steps: int) -> dict:
 def measure_engine_determinism(size: str, batch: int, steps: int) -> dict:
     """`engine_determinism` in fresh processes (XLA reads its flags once per process), with XLA's deterministic GPU
     ops off and on."""
-    from kforge.engine.determinism import XLA_FLAGS_ENV, with_deterministic_ops
+    from kforge.engine import with_deterministic_ops
 
     results = {}
     for ops, flag in (("default_ops", "--xla_gpu_deterministic_ops=false"), ("deterministic_ops", "")):
-        flags = with_deterministic_ops(f"{os.environ.get(XLA_FLAGS_ENV, '')} {flag}".strip())
-        command = [sys.executable, os.path.abspath(__file__), "--engine-determinism", size, str(batch), str(steps)]
+        flags = with_deterministic_ops(f"{os.environ.get(XLA_FLAGS, '')} {flag}".strip())
+        command = [sys.executable, "-m", "benchmarks.accelerator", "--engine-determinism", size, str(batch), str(steps)]
         finished = subprocess.run(
-            command, env={**os.environ, XLA_FLAGS_ENV: flags}, capture_output=True, text=True, check=True
+            command, env={**os.environ, XLA_FLAGS: flags}, capture_output=True, text=True, check=True, cwd=REPOSITORY
         )
         results[ops] = json.loads(finished.stdout.strip().splitlines()[-1])
     return results

@@ -1,8 +1,8 @@
 """Proof of use: behaviour cloning on a split 1M/s dataset, with more and more training levels, evaluated on the
 training levels, on unseen levels of the split and on the hand-designed s levels, beside the no-op and random policies.
 
-    python benchmarks/bc.py --dataset outputs/1M-s-local --train-levels 16 32 64 --steps 1000
-    python benchmarks/bc.py --generate 64 --train-levels 16 64   # first makes the dataset (kforge run 1M/s)
+    python -m benchmarks.bc --dataset outputs/1M-s-local --train-levels 16 32 64 --steps 1000
+    python -m benchmarks.bc --generate 64 --train-levels 16 64   # first makes the dataset (kforge run 1M/s)
 
 Each training-level count trains the same model for the same number of gradient steps on the dataset's first N
 kept levels (by level id; 10 % of them held out for validation), then plays every level set with the trained policy
@@ -22,10 +22,8 @@ import sys
 import time
 from pathlib import Path
 
-sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-
-from benchmarks.machine import describe_machine  # noqa: E402
-from kforge.pipeline.learning import evaluate_policy, load_bc_config, load_policy, train_bc  # noqa: E402
+from benchmarks.machine import describe_machine
+from kforge.pipeline.learning import evaluate_policy, load_bc_config, load_policy, train_bc
 
 LOADER_WAIT_TARGET = 0.05
 """Target share of BC step time spent waiting for the loader."""

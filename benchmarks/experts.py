@@ -27,11 +27,11 @@ same way (levels in name order, each with the keys of its position in the whole 
 the reports the README quotes (per-level results included), so a new part can be merged with them. A quick check,
 and a measurement in parts:
 
-    python benchmarks/experts.py --levels 8 --budgets 65536 131072 --scale tiny
-    python benchmarks/experts.py --budgets 1000000 10000000 --json
-    python benchmarks/experts.py --levels 32 --first-level 32 --batch 32 --budgets 10000000 \\
+    python -m benchmarks.experts --levels 8 --budgets 65536 131072 --scale tiny
+    python -m benchmarks.experts --budgets 1000000 10000000 --json
+    python -m benchmarks.experts --levels 32 --first-level 32 --batch 32 --budgets 10000000 \\
         --sets random --json > b.json
-    python benchmarks/experts.py --merge a.json b.json 1m.json
+    python -m benchmarks.experts --merge a.json b.json 1m.json
 """
 
 from __future__ import annotations
@@ -39,7 +39,6 @@ from __future__ import annotations
 import argparse
 import functools
 import json
-import os
 import sys
 import time
 from pathlib import Path
@@ -47,24 +46,25 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 import numpy as np
-from tqdm import tqdm
 
-sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-
-from benchmarks.env import REPO_ROOT  # noqa: E402
-from benchmarks.machine import describe_machine  # noqa: E402
-from kforge.agents import collect_windows, evaluate, train_levels  # noqa: E402
-from kforge.env import FilterReason, Level, StaticEnvParams, bundled_level_path, filter_levels, load_level  # noqa: E402
-from kforge.pipeline.generation import (  # noqa: E402
+from benchmarks.machine import describe_machine
+from kforge.agents import collect_windows, evaluate, train_levels
+from kforge.configs import split_path
+from kforge.env import FilterReason, Level, StaticEnvParams, bundled_level_path, filter_levels, load_level
+from kforge.pipeline.generation import (
     JobConfig,
-    environment,  # noqa: E402
+    KeyPurpose,
+    environment,
+    level_key,
+    level_keys,
     load_config,
     ppo_config,
+    resolve,
+    sample_batch,
 )
-from kforge.pipeline.generation.estimated_progress import estimated_progress  # noqa: E402
-from kforge.pipeline.generation.level_batch import KeyPurpose, level_key, level_keys, sample_batch  # noqa: E402
 
-SPLIT_CONFIG = REPO_ROOT / "configs" / "splits" / "1M" / "s.yaml"
+SPLIT = "1M/s"
+SPLIT_CONFIG = split_path(SPLIT)
 """The split whose levels, env, filter, PPO and collection settings are used (its budget is replaced)."""
 
 HAND_LEVELS_DIR = bundled_level_path("s/h0_weak_thrust").parent
@@ -108,7 +108,8 @@ def sample_split_levels(job: JobConfig, first: int, count: int) -> Level:
     shape)."""
     batch = job.work.levels_per_batch
     aligned = first - first % batch
-    chunks = [sample_batch(job, np.arange(start, start + batch)) for start in range(aligned, first + count, batch)]
+    resolved = resolve(job)
+    chunks = [sample_batch(resolved, np.arange(start, start + batch)) for start in range(aligned, first + count, batch)]
     return jax.tree.map(lambda *x: jnp.concatenate(x)[first - aligned : first - aligned + count], *chunks)
 
 
@@ -188,13 +189,7 @@ def run_experts(
             seconds["compile"] = time.perf_counter() - clock
         compiled = programs[config, static, batch]
         last = min(start + batch, count) - 1
-        with (
-            tqdm(
-                total=config.num_updates, unit="update", desc=f"  levels {first + start}-{first + last}", leave=False
-            ) as bar,
-            estimated_progress((config, static, batch), config.num_updates, functools.partial(_advance, bar)),
-        ):
-            trained, elapsed = _timed(functools.partial(compiled, batch_levels, train_keys, env_params), warm_up=False)
+        trained, elapsed = _timed(functools.partial(compiled, batch_levels, train_keys, env_params), warm_up=False)
         seconds["train"] += elapsed
         expert = _BatchExperts(job, trained.params, batch_levels, seed, first + indices)
         window, elapsed = _timed(expert.window, warm_up=start == 0)
@@ -209,10 +204,6 @@ def run_experts(
         log(f"  levels {first + start}-{first + last} done, {last + 1} of {count} ({seconds['train']:.0f} s training)")
     per_level = {name: np.concatenate(values)[:count] for name, values in results.items()}
     return {"per_level": per_level, "seconds": seconds, "padded_levels": padded}
-
-
-def _advance(bar: tqdm, updates_done: int, num_updates: int) -> None:
-    bar.update(updates_done - bar.n)
 
 
 def _share(part: np.ndarray) -> float | None:
@@ -431,7 +422,7 @@ def main(argv=None) -> None:
 
     report = {
         "machine": describe_machine(),
-        "split_config": SPLIT_CONFIG.relative_to(REPO_ROOT).as_posix(),
+        "split_config": f"configs/splits/{SPLIT}.yaml",
         "scale": args.scale,
         "overrides": args.set,
         "batch": args.batch,

@@ -12,13 +12,13 @@ rates differ by at most two standard errors of the difference plus 0.02. Per lev
 rates and the difference in standard errors; per set and size, the share of levels that agree.
 
 Kinetix runs in its own virtualenv (`--kinetix-venv`, built with kinetix-env 3.0.2 on first use, as for
-benchmarks/env.py). Physics options of ours can be switched for a measurement (`--sim motor_model=0`) to see which
+benchmarks/env_speed.py). Physics options of ours can be switched for a measurement (`--sim motor_model=0`) to see which
 difference of the engine moves which level. `--kinetix-variant KEY=VALUE` puts Kinetix changed in one respect in
 ours' place (benchmarks/kinetix_variants.py): the agreement of Kinetix with itself under a change that any other
 engine makes too.
 
-    python benchmarks/fidelity.py --sizes s --random-levels 0            # hand-designed s levels only
-    python benchmarks/fidelity.py --sizes s m l --random-levels 1024 --json
+    python -m benchmarks.fidelity --sizes s --random-levels 0            # hand-designed s levels only
+    python -m benchmarks.fidelity --sizes s m l --random-levels 1024 --json
 """
 
 from __future__ import annotations
@@ -39,20 +39,19 @@ from pathlib import Path
 import jax
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from benchmarks.env import DEFAULT_KINETIX_VENV, kinetix_python  # noqa: E402
-from benchmarks.kinetix_variants import parse_variant, variant_label  # noqa: E402
-from benchmarks.machine import describe_machine  # noqa: E402
-from benchmarks.sim_overrides import (  # noqa: E402
+from benchmarks.kinetix_variants import parse_variant, variant_label
+from benchmarks.kinetix_venv import DEFAULT_KINETIX_VENV, REPOSITORY, baseline_command, kinetix_python
+from benchmarks.machine import describe_machine
+from benchmarks.sim_overrides import (
     add_physics_option,
     add_solver_scheme_options,
     sim_override,
     solver_scheme,
     split_sim_overrides,
 )
-from benchmarks.sim_overrides import with_solver_scheme as with_sim_scheme  # noqa: E402
-from kforge.engine import DEFAULT_PHYSICS_SCHEME, physics_scheme  # noqa: E402
-from kforge.env import (  # noqa: E402
+from benchmarks.sim_overrides import with_solver_scheme as with_sim_scheme
+from kforge.engine import DEFAULT_PHYSICS_SCHEME, physics_scheme
+from kforge.env import (
     EnvParams,
     Outcome,
     Policy,
@@ -64,7 +63,7 @@ from kforge.env import (  # noqa: E402
     under_scheme,
 )
 
-KINETIX_SCRIPT = Path(__file__).resolve().parent / "kinetix_fidelity_baseline.py"
+KINETIX_BASELINE = "kinetix_fidelity_baseline"
 OUTCOME_NAMES = {
     Outcome.TIMEOUT: "timeout",
     Outcome.SUCCESS: "success",
@@ -149,10 +148,8 @@ def _outcomes(levels, params, static, episodes: int, key, log=None) -> np.ndarra
 def run_kinetix(python: Path, arguments: list[str], log, receive=lambda document: None) -> None:
     """Run Kinetix's side with `arguments`: each JSON document it prints goes to `receive` as it arrives, and each
     progress line it writes (`kinetix ...`) to `log`."""
-    command = [str(python), str(KINETIX_SCRIPT), *arguments]
-    process = subprocess.Popen(
-        command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=KINETIX_SCRIPT.parent
-    )
+    command = baseline_command(python, KINETIX_BASELINE, *arguments)
+    process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=REPOSITORY)
     errors: list[str] = []
 
     def read_errors() -> None:

@@ -13,14 +13,14 @@ movable shape's position and velocity in both engines shows what one step does d
 differences that grew before it (contact and joint impulses kept for warm starting are Kinetix's own, ours start
 from none).
 
-    python benchmarks/fidelity_trace.py l/mjc_half_cheetah --episodes 64
-    python benchmarks/fidelity_trace.py levels/s/k0-00002.json --noop --sim speculative_reach=0
-    python benchmarks/fidelity_trace.py levels/s/k0-00030.json --noop --substeps 1 --iterations 10 --relax-iterations 0
-    python benchmarks/fidelity_trace.py levels/s/k0-00454.json --noop --from-step 0:21 --substeps 1 --iterations 10 \
+    python -m benchmarks.fidelity_trace l/mjc_half_cheetah --episodes 64
+    python -m benchmarks.fidelity_trace levels/s/k0-00002.json --noop --sim speculative_reach=0
+    python -m benchmarks.fidelity_trace levels/s/k0-00030.json --noop --substeps 1 --iterations 10 --relax-iterations 0
+    python -m benchmarks.fidelity_trace levels/s/k0-00454.json --noop --from-step 0:21 --substeps 1 --iterations 10 \
         --relax-iterations 0 --sim contact_law=1 --sim force_timing=1 --sim speculative_distance=0 \
         --sim overlap_allowance=2 --sim contact_points=1
 
-(the second a random level that `benchmarks/fidelity.py --random-levels 64 --level-dir levels` sampled.)
+(the second a random level that `python -m benchmarks.fidelity --random-levels 64 --level-dir levels` sampled.)
 """
 
 from __future__ import annotations
@@ -28,7 +28,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import subprocess
-import sys
 import tempfile
 from pathlib import Path
 
@@ -36,8 +35,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from benchmarks.env import DEFAULT_KINETIX_VENV, kinetix_python  # noqa: E402
+from benchmarks.kinetix_venv import DEFAULT_KINETIX_VENV, REPOSITORY, baseline_command, kinetix_python
 from benchmarks.sim_overrides import (
     add_physics_option,
     add_solver_scheme_options,
@@ -45,9 +43,9 @@ from benchmarks.sim_overrides import (
     solver_scheme,
     with_sim_overrides,
     with_solver_scheme,
-)  # noqa: E402
-from kforge.engine import DEFAULT_PHYSICS_SCHEME, physics_scheme  # noqa: E402
-from kforge.env import (  # noqa: E402
+)
+from kforge.engine import DEFAULT_PHYSICS_SCHEME, physics_scheme
+from kforge.env import (
     MULTI_DISCRETE_SIZES,
     ActionType,
     EnvParams,
@@ -59,7 +57,7 @@ from kforge.env import (  # noqa: E402
     under_scheme,
 )
 
-KINETIX_SCRIPT = Path(__file__).resolve().parent / "kinetix_fidelity_baseline.py"
+KINETIX_BASELINE = "kinetix_fidelity_baseline"
 OUTCOMES = ("timeout", "success", "failure")
 EPISODE_STEPS = 256
 """Env steps of one episode (Kinetix's max_timesteps)."""
@@ -119,10 +117,8 @@ def trace_ours(
 def trace_kinetix(python: Path, path: Path, actions: np.ndarray, folder: Path) -> dict:
     actions_file, out = folder / "actions.npy", folder / "kinetix_trace.npz"
     np.save(actions_file, actions)
-    command = [str(python), str(KINETIX_SCRIPT), "--trace", str(path), "--actions", str(actions_file)]
-    result = subprocess.run(
-        [*command, "--trace-out", str(out)], capture_output=True, text=True, cwd=KINETIX_SCRIPT.parent
-    )
+    command = baseline_command(python, KINETIX_BASELINE, "--trace", str(path), "--actions", str(actions_file))
+    result = subprocess.run([*command, "--trace-out", str(out)], capture_output=True, text=True, cwd=REPOSITORY)
     if result.returncode != 0:
         raise RuntimeError(f"Kinetix's side failed:\n{result.stderr[-3000:]}")
     return dict(np.load(out))
@@ -153,12 +149,12 @@ def kinetix_state_at(python: Path, path: Path, actions: np.ndarray, steps: int, 
     """Kinetix's state after the first `steps` actions of `actions[0]` from the level's start, as a level file."""
     actions_file, out = folder / "actions_to_state.npy", folder / "kinetix_state.json"
     np.save(actions_file, actions)
-    command = [str(python), str(KINETIX_SCRIPT), "--trace", str(path), "--actions", str(actions_file)]
+    command = baseline_command(python, KINETIX_BASELINE, "--trace", str(path), "--actions", str(actions_file))
     result = subprocess.run(
         [*command, "--state-at", str(steps), "--state-out", str(out)],
         capture_output=True,
         text=True,
-        cwd=KINETIX_SCRIPT.parent,
+        cwd=REPOSITORY,
     )
     if result.returncode != 0:
         raise RuntimeError(f"Kinetix's side failed:\n{result.stderr[-3000:]}")

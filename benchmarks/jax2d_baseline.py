@@ -5,12 +5,10 @@ bodies, with thrusters) in the reference engine Jax2D and measures batched
 ``engine.step`` throughput, so a sibling script can compare our engine with
 Jax2D on the same scenes in one run.
 
-Usage: python benchmarks/jax2d_baseline.py --sizes s m l --batches 1 256
+Usage: python -m benchmarks.jax2d_baseline --sizes s m l --batches 1 256
 """
 
 import argparse
-import os
-import sys
 import time
 from functools import partial
 
@@ -21,9 +19,7 @@ from jax2d import scene
 from jax2d.engine import PhysicsEngine, create_empty_sim
 from jax2d.sim_state import SimParams, SimState, StaticSimParams
 
-sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-
-from benchmarks.timing import best_time  # noqa: E402
+from benchmarks.timing import best_time
 
 # Kinetix sizes: (polygons incl. the 4 static floor/wall/ceiling slots, circles, joints, thrusters).
 SIZES = {"s": (5, 2, 1, 1), "m": (6, 3, 2, 2), "l": (12, 4, 6, 2)}

@@ -1,10 +1,10 @@
-"""Kinetix's own env throughput, run inside a separate virtualenv holding kinetix-env (see benchmarks/env.py).
+"""Kinetix's own env throughput, run inside a separate virtualenv holding kinetix-env (benchmarks/kinetix_venv.py).
 
 Measures, per size, env steps per second (random multi-discrete actions, auto-reset to each env's own level
 passed as the override state, symbolic flat observations) at each batch size, the level sampler's levels
 per second, and compile times; prints one JSON document. Not importable from the project's environment.
 
-    python benchmarks/kinetix_env_baseline.py --sizes s --batches 1 256 --steps 64
+    python -m benchmarks.kinetix_env_baseline --sizes s --batches 1 256 --steps 64
 """
 
 from __future__ import annotations
@@ -24,7 +24,8 @@ from kinetix.environment import (
     static_env_params_from_size,
 )
 from kinetix.environment.ued.ued import make_reset_fn_sample_kinetix_level
-from timing import best_time  # benchmarks/timing.py, beside this script (needs only jax)
+
+from benchmarks.timing import best_time  # needs only jax
 
 MULTI_DISCRETE_SIZES = (3, 3, 3, 3, 2, 2)
 

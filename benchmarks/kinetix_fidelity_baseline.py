@@ -46,7 +46,8 @@ from kinetix.environment import (
 )
 from kinetix.environment.ued.ued import make_reset_fn_sample_kinetix_level
 from kinetix.util.saving import expand_env_state, export_env_state_to_json, load_from_json_file
-from kinetix_variants import parse_variant  # this script's folder is on its path
+
+from benchmarks.kinetix_variants import parse_variant
 
 MULTI_DISCRETE_SIZES = (3, 3, 3, 3, 2, 2)
 OUTCOMES = ("timeout", "success", "failure", "unstable")

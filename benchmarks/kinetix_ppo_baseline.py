@@ -11,7 +11,7 @@ episode metrics over `info`. Changed for a specialist on one level: every env st
 same level, passed as Kinetix's `override_reset_state` (ppo.py samples a new random level at every reset); no
 wandb logging, evaluation or video. Prints one JSON document. Not importable from the project's environment.
 
-    python benchmarks/kinetix_ppo_baseline.py --size s --num-envs 16 --num-steps 125 --updates 4
+    python -m benchmarks.kinetix_ppo_baseline --size s --num-envs 16 --num-steps 125 --updates 4
 """
 
 from __future__ import annotations
@@ -36,7 +36,8 @@ from kinetix.environment import (
 )
 from kinetix.environment.ued.ued import make_reset_fn_sample_kinetix_level
 from kinetix.models import ScannedRNN, make_network_from_config
-from timing import best_time  # benchmarks/timing.py, beside this script (needs only jax)
+
+from benchmarks.timing import best_time  # needs only jax
 
 KINETIX_NUM_ENVS = 2048
 """Parallel envs of Kinetix's configs/learning/ppo-base.yaml (num_train_envs)."""

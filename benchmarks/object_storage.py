@@ -1,5 +1,5 @@
 """The storage layer against an S3 API server: transitions written per second and the loader's read rate, from S3 and
-from a local folder, with and without `prefetch` (run by `benchmarks/pipeline.py --storage s3`).
+from a local folder, with and without `prefetch` (run by `python -m benchmarks.pipeline_speed --storage s3`).
 
 The server is moto's standalone server in its own process on 127.0.0.1 (so it does not share this process's
 interpreter lock); its latency and bandwidth are a loopback's, not a cloud store's, so the figures show the layer's
@@ -42,7 +42,6 @@ from kforge.pipeline.storage import (
     make_layout,
     write_record,
 )
-from kforge.pipeline.storage.layout import flatten_state
 
 BUCKET = "kforge-bench"
 SERVER_START_TIMEOUT_S = 60.0
@@ -114,7 +113,8 @@ def rollout_arrays(size: str, levels: int, steps: int, seed: int) -> tuple[dict[
 
     keys = jax.random.split(jax.random.PRNGKey(seed + 1), levels)
     states, actions, done = jax.device_get(jax.jit(jax.vmap(window))(level_batch, keys))
-    given = {ACTION: np.asarray(actions), DONE: np.asarray(done), **flatten_state(states)}
+    stored_states = zip((spec.name for spec in layout.state_fields), jax.tree.leaves(states), strict=True)
+    given = {ACTION: np.asarray(actions), DONE: np.asarray(done), **dict(stored_states)}
     arrays = {}
     for spec in layout.fields:
         if spec.name in given:

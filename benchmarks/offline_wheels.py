@@ -2,11 +2,11 @@
 
 Run here, where pip reaches a package index; carry the folder to the machine and install there without an index:
 
-    python benchmarks/offline_wheels.py --python-version 3.12 --out wheels
+    python -m benchmarks.offline_wheels --python-version 3.12 --out wheels
     # on the machine, from the repository's root:
     pip install --no-index --no-deps --target /tmp/kforge-site wheels/kforge/*.whl
     pip install --no-index --no-deps --target /tmp/kinetix-site wheels/kinetix/*.whl
-    PYTHONPATH=/tmp/kforge-site:. python benchmarks/accelerator.py --kinetix-site /tmp/kinetix-site > report.json
+    PYTHONPATH=/tmp/kforge-site:. python -m benchmarks.accelerator --kinetix-site /tmp/kinetix-site > report.json
 
 The machine is assumed to hold a CUDA image's scientific Python: jax with its CUDA plugin, flax, optax, chex,
 tensorstore, numpy, scipy, pandas, matplotlib, seaborn, pyyaml, tqdm, pillow, imageio, protobuf, rich, six and

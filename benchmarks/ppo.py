@@ -5,16 +5,16 @@ with configs/ppo_specialist.yaml's settings unless overridden (`--set key=value`
 every level over whole PPO updates (rollout, GAE, epochs of minibatch SGD), timed on an already compiled program;
 compile time is printed on its own. Measuring several level counts (`--levels 1 16`) shows what training levels together
 (vmapped) gains over training one. `--vs kinetix` runs benchmarks/kinetix_ppo_baseline.py (Kinetix's PPO loop with its
-5 x 128 network, one of its random levels) in the kinetix-env virtualenv that benchmarks/env.py builds, with our envs,
+5 x 128 network, one of its random levels) in the kinetix-env virtualenv of benchmarks/kinetix_venv.py, with our envs,
 rollout length, epochs and minibatches, so both sides collect and learn from the same number of samples per update; it
 prints the ratios. `--learner` also times the learner alone (`agents.learn`: one update's epochs of minibatch SGD, on a
 batch of one update's samples per level) alternately with the training call, and prints its share of the training time
 (the training call also plays its final evaluation). Wall time is the figure; process CPU seconds are printed beside it
 because a shared machine makes wall times noisy. `--json` prints one JSON document instead.
 
-    python benchmarks/ppo.py --vs kinetix
-    python benchmarks/ppo.py --sizes s --levels 1 8 --updates 2 --json
-    python benchmarks/ppo.py --sizes s m --levels 4 --learner --repeats 3
+    python -m benchmarks.ppo --vs kinetix
+    python -m benchmarks.ppo --sizes s --levels 1 8 --updates 2 --json
+    python -m benchmarks.ppo --sizes s m --levels 4 --learner --repeats 3
 """
 
 from __future__ import annotations
@@ -22,7 +22,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
-import os
 import subprocess
 import sys
 import time
@@ -31,15 +30,12 @@ from pathlib import Path
 import jax
 import yaml
 
-sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+from benchmarks.kinetix_venv import DEFAULT_KINETIX_VENV, REPOSITORY, baseline_command, kinetix_python
+from benchmarks.machine import describe_machine
+from benchmarks.timing import best_time, best_times_interleaved
+from kforge.agents import Batch, PPOConfig, initial_params, learn, make_optimizer, train_levels
+from kforge.env import MULTI_DISCRETE_SIZES, EnvParams, StaticEnvParams, observation_shape, sample_levels
 
-from benchmarks.env import DEFAULT_KINETIX_VENV, REPO_ROOT, kinetix_python  # noqa: E402
-from benchmarks.machine import describe_machine  # noqa: E402
-from benchmarks.timing import best_time, best_times_interleaved  # noqa: E402
-from kforge.agents import Batch, PPOConfig, initial_params, learn, make_optimizer, train_levels  # noqa: E402
-from kforge.env import MULTI_DISCRETE_SIZES, EnvParams, StaticEnvParams, observation_shape, sample_levels  # noqa: E402
-
-DEFAULT_CONFIG = REPO_ROOT / "configs" / "ppo_specialist.yaml"
 LEVEL_SEED = 0
 """Seed of the random levels: L levels are sampled from `jax.random.split(jax.random.key(LEVEL_SEED), L)`; Kinetix's
 side samples its level from `jax.random.key(LEVEL_SEED)` with its own sampler."""
@@ -54,9 +50,10 @@ TARGET_RATIO = 5.0
 """Issue #4: our training throughput should be at least this many times Kinetix's."""
 
 
-def load_ppo_config(path: Path, overrides: list[str], updates: int) -> PPOConfig:
-    """The YAML config with `key=value` overrides, its budget cut to `updates` updates per level."""
-    values = yaml.safe_load(Path(path).read_text())
+def load_ppo_config(path: Path | None, overrides: list[str], updates: int) -> PPOConfig:
+    """The YAML config (None: `PPOConfig`'s defaults, those of configs/ppo_specialist.yaml) with `key=value` overrides,
+    its budget cut to `updates` updates per level."""
+    values = dataclasses.asdict(PPOConfig()) if path is None else yaml.safe_load(Path(path).read_text())
     for item in overrides:
         key, separator, value = item.partition("=")
         if not separator:
@@ -160,9 +157,9 @@ def network_parameters(config: PPOConfig, static: StaticEnvParams) -> int:
 def measure_kinetix(python: Path, size: str, config: PPOConfig, args, environment: dict | None = None) -> dict:
     """Kinetix's PPO on one of its random levels of `size`, with our envs, rollout, epochs and minibatches (in
     `environment`, else this process's)."""
-    command = [
-        str(python),
-        str(REPO_ROOT / "benchmarks" / "kinetix_ppo_baseline.py"),
+    command = baseline_command(
+        python,
+        "kinetix_ppo_baseline",
         f"--size={size}",
         f"--num-envs={config.num_envs}",
         f"--num-steps={config.num_steps}",
@@ -171,10 +168,10 @@ def measure_kinetix(python: Path, size: str, config: PPOConfig, args, environmen
         f"--updates={args.updates}",
         f"--repeats={args.repeats}",
         f"--level-seed={LEVEL_SEED}",
-    ]
+    )
     if args.kinetix_network == "ours":
         command += [f"--width={config.hidden_size}", f"--depth={config.num_hidden_layers}"]
-    output = subprocess.run(command, check=True, capture_output=True, text=True, env=environment).stdout
+    output = subprocess.run(command, check=True, capture_output=True, text=True, env=environment, cwd=REPOSITORY).stdout
     return json.loads(output.strip().splitlines()[-1])
 
 
@@ -182,7 +179,11 @@ def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--sizes", nargs="+", default=["s", "m", "l"], choices=["s", "m", "l"])
     parser.add_argument("--levels", nargs="+", type=int, default=[1, 16], help="level counts L trained together")
-    parser.add_argument("--config", type=Path, default=DEFAULT_CONFIG, help="PPO settings (YAML of PPOConfig)")
+    parser.add_argument(
+        "--config",
+        type=Path,
+        help="PPO settings (YAML of PPOConfig; default: its defaults, configs/ppo_specialist.yaml)",
+    )
     parser.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE", help="PPOConfig overrides")
     parser.add_argument("--updates", type=int, default=4, help="PPO updates per level per timed call")
     parser.add_argument("--repeats", type=int, default=1, help="timed calls after a warm-up; the fastest is kept")

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 
 from kforge.engine import SceneBuilder, SimState, StaticSimParams
@@ -13,6 +15,8 @@ GRID_START_X_M, GRID_SPACING_X_M, GRID_START_Y_M, GRID_SPACING_Y_M, GRID_COLUMNS
 GRID_ROTATION_STEP_RAD = 0.1
 JITTER_M = 0.05
 THRUSTER_ANGLE_RAD = np.pi / 2
+DISTINCT_SCENES = 16
+"""Scenes with different jitter seeds, tiled to fill a batch (building thousands on the host is slow)."""
 
 
 def build_scene(size: str, seed: int) -> tuple[SimState, StaticSimParams]:
@@ -43,3 +47,12 @@ def build_scene(size: str, seed: int) -> tuple[SimState, StaticSimParams]:
     for t in range(static.num_thrusters):
         builder.add_thruster(bodies[t], centres[t], THRUSTER_ANGLE_RAD)
     return builder.build(), static
+
+
+def batched_scenes(size: str, batch: int) -> SimState:
+    """`batch` scenes: the first `DISTINCT_SCENES` jitter seeds, repeated in order, tiled on the host (one
+    concatenation of thousands of operands per field would compile for minutes at 65,536 scenes)."""
+    scenes = [build_scene(size, seed)[0] for seed in range(min(batch, DISTINCT_SCENES))]
+    stacked = jax.tree_util.tree_map(lambda *x: np.stack(x), *scenes)
+    in_order = np.arange(batch) % len(scenes)
+    return jax.tree_util.tree_map(lambda x: jnp.asarray(x[in_order]), stacked)

@@ -5,9 +5,16 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import enum
 
 from kforge.engine import DEFAULT_PHYSICS_SCHEME, PHYSICS_SCHEMES, SimParams, StaticSimParams
-from kforge.engine.params import LAW_FIELDS
+
+LAW_FIELDS: dict[str, type[enum.IntEnum]] = {
+    field.name: type(getattr(StaticSimParams(), field.name))
+    for field in dataclasses.fields(StaticSimParams)
+    if isinstance(getattr(StaticSimParams(), field.name), enum.IntEnum)
+}
+"""`StaticSimParams` law field -> its enum (the fields whose value is an enum)."""
 
 STATIC_SWITCHES = (*LAW_FIELDS, "swept_speculative_contacts")
 """`StaticSimParams` fields that `KEY=VALUE` also sets: the laws (VALUE an enum's number) and the swept contacts switch

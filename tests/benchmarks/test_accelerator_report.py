@@ -10,11 +10,12 @@ import pytest
 from benchmarks.accelerator import FULL, Budget, check_targets, kinetix_interpreter
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
-SCRIPT = REPO_ROOT / "benchmarks" / "accelerator.py"
+ACCELERATOR = [sys.executable, "-m", "benchmarks.accelerator"]
+"""The report's command, run from the top of the checkout."""
 
 
 def test_dry_run_prints_the_full_plan_without_measuring():
-    output = subprocess.run([sys.executable, str(SCRIPT), "--dry-run"], capture_output=True, text=True, check=True)
+    output = subprocess.run([*ACCELERATOR, "--dry-run"], capture_output=True, text=True, cwd=REPO_ROOT, check=True)
     plan = json.loads(output.stdout)
     assert plan["backend"] == "cpu"
     assert plan["plan"]["sizes"] == ["s", "m", "l"]
@@ -49,7 +50,7 @@ def test_a_budget_for_some_sections_gives_them_all_of_its_time():
 @pytest.mark.slow
 def test_quick_report_runs_every_section_on_the_cpu():
     output = subprocess.run(
-        [sys.executable, str(SCRIPT), "--quick", "--budget", "3000"], capture_output=True, text=True, check=True
+        [*ACCELERATOR, "--quick", "--budget", "3000"], capture_output=True, text=True, cwd=REPO_ROOT, check=True
     )
     report = json.loads(output.stdout)
     assert report["backend"] == "cpu"
@@ -86,7 +87,7 @@ def test_kinetix_ppo_runs_within_the_ppo_sections_budget():
 
 def test_dry_run_takes_the_determinism_batch():
     output = subprocess.run(
-        [sys.executable, str(SCRIPT), "--dry-run", "--determinism-batch", "4096"],
+        [*ACCELERATOR, "--dry-run", "--determinism-batch", "4096"],
         capture_output=True,
         text=True,
         check=True,
@@ -96,12 +97,12 @@ def test_dry_run_takes_the_determinism_batch():
 
 def test_dry_run_takes_the_engine_solver_loops_and_refuses_an_unknown_one():
     output = subprocess.run(
-        [sys.executable, str(SCRIPT), "--dry-run", "--engine-solver-loops", "looped"], capture_output=True, text=True
+        [*ACCELERATOR, "--dry-run", "--engine-solver-loops", "looped"], capture_output=True, text=True, cwd=REPO_ROOT
     )
     assert output.returncode == 0, output.stderr
     assert json.loads(output.stdout)["plan"]["engine_solver_loops"] == ["looped"]
     refused = subprocess.run(
-        [sys.executable, str(SCRIPT), "--dry-run", "--engine-solver-loops", "fast"], capture_output=True, text=True
+        [*ACCELERATOR, "--dry-run", "--engine-solver-loops", "fast"], capture_output=True, text=True, cwd=REPO_ROOT
     )
     assert refused.returncode == 2
     assert "argument --engine-solver-loops: invalid choice: 'fast'" in refused.stderr
@@ -125,8 +126,7 @@ def test_a_checkpoint_gets_the_report_after_every_figure(tmp_path):
     assert snapshots[-1] == report and snapshots[0]["targets"]["engine_vs_jax2d"] == {"s/8": None}
     output = subprocess.run(
         [
-            sys.executable,
-            str(SCRIPT),
+            *ACCELERATOR,
             "--quick",
             "--sections",
             "env",

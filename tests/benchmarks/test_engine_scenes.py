@@ -1,16 +1,15 @@
-"""The engine benchmark's batches: its distinct scenes repeated in order, field by field as built."""
+"""The benchmark scenes' batches: its distinct scenes repeated in order, field by field as built."""
 
 import jax
 import numpy as np
 
-from benchmarks.engine import DISTINCT_SCENES, _batched_states
-from benchmarks.scenes import build_scene
+from benchmarks.scenes import DISTINCT_SCENES, batched_scenes, build_scene
 
 BATCH = 2 * DISTINCT_SCENES + 3  # two whole repetitions and a part of a third
 
 
 def test_a_batch_repeats_the_distinct_scenes_in_order():
-    batch = _batched_states("s", BATCH)
+    batch = batched_scenes("s", BATCH)
     scenes = [build_scene("s", seed)[0] for seed in range(DISTINCT_SCENES)]
     for index in (0, 1, DISTINCT_SCENES - 1, DISTINCT_SCENES, BATCH - 1):
         expected = scenes[index % DISTINCT_SCENES]

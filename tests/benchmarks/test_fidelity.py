@@ -12,9 +12,9 @@ from pathlib import Path
 import pytest
 
 from benchmarks import fidelity
-from benchmarks.env import DEFAULT_KINETIX_VENV, kinetix_python
 from benchmarks.fidelity import KinetixStore, compare, summarize
 from benchmarks.kinetix_variants import parse_variant
+from benchmarks.kinetix_venv import DEFAULT_KINETIX_VENV, REPOSITORY, kinetix_python
 from kforge.env import bundled_level_path, load_level
 
 
@@ -27,8 +27,8 @@ def level(noop: str, success: int, failure: int) -> dict:
 
 
 def test_a_kinetix_virtualenv_named_relative_to_the_working_folder_is_found_from_any_folder(tmp_path, monkeypatch):
-    """Kinetix's side runs in benchmarks/, so a `--kinetix-venv` given relative to where the command was typed is
-    made absolute first (here a virtualenv whose python answers the import check)."""
+    """Kinetix's side runs from the top of the checkout, so a `--kinetix-venv` given relative to where the command was
+    typed is made absolute first (here a virtualenv whose python answers the import check)."""
     python = tmp_path / "kx" / "bin" / "python"
     python.parent.mkdir(parents=True)
     python.write_text("#!/bin/sh\nexit 0\n")
@@ -221,9 +221,8 @@ import jax2d.engine
 from jax2d.engine import create_empty_sim
 from jax2d.scene import add_circle_to_scene
 from jax2d.sim_state import SimParams, StaticSimParams
-sys.path.insert(0, sys.argv[1])
-if sys.argv[2] == "0":
-    from kinetix_fidelity_baseline import drop_padding_writes
+if sys.argv[1] == "0":
+    from benchmarks.kinetix_fidelity_baseline import drop_padding_writes
     drop_padding_writes()
 static = StaticSimParams(num_polygons=5, num_circles=2, num_joints=1, num_thrusters=1)
 state = create_empty_sim(static)
@@ -242,11 +241,10 @@ def test_kinetix_with_padding_writes_dropped_keeps_its_last_pairs_impulse():
     on another carries its weight through the pair, m g dt per step (m = pi r^2 at density 1), only once the
     padding writes are dropped."""
     python = kinetix_python(DEFAULT_KINETIX_VENV, print)
-    benchmarks = Path(fidelity.__file__).parent
     impulse = {}
     for writes in ("1", "0"):
         run = subprocess.run(
-            [str(python), "-c", STACKED_DISCS, str(benchmarks), writes], capture_output=True, text=True, check=True
+            [str(python), "-c", STACKED_DISCS, writes], capture_output=True, text=True, check=True, cwd=REPOSITORY
         )
         impulse[writes] = json.loads(run.stdout.splitlines()[-1])
     weight_per_step = math.pi * 0.5**2 * 9.81 / 60.0
@@ -261,12 +259,11 @@ import jax2d.engine
 from jax2d.engine import create_empty_sim
 from jax2d.scene import add_circle_to_scene
 from jax2d.sim_state import SimParams, StaticSimParams
-sys.path.insert(0, sys.argv[1])
-from kinetix_fidelity_baseline import with_exact_disc_inertia
+from benchmarks.kinetix_fidelity_baseline import with_exact_disc_inertia
 static = StaticSimParams(num_polygons=5, num_circles=2, num_joints=1, num_thrusters=1)
 state, _ = add_circle_to_scene(create_empty_sim(static), static, jnp.array([1.0, 0.4 + 0.5]), 0.5)  # on the floor
 state = state.replace(circle=state.circle.replace(velocity=state.circle.velocity.at[0].set(jnp.array([3.0, 0.0]))))
-if sys.argv[2] == "1":
+if sys.argv[1] == "1":
     state = with_exact_disc_inertia(state)
 step = jax.jit(jax2d.engine.PhysicsEngine(static).step)
 for _ in range(60):
@@ -280,10 +277,9 @@ def test_kinetix_with_exact_disc_inertia_rolls_a_sliding_disc_on_at_two_thirds_o
     """A disc sliding without spin onto a floor keeps its angular momentum about the contact point: it rolls on at
     v0 / (1 + I / (m r^2)), 2/3 of v0 for a uniform disc (the variant) and 4/5 with Jax2D's I = m r^2 / 4."""
     python = kinetix_python(DEFAULT_KINETIX_VENV, print)
-    benchmarks = Path(fidelity.__file__).parent
     for exact, share_of_v0 in (("0", 4 / 5), ("1", 2 / 3)):
         run = subprocess.run(
-            [str(python), "-c", SLIDING_DISC, str(benchmarks), exact], capture_output=True, text=True, check=True
+            [str(python), "-c", SLIDING_DISC, exact], capture_output=True, text=True, check=True, cwd=REPOSITORY
         )
         speed, spin = json.loads(run.stdout.splitlines()[-1])
         assert speed == pytest.approx(share_of_v0 * 3.0, rel=0.02)
@@ -296,9 +292,8 @@ import jax.numpy as jnp
 from jax2d.scene import add_circle_to_scene
 from kinetix.environment import ActionType, ObservationType, make_kinetix_env
 from kinetix.environment.utils import create_empty_env
-sys.path.insert(0, sys.argv[1])
-from kinetix_fidelity_baseline import variant_env_params
-params, static = variant_env_params("s", {"substeps": int(sys.argv[2])})
+from benchmarks.kinetix_fidelity_baseline import variant_env_params
+params, static = variant_env_params("s", {"substeps": int(sys.argv[1])})
 env = make_kinetix_env(ActionType.MULTI_DISCRETE, ObservationType.SYMBOLIC_FLAT, None, params, static, auto_reset=False)
 state, _ = add_circle_to_scene(create_empty_env(static), static, jnp.array([2.5, 3.0]), 0.1)
 no_op = jnp.zeros(static.num_joints + static.num_thrusters)
@@ -313,14 +308,14 @@ def test_kinetix_with_substeps_takes_that_many_shorter_physics_steps_per_env_ste
     Euler steps of dt/N. A disc falling from rest falls g (dt/N)^2 (2N)(2N + 1) / 2 in it: 3 g dt^2 as released,
     2.25 g dt^2 with 4 substeps; the env step counts once."""
     python = kinetix_python(DEFAULT_KINETIX_VENV, print)
-    benchmarks = Path(fidelity.__file__).parent
     dt = 1.0 / 60.0
     for substeps, share_of_g_dt2 in ((1, 3.0), (4, 2.25)):
         run = subprocess.run(
-            [str(python), "-c", FALLING_DISC, str(benchmarks), str(substeps)],
+            [str(python), "-c", FALLING_DISC, str(substeps)],
             capture_output=True,
             text=True,
             check=True,
+            cwd=REPOSITORY,
         )
         fall, timestep = json.loads(run.stdout.splitlines()[-1])
         assert fall == pytest.approx(share_of_g_dt2 * 9.81 * dt**2, rel=1e-4)

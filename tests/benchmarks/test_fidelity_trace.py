@@ -130,7 +130,7 @@ def test_kinetixs_state_at_a_step_is_where_its_trace_was_and_ours_loads_it_there
     """The state that Kinetix writes after 12 random env steps of s/h3_point_the_thruster is, loaded by ours, where
     Kinetix's own trace had every shape after those 12 steps; and Kinetix going on from that file plays the next step
     as its trace did (up to the warm-starting impulses, which a level file keeps)."""
-    from benchmarks.env import DEFAULT_KINETIX_VENV, kinetix_python
+    from benchmarks.kinetix_venv import DEFAULT_KINETIX_VENV, kinetix_python
 
     python = kinetix_python(DEFAULT_KINETIX_VENV, print)
     path = bundled_level_path("s/h3_point_the_thruster")

@@ -1,6 +1,6 @@
 """`KEY=VALUE` physics switches of the benchmarks: parsed against SimParams and StaticSimParams' laws with one-line
 errors, each applied where it belongs, and timed side by
-side with the defaults by `benchmarks/engine.py --vs-sim` (and other solver counts by `--vs-substeps`,
+side with the defaults by `python -m benchmarks.engine_speed --vs-sim` (and other solver counts by `--vs-substeps`,
 `--vs-iterations`, `--vs-relax-iterations`)."""
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ import json
 
 import pytest
 
-from benchmarks import engine as engine_benchmark
+from benchmarks import engine_speed
 from benchmarks.sim_overrides import sim_override, with_sim_overrides
 from kforge.engine import ContactLaw, SimParams, StaticSimParams
 
@@ -45,7 +45,7 @@ def test_a_bad_switch_is_refused_naming_the_problem(text, message):
 
 def test_the_engine_benchmark_refuses_an_unknown_field_on_its_command_line(capsys):
     with pytest.raises(SystemExit):
-        engine_benchmark.main(["--vs-sim", "no_such_field=1"])
+        engine_speed.main(["--vs-sim", "no_such_field=1"])
     assert "'no_such_field' is neither a SimParams field nor a law" in capsys.readouterr().err
 
 
@@ -60,13 +60,13 @@ def test_the_engine_benchmark_refuses_an_unknown_field_on_its_command_line(capsy
 )
 def test_the_engine_benchmark_refuses_a_solver_count_below_its_least_or_not_a_number(capsys, option, value, message):
     with pytest.raises(SystemExit):
-        engine_benchmark.main([option, value])
+        engine_speed.main([option, value])
     assert message in capsys.readouterr().err
 
 
 @pytest.mark.slow  # compiles the s step twice: about 40 s on 2 cores
 def test_the_engine_benchmark_times_another_substep_count_beside_the_default(capsys):
-    engine_benchmark.main(
+    engine_speed.main(
         ["--sizes", "s", "--batches", "2", "--steps", "2", "--repeats", "1", "--vs-substeps", "1", "--json"]
     )
     captured = capsys.readouterr()
@@ -80,7 +80,7 @@ def test_the_engine_benchmark_times_another_substep_count_beside_the_default(cap
 
 @pytest.mark.slow  # compiles the s step twice: about 40 s on 2 cores
 def test_the_engine_benchmark_times_a_switched_option_beside_the_default(capsys):
-    engine_benchmark.main(
+    engine_speed.main(
         ["--sizes", "s", "--batches", "2", "--steps", "2", "--repeats", "1"]
         + ["--vs-sim", "swept_speculative_contacts=0", "--json"]
     )

@@ -1,7 +1,7 @@
 """Slow: Kinetix's own code (kinetix-env 3.0.2 from PyPI, in its own virtualenv) reads a `kforge export`, renders it,
 and writes a shard our importer reads back.
 
-The virtualenv is the one `benchmarks/env.py --vs kinetix` builds (`.venv-kinetix`, built on first use: a few minutes
+The virtualenv is the one `benchmarks/kinetix_venv.py` builds (`.venv-kinetix`, built on first use: a few minutes
 and network access to PyPI); set KFORGE_KINETIX_VENV to an existing one to skip that, e.g.
 
     KFORGE_KINETIX_VENV=path/to/kinetix-venv python -m pytest tests/pipeline/test_kinetix_offline_compat.py -m slow -q
@@ -21,7 +21,7 @@ import jax
 import numpy as np
 import pytest
 
-from benchmarks.env import DEFAULT_KINETIX_VENV, kinetix_python
+from benchmarks.kinetix_venv import DEFAULT_KINETIX_VENV, kinetix_python
 from kforge.env import bundled_level_path, initial_state, list_levels, load_level
 from kforge.pipeline.kinetix.export import export_kinetix, kept_trajectories
 from kforge.pipeline.kinetix.importer import load_kinetix_levels

@@ -17,13 +17,13 @@ batch. Method (`benchmarks.kernels`): compile the vmapped step with `jax.jit(...
 in the optimized HLO, the instructions that do work (fusions, custom calls, unfused operations) in the entry
 computation, with `while` bodies multiplied by XLA's `known_trip_count`.
 
-    python benchmarks/engine.py --vs jax2d
-    python benchmarks/engine.py --sizes s --batches 256 --json
-    python benchmarks/engine.py --kernels --batches 1 256
-    python benchmarks/engine.py --sizes s m l --batches 256 --vs-physics kinetix --vs jax2d --json
-    python benchmarks/engine.py --sizes s --batches 256 --repeats 7 --vs-sim swept_speculative_contacts=0
-    python benchmarks/engine.py --sizes s m --batches 1 256 --repeats 15 --vs-substeps 2
-    python benchmarks/engine.py --sizes s m l --batches 1 256 --repeats 9 --vs-substeps 1 --vs-iterations 10 \
+    python -m benchmarks.engine_speed --vs jax2d
+    python -m benchmarks.engine_speed --sizes s --batches 256 --json
+    python -m benchmarks.engine_speed --kernels --batches 1 256
+    python -m benchmarks.engine_speed --sizes s m l --batches 256 --vs-physics kinetix --vs jax2d --json
+    python -m benchmarks.engine_speed --sizes s --batches 256 --repeats 7 --vs-sim swept_speculative_contacts=0
+    python -m benchmarks.engine_speed --sizes s m --batches 1 256 --repeats 15 --vs-substeps 2
+    python -m benchmarks.engine_speed --sizes s m l --batches 1 256 --repeats 9 --vs-substeps 1 --vs-iterations 10 \
         --vs-relax-iterations 0 --vs-sim contact_law=1 --vs-sim force_timing=1 --vs-sim speculative_distance=0 \
         --vs-sim overlap_allowance=1
 
@@ -38,43 +38,27 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
-import os
 import sys
 import time
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 
-sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-
-from benchmarks.kernels import count_kernels  # noqa: E402
-from benchmarks.machine import describe_machine  # noqa: E402
-from benchmarks.scenes import build_scene  # noqa: E402
-from benchmarks.sim_overrides import (  # noqa: E402
+from benchmarks.kernels import count_kernels
+from benchmarks.machine import describe_machine
+from benchmarks.scenes import batched_scenes, build_scene
+from benchmarks.sim_overrides import (
     sim_override,
     solver_count_errors,
     with_sim_overrides,
     with_solver_scheme,
 )
-from benchmarks.timing import best_time, best_times_interleaved  # noqa: E402
-from kforge.engine import DEFAULT_PHYSICS_SCHEME, PHYSICS_SCHEMES, Batching, SimParams, physics_scheme, step  # noqa: E402
-
-DISTINCT_SCENES = 16
-"""Scenes with different jitter seeds, tiled to fill a batch (building thousands on the host is slow)."""
+from benchmarks.timing import best_time, best_times_interleaved
+from kforge.engine import DEFAULT_PHYSICS_SCHEME, PHYSICS_SCHEMES, Batching, SimParams, physics_scheme, step
 
 GPU_BATCHES = (4096, 16384, 65536)
 JAX2D_PUBLISHED_PEAK_STEPS_PER_SECOND = {"s": 2e7, "m": 9e6, "l": 1.7e6}
 """Jax2D README plots (hardware not stated), for comparison when a GPU is present."""
-
-
-def _batched_states(size: str, batch: int):
-    """`batch` scenes: the first `DISTINCT_SCENES` jitter seeds, repeated in order, tiled on the host (one
-    concatenation of thousands of operands per field would compile for minutes at 65,536 scenes)."""
-    scenes = [build_scene(size, seed)[0] for seed in range(min(batch, DISTINCT_SCENES))]
-    stacked = jax.tree_util.tree_map(lambda *x: np.stack(x), *scenes)
-    in_order = np.arange(batch) % len(scenes)
-    return jax.tree_util.tree_map(lambda x: jnp.asarray(x[in_order]), stacked)
 
 
 SCHEME_FIELDS = ("substeps", "iterations", "relax_iterations")
@@ -98,7 +82,7 @@ def compile_rollout_ours(
     """`call()` running `n_steps` vmapped steps inside one compiled scan (motors at +1, thrusters on) under
     `scheme_params`, its `SimParams` compiled in as constants."""
     params, static = scheme_params(size, physics, overrides, scheme, batching)
-    states = _batched_states(size, batch)
+    states = batched_scenes(size, batch)
     motors, thrusters = jnp.ones(static.num_joints), jnp.ones(static.num_thrusters)
     batched = jax.vmap(lambda s: step(s, params, motors, thrusters, static=static)[0])
 
@@ -228,7 +212,7 @@ def physics_step_kernels(
     params, static = scheme_params(size, physics, batching=batching)
     motors, thrusters = jnp.ones(static.num_joints), jnp.ones(static.num_thrusters)
     one_step = jax.vmap(lambda s: step(s, params, motors, thrusters, static=static)[0])
-    return _known(count_kernels(one_step, _batched_states(size, batch)))
+    return _known(count_kernels(one_step, batched_scenes(size, batch)))
 
 
 def env_step_kernels(
@@ -236,17 +220,15 @@ def env_step_kernels(
 ) -> int:
     """Kernels one vmapped env step of ours (step, auto-reset and observation) runs at `batch` levels under the named
     physics scheme and `batching` (default: the engine's "auto")."""
-    from benchmarks.env import _env_step
-    from kforge.env import EnvParams, StaticEnvParams, reset, under_scheme
-    from kforge.env.actions import MULTI_DISCRETE_SIZES
-    from kforge.env.sampler import sample_levels
+    from benchmarks.env_speed import observed_env_step
+    from kforge.env import MULTI_DISCRETE_SIZES, EnvParams, StaticEnvParams, reset, sample_levels, under_scheme
 
     params, static = under_scheme(physics_scheme(physics), EnvParams(), StaticEnvParams.for_size(size))
     if batching is not None:
         static = dataclasses.replace(static, sim=dataclasses.replace(static.sim, batching=batching))
     levels = jax.jit(lambda keys: sample_levels(keys, static))(jax.random.split(jax.random.key(1), batch))
     actions = jnp.zeros((batch, len(MULTI_DISCRETE_SIZES)), jnp.int32)
-    return _known(count_kernels(jax.vmap(_env_step(static, params)), jax.vmap(reset)(levels), actions, levels))
+    return _known(count_kernels(jax.vmap(observed_env_step(static, params)), jax.vmap(reset)(levels), actions, levels))
 
 
 def jax2d_physics_step_kernels(size: str, batch: int) -> int:

@@ -10,12 +10,12 @@ every worker count wrote the same data.
 server (moto) on 127.0.0.1: transitions written per second and the loader's read rate from S3 against a local
 folder, with and without prefetch (benchmarks/object_storage.py). `--cost` measures what a dataset costs instead:
 kept levels and transitions per machine-hour of split 1M/s at its release budget, fixed and adaptive expert budgets
-side by side, against Kinetix's PPO measured in the same run (benchmarks/cost.py).
+side by side, against Kinetix's PPO measured in the same run (benchmarks/pipeline_cost.py).
 
-    python benchmarks/pipeline.py
-    python benchmarks/pipeline.py --sizes s --levels 32 --workers 1 2 --json
-    python benchmarks/pipeline.py --storage s3 --sizes s --levels-per-batch 8 --batches-per-shard 4
-    python benchmarks/pipeline.py --cost --levels 16 --levels-per-batch 4 --json
+    python -m benchmarks.pipeline_speed
+    python -m benchmarks.pipeline_speed --sizes s --levels 32 --workers 1 2 --json
+    python -m benchmarks.pipeline_speed --storage s3 --sizes s --levels-per-batch 8 --batches-per-shard 4
+    python -m benchmarks.pipeline_speed --cost --levels 16 --levels-per-batch 4 --json
 """
 
 from __future__ import annotations
@@ -24,7 +24,6 @@ import argparse
 import contextlib
 import functools
 import json
-import os
 import sys
 import tempfile
 import time
@@ -32,16 +31,11 @@ from pathlib import Path
 
 import jax
 
-sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-
-from benchmarks import cost  # noqa: E402
-from benchmarks.machine import describe_machine  # noqa: E402
-from kforge.pipeline.generation.config import load_config  # noqa: E402
-from kforge.pipeline.generation.run import run_job  # noqa: E402
-from kforge.pipeline.reading.loader import TrajectoryDatasetManager  # noqa: E402
-from kforge.pipeline.storage.layout import STATE_PREFIX  # noqa: E402
-from kforge.pipeline.storage.manifest import iter_records  # noqa: E402
-from kforge.pipeline.storage.shard_store import DATA_DIR, open_dataset  # noqa: E402
+from benchmarks import pipeline_cost
+from benchmarks.machine import describe_machine
+from kforge.pipeline.generation import load_config, run_job
+from kforge.pipeline.reading import TrajectoryDatasetManager
+from kforge.pipeline.storage import DATA_DIR, STATE_PREFIX, iter_records, open_dataset
 
 KINETIX_OFFLINE_BYTES_PER_TRANSITION = {"s": 80.4, "m": 110.9, "l": 306.0}
 """Kinetix-Offline 1M splits: bytes on disk per transition (GB = 1e9), docs/kinetix.md, released splits."""
@@ -254,7 +248,7 @@ def main(argv=None) -> None:
     parser.add_argument(
         "--keep",
         type=Path,
-        help="write the datasets to DIR/<size>-<workers>w and keep them (e.g. for benchmarks/storage.py); "
+        help="write the datasets to DIR/<size>-<workers>w and keep them (e.g. for benchmarks/storage_codings.py); "
         "each must not exist yet",
     )
     parser.add_argument("--json", action="store_true", help="print one JSON document")
@@ -267,13 +261,13 @@ def main(argv=None) -> None:
     )
     parser.add_argument("--window-steps", type=int, default=256, help="--storage s3: steps per trajectory")
     parser.add_argument("--prefetch", type=int, default=2, help="--storage s3: loader prefetch depth compared with 0")
-    cost.add_arguments(parser)
+    pipeline_cost.add_arguments(parser)
     args = parser.parse_args(argv)
     if args.cost:
         log = functools.partial(print, file=sys.stderr, flush=True) if args.json else print  # progress, figures
         with contextlib.ExitStack() as stack:
             scratch = args.keep or Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="kforge-cost-")))
-            report = cost.run_cost(args, scratch, log) | {"machine": describe_machine()}
+            report = pipeline_cost.run_cost(args, scratch, log) | {"machine": describe_machine()}
         if args.json:
             print(json.dumps(report, indent=1))
         return

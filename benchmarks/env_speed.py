@@ -6,15 +6,14 @@ compile times. `--vs kinetix` builds (once) a separate virtualenv holding kineti
 jax and zarr, so it cannot share ours — runs benchmarks/kinetix_env_baseline.py there, and prints ratios.
 `--json` prints one JSON document instead.
 
-    python benchmarks/env.py --vs kinetix
-    python benchmarks/env.py --sizes s --batches 256 --json
+    python -m benchmarks.env_speed --vs kinetix
+    python -m benchmarks.env_speed --sizes s --batches 256 --json
 """
 
 from __future__ import annotations
 
 import argparse
 import json
-import os
 import subprocess
 import sys
 import time
@@ -23,18 +22,20 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 
-sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+from benchmarks.kinetix_venv import DEFAULT_KINETIX_VENV, REPOSITORY, baseline_command, kinetix_python
+from benchmarks.machine import describe_machine
+from benchmarks.timing import best_time
+from kforge.env import (
+    MULTI_DISCRETE_SIZES,
+    EnvParams,
+    ObservationType,
+    StaticEnvParams,
+    observe,
+    reset,
+    sample_levels,
+    step,
+)
 
-from benchmarks.machine import describe_machine  # noqa: E402
-from benchmarks.timing import best_time  # noqa: E402
-from kforge.env import EnvParams, StaticEnvParams, reset, step  # noqa: E402
-from kforge.env.actions import MULTI_DISCRETE_SIZES  # noqa: E402
-from kforge.env.observations import ObservationType, observe  # noqa: E402
-from kforge.env.sampler import sample_levels  # noqa: E402
-
-REPO_ROOT = Path(__file__).resolve().parents[1]
-KINETIX_REQUIREMENT = "kinetix-env==3.0.2"
-DEFAULT_KINETIX_VENV = REPO_ROOT / ".venv-kinetix"
 SAMPLER_BATCH = 4096
 """Levels per timed sampler call (ours)."""
 
@@ -53,7 +54,9 @@ def measure_sampler(size: str, batch: int, repeats: int) -> dict:
     return {"size": size, "batch": batch, "levels_per_second": batch / seconds, "compile_seconds": compile_seconds}
 
 
-def _env_step(static: StaticEnvParams, params: EnvParams):
+def observed_env_step(static: StaticEnvParams, params: EnvParams):
+    """(state, action, level) -> (symbolic flat observation, state, step result): one env step as a policy sees it."""
+
     def env_step(state, action, level):
         state, result = step(state, action, level, params, static)
         return observe(state, static, ObservationType.SYMBOLIC_FLAT), state, result
@@ -64,7 +67,7 @@ def _env_step(static: StaticEnvParams, params: EnvParams):
 def measure_steps(size: str, batch: int, n_steps: int, repeats: int) -> dict:
     static, params = StaticEnvParams.for_size(size), EnvParams()
     levels = jax.jit(lambda keys: sample_levels(keys, static))(jax.random.split(jax.random.key(1), batch))
-    env_step = jax.vmap(_env_step(static, params))
+    env_step = jax.vmap(observed_env_step(static, params))
     sizes = jnp.asarray(MULTI_DISCRETE_SIZES)
 
     def rollout(key):
@@ -97,7 +100,7 @@ def compile_single_step(size: str) -> float:
     level = jax.tree.map(lambda x: x[0], level)
     action = jnp.zeros(len(MULTI_DISCRETE_SIZES), jnp.int32)
     start = time.perf_counter()
-    jax.jit(_env_step(static, params)).lower(reset(level), action, level).compile()
+    jax.jit(observed_env_step(static, params)).lower(reset(level), action, level).compile()
     return time.perf_counter() - start
 
 
@@ -119,25 +122,11 @@ def measure_ours(sizes, batches, n_steps: int, repeats: int, log) -> dict:
     return report
 
 
-def kinetix_python(venv: Path, log) -> Path:
-    """The virtualenv's python, as an absolute path (Kinetix's side runs in another folder), creating the virtualenv
-    with kinetix-env first if needed."""
-    venv = venv.absolute()
-    python = venv / "bin" / "python"
-    check = [str(python), "-c", "import kinetix.environment"]
-    if python.exists() and subprocess.run(check, capture_output=True).returncode == 0:
-        return python
-    log(f"building {venv} with {KINETIX_REQUIREMENT} (once; a few minutes)")
-    subprocess.run([sys.executable, "-m", "venv", str(venv)], check=True)
-    subprocess.run([str(python), "-m", "pip", "install", "--quiet", KINETIX_REQUIREMENT], check=True)
-    return python
-
-
 def measure_kinetix(venv: Path, sizes, batches, n_steps: int, repeats: int, log) -> dict:
     python = kinetix_python(venv, log)
-    command = [
-        str(python),
-        str(REPO_ROOT / "benchmarks" / "kinetix_env_baseline.py"),
+    command = baseline_command(
+        python,
+        "kinetix_env_baseline",
         "--sizes",
         *sizes,
         "--batches",
@@ -148,9 +137,9 @@ def measure_kinetix(venv: Path, sizes, batches, n_steps: int, repeats: int, log)
         str(repeats),
         "--sampler-batch",
         *(f"{size}={count}" for size, count in KINETIX_SAMPLER_BATCH.items()),
-    ]
+    )
     log("running Kinetix in its own virtualenv (its compiles take minutes)")
-    output = subprocess.run(command, check=True, capture_output=True, text=True).stdout
+    output = subprocess.run(command, check=True, capture_output=True, text=True, cwd=REPOSITORY).stdout
     return json.loads(output.strip().splitlines()[-1])["sizes"]
 
 

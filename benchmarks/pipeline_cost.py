@@ -12,7 +12,7 @@ filter keeps; its kept levels are taken to be the fixed mode's (the same experts
 the machine time per kept level.
 A level counts as solved when its expert's stored window succeeded (kept).
 
-    python benchmarks/pipeline.py --cost --levels 16 --levels-per-batch 4 --json
+    python -m benchmarks.pipeline_speed --cost --levels 16 --levels-per-batch 4 --json
 """
 
 from __future__ import annotations
@@ -20,10 +20,9 @@ from __future__ import annotations
 import types
 from pathlib import Path
 
-from benchmarks.env import DEFAULT_KINETIX_VENV, kinetix_python
+from benchmarks.kinetix_venv import DEFAULT_KINETIX_VENV, kinetix_python
 from benchmarks.ppo import measure_kinetix
-from kforge.pipeline.generation.config import load_config, ppo_config
-from kforge.pipeline.generation.run import run_job
+from kforge.pipeline.generation import load_config, ppo_config, run_job
 from kforge.pipeline.storage import Outcome, iter_records
 
 RELEASE_SPLIT = "1M/s"
@@ -193,7 +192,7 @@ def _line(run: dict) -> str:
 
 
 def add_arguments(parser) -> None:
-    """The cost mode's options of benchmarks/pipeline.py."""
+    """The cost mode's options of benchmarks/pipeline_speed.py."""
     parser.add_argument("--cost", action="store_true", help="kept levels per machine-hour of 1M/s, fixed vs adaptive")
     parser.add_argument(
         "--set", nargs="*", default=[], metavar="KEY=VALUE", help="--cost: config overrides for both modes"

@@ -16,7 +16,7 @@ as the shard files do (payload only: no chunk index, checksum or per-level field
 and the share of the per-step state taken by the solver's warm-start caches (contact and joint impulses, contact
 feature ids), which no observation reads but a bit-exact restart needs. `--json` prints one JSON document.
 
-    python benchmarks/storage.py outputs/1M-s-tiny
+    python -m benchmarks.storage_codings outputs/1M-s-tiny
 """
 
 from __future__ import annotations
@@ -24,19 +24,13 @@ from __future__ import annotations
 import argparse
 import json
 import lzma
-import os
-import sys
 from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 from numcodecs import Blosc
 
-sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-
-from kforge.pipeline.storage.layout import DONE, VALID  # noqa: E402
-from kforge.pipeline.storage.shard_store import BLOSC_LEVEL, DATA_DIR, open_dataset  # noqa: E402
-from kforge.pipeline.storage.state_codec import encode, is_coded  # noqa: E402
+from kforge.pipeline.storage import BLOSC_LEVEL, DATA_DIR, DONE, VALID, encode, is_coded, open_dataset
 
 
 def _blosc(level: int = BLOSC_LEVEL, shuffle: int = Blosc.SHUFFLE) -> Callable[[np.ndarray], int]:
