@@ -10,6 +10,7 @@ the batch spread over them when their count divides it (`pipeline.generation.dev
 from __future__ import annotations
 
 import enum
+import functools
 import threading
 import time
 from collections.abc import Callable
@@ -20,7 +21,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from kforge.agents import collect_windows, initial_params, train_levels
+from kforge.agents import EVALUATE, START, collect_windows, initial_params, stage_functions, train_in_stages
 from kforge.env import FilterReason, Level, filter_levels, sample_levels
 from kforge.pipeline.generation.devices import over_local_devices
 from kforge.pipeline.generation.estimated_progress import ProgressListener, estimated_progress
@@ -74,10 +75,25 @@ def sample_and_filter(job: JobConfig, indices: np.ndarray):
 
 def filter_batch(job: JobConfig, levels: Level):
     """(the filter's verdicts, (L,) bool dropped by the filter) of a level batch's levels."""
-    params, static = environment(job)
-    filtered = jax.device_get(filter_levels(levels, params, static, noop_steps=job.filter.noop_steps))
+    filtered = jax.device_get(_compiling_filter_program(job, levels).result()(levels, environment(job)[0]))
     dropped = ~filtered.keep if job.filter.enabled else np.zeros_like(filtered.keep)
     return filtered, dropped
+
+
+def _compiling_filter_program(job: JobConfig, levels: Level) -> Future:
+    """The future of `env.filter_levels` as one program for the job's level batches of this size: traced here
+    (`levels` may be abstract) and compiled in a thread of its own, once per process."""
+    env_params, static = environment(job)
+    program = (static, job.filter.noop_steps, jax.tree.structure(levels), jax.tree.leaves(levels)[0].shape[0])
+    compiling = _filter_programs.get(program)
+    if compiling is None or (compiling.done() and compiling.exception() is not None):
+        verdicts = functools.partial(filter_levels, static=static, noop_steps=job.filter.noop_steps)
+        lowered = jax.jit(verdicts).lower(levels, env_params)
+        compiling = _filter_programs[program] = _in_background(lowered.compile, "compile-filter")
+    return compiling
+
+
+_filter_programs: dict[tuple, Future] = {}
 
 
 def run_level_batch(
@@ -91,19 +107,21 @@ def run_level_batch(
     train (from another thread; `estimated_progress`), and all of them once trained.
     """
     clock = PhaseClock()
-    params, _ = environment(job)
+    params = environment(job)[0]
     indices = batch_level_indices(job, shard, batch)
     config = ppo_config(job)
     train_keys = level_keys(job.split.seed, indices, KeyPurpose.TRAIN)
     compiling_train = _compiling_train_program(job, indices, train_keys)
+    abstract_levels = jax.eval_shape(lambda: sample_batch(job, indices))
+    _compiling_filter_program(job, abstract_levels)
+    _compiling_collect_program(job, abstract_levels, level_keys(job.split.seed, indices, KeyPurpose.COLLECT))
     levels = sample_batch(job, indices)
     filtered, dropped = filter_batch(job, levels)
-    _compiled_collect_program(job, levels, level_keys(job.split.seed, indices, KeyPurpose.COLLECT))
     clock.lap("sample_and_filter")
 
-    train = compiling_train.result()
-    with estimated_progress(train, config.num_updates, on_progress or _ignore_progress):
-        trained = jax.block_until_ready(train(levels, train_keys, params))
+    stages = {name: compiling.result() for name, compiling in compiling_train.items()}
+    with estimated_progress(_program_key(job, len(indices)), config.num_updates, on_progress or _ignore_progress):
+        trained = jax.block_until_ready(train_in_stages(stages, levels, train_keys, params, config))
     clock.lap("train")
     metrics, selection = jax.device_get((trained.metrics, trained.selection))
     experts = Experts(
@@ -166,30 +184,40 @@ def batch_result(
     )
 
 
-def _compiling_train_program(job: JobConfig, indices: np.ndarray, keys: jax.Array) -> Future:
-    """The future of `train_levels` for the job's level batches of this size, spread over the local devices:
-    compiled (or loaded from the persistent compilation cache) once per config and level count in a process.
-    It is traced here, before the batch is sampled (tracing is Python: it holds the GIL), and compiled in a thread
-    of its own while the calling thread samples and filters the batch and compiles its collection program (XLA
-    compiles without holding the GIL: on two cores, the longest compilation, the training program's, has a core
-    to itself)."""
+def _compiling_train_program(job: JobConfig, indices: np.ndarray, keys: jax.Array) -> dict[str, Future]:
+    """The futures of the training stages (`agents.stage_functions`) for the job's level batches of this size, spread
+    over the local devices: compiled (or loaded from the persistent compilation cache) once per config and level
+    count in a process. Each is traced here, before the batch is sampled (tracing is Python: it holds the GIL), the
+    largest first, and compiled in a thread of its own while the calling thread traces the next stage and the
+    collection program, and samples and filters the batch (XLA compiles without holding the GIL: the stages'
+    compilations, the rollout's physics apart from the evaluation's, share the cores)."""
     env_params, static = environment(job)
     config = ppo_config(job)
-    program = (config, static, len(keys))
+    program = _program_key(job, len(keys))
     compiling = _train_programs.get(program)
-    if compiling is None or (compiling.done() and compiling.exception() is not None):
-
-        def train(levels, keys, env_params):
-            return train_levels(levels, keys, config, env_params, static)
-
+    if compiling is None or any(future.done() and future.exception() is not None for future in compiling.values()):
+        stages = stage_functions(config, static)
         levels = jax.eval_shape(lambda: sample_batch(job, indices))
-        spread = over_local_devices(train, len(keys), level_args=2, shared_args=1)
-        lowered = jax.jit(spread).lower(levels, keys, env_params)
-        compiling = _train_programs[program] = _in_background(lowered.compile, "compile-train")
+        training = jax.eval_shape(stages[START], levels, keys)
+        scalar = jax.ShapeDtypeStruct((), jnp.int32)
+        shared = {START: (), EVALUATE: (env_params, scalar, scalar)}
+        compiling = {}
+        for name in sorted(stages, key=lambda name: (name in (EVALUATE, START), name == START)):
+            level_args = (levels, keys) if name == START else (levels, training)
+            arguments = shared.get(name, (env_params,))
+            spread = over_local_devices(stages[name], len(keys), level_args=2, shared_args=len(arguments))
+            lowered = jax.jit(spread).lower(*level_args, *arguments)
+            compiling[name] = _in_background(lowered.compile, f"compile-{name}")
+        _train_programs[program] = compiling
     return compiling
 
 
-_train_programs: dict[tuple, Future] = {}
+def _program_key(job: JobConfig, num_levels: int) -> tuple:
+    """What the training stages of a level batch of `num_levels` levels are compiled for."""
+    return (ppo_config(job), environment(job)[1], num_levels)
+
+
+_train_programs: dict[tuple, dict[str, Future]] = {}
 
 
 def _in_background(function: Callable[[], object], name: str) -> Future:
@@ -208,18 +236,26 @@ def _in_background(function: Callable[[], object], name: str) -> Future:
 
 def _compiled_collect_program(job: JobConfig, levels: Level, keys: jax.Array) -> jax.stages.Compiled:
     """`_collect_program` for this job and level count, compiled (or loaded from the persistent compilation cache)
-    once per process, before any expert is trained (the experts' parameters have the shapes of fresh ones)."""
+    once per process (`_compiling_collect_program`)."""
+    return _compiling_collect_program(job, levels, keys).result()
+
+
+def _compiling_collect_program(job: JobConfig, levels: Level, keys: jax.Array) -> Future:
+    """The future of `_compiled_collect_program`: traced here (`levels` may be abstract: the experts' parameters have
+    the shapes of fresh ones, so nothing needs to be trained first) and compiled in a thread of its own, so that it
+    compiles beside the training stages and while the experts train."""
     env_params, static = environment(job)
     config = ppo_config(job)
     program = (config, static, len(keys), job.collect.window_steps, job.collect.greedy)
-    if program not in _collect_programs:
+    compiling = _collect_programs.get(program)
+    if compiling is None or (compiling.done() and compiling.exception() is not None):
         params = jax.eval_shape(jax.vmap(lambda key: initial_params(key, config, static)), keys)
         lowered = jax.jit(_collect_program(*program)).lower(params, levels, keys, env_params)
-        _collect_programs[program] = lowered.compile()
-    return _collect_programs[program]
+        compiling = _collect_programs[program] = _in_background(lowered.compile, "compile-collect")
+    return compiling
 
 
-_collect_programs: dict[tuple, jax.stages.Compiled] = {}
+_collect_programs: dict[tuple, Future] = {}
 
 
 def windows_successful(job: JobConfig, params, levels: Level, indices: np.ndarray) -> np.ndarray:
@@ -229,7 +265,7 @@ def windows_successful(job: JobConfig, params, levels: Level, indices: np.ndarra
 
 
 def _windows(job: JobConfig, params, levels: Level, indices: np.ndarray):
-    env_params, _ = environment(job)
+    env_params = environment(job)[0]
     keys = level_keys(job.split.seed, indices, KeyPurpose.COLLECT)
     return _compiled_collect_program(job, levels, keys)(params, levels, keys, env_params)
 
