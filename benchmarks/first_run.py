@@ -1,16 +1,17 @@
 """The quickstart's first run beside a base commit's: wall seconds of `kforge run 1M/s --scale tiny` with a cold and
 with a warm compilation cache.
 
-Each run is a fresh process (`python -m kforge run 1M/s --scale tiny`, the quickstart's command) writing into a
-fresh output folder. A round runs, for each tree, the first run with an empty `compile_cache.dir` and then the second
-run on the cache the first one filled; the base tree and the measured tree alternate (base first in odd rounds,
-second in even ones), so a change in the machine's load falls on both. A tree's packages shadow the installed ones
-through PYTHONPATH (the embedded Ray worker inherits it; checked before the runs: `pipeline` loads from the tree).
+Each run is a fresh process (`python -m kforge run 1M/s --scale tiny`, the quickstart's command; `python -m pipeline`
+in a tree from before the `kforge` namespace, which has no kforge/ package) writing into a fresh output folder. A
+round runs, for each tree, the first run with an empty `compile_cache.dir` and then the second run on the cache the
+first one filled; the base tree and the measured tree alternate (base first in odd rounds, second in even ones), so a
+change in the machine's load falls on both. A tree's packages shadow the installed ones through PYTHONPATH (the
+embedded Ray worker inherits it; checked before the runs: the command line's package loads from the tree).
 Prints the seconds of every run with a digest of the records it committed, the median per tree and run, and the
 ratios measured / base; `--json PATH` writes them with the command, both commits and the machine.
 
-    python benchmarks/first_run.py --base 64225c5
-    python benchmarks/first_run.py --base-tree ../kforge-base --rounds 2 \
+    python -m benchmarks.first_run --base 64225c5
+    python -m benchmarks.first_run --base-tree ../kforge-base --rounds 2 \
         --json benchmarks/results/quickstart_first_run.json
 """
 
@@ -34,6 +35,8 @@ QUICKSTART = ("run", "1M/s", "--scale", "tiny")
 """The quickstart's `kforge` arguments (README)."""
 RUNS = ("first", "second")
 """A tree's runs in a round: with an empty compilation cache, then with the cache the first run filled."""
+NAMESPACE_PACKAGE = "kforge/__init__.py"
+"""What a tree with the `kforge` namespace holds."""
 TAIL_CHARS = 2000
 """Characters of a failed run's output shown in the error."""
 
@@ -62,6 +65,11 @@ def base_tree(base: str | None, given: Path | None) -> Iterator[Path]:
             git(REPOSITORY, "worktree", "remove", "--force", str(tree))
 
 
+def cli_package(tree: Path) -> str:
+    """The package `python -m` runs the command line of `tree` as: `kforge`, or `pipeline` before the namespace."""
+    return "kforge" if (tree / NAMESPACE_PACKAGE).is_file() else "pipeline"
+
+
 def tree_environment(tree: Path) -> dict[str, str]:
     """This process's environment with `tree` first on PYTHONPATH."""
     environment = dict(os.environ)
@@ -70,9 +78,10 @@ def tree_environment(tree: Path) -> dict[str, str]:
 
 
 def check_shadowing(tree: Path) -> None:
-    """Fail unless `python -m kforge` run as `timed_run` runs it would load `kforge.pipeline` from `tree`."""
+    """Fail unless the command line run as `timed_run` runs it would load its package from `tree`."""
+    module = "kforge.pipeline" if cli_package(tree) == "kforge" else "pipeline"
     loaded = subprocess.run(
-        [sys.executable, "-c", "import kforge.pipeline as p; print(p.__file__)"],
+        [sys.executable, "-c", f"import {module} as p; print(p.__file__)"],
         cwd=tree,
         env=tree_environment(tree),
         check=True,
@@ -80,7 +89,7 @@ def check_shadowing(tree: Path) -> None:
         text=True,
     ).stdout.strip()
     if not Path(loaded).resolve().is_relative_to(tree):
-        raise SystemExit(f"{tree}: its pipeline package does not shadow the installed one ({loaded} loads instead)")
+        raise SystemExit(f"{tree}: its {module} does not shadow the installed one ({loaded} loads instead)")
 
 
 def records_digest(output: Path) -> str:
@@ -96,7 +105,8 @@ def records_digest(output: Path) -> str:
 
 def timed_run(tree: Path, cache: Path, output: Path, log: Path) -> float:
     """Wall seconds of the quickstart's run of `tree` with compilation cache `cache`, writing into `output`."""
-    command = [sys.executable, "-m", "kforge", *QUICKSTART, f"compile_cache.dir={cache}", f"output_dir={output}"]
+    settings = [f"compile_cache.dir={cache}", f"output_dir={output}"]
+    command = [sys.executable, "-m", cli_package(tree), *QUICKSTART, *settings]
     started = time.perf_counter()
     with log.open("w") as sink:
         done = subprocess.run(command, cwd=tree, env=tree_environment(tree), stdout=sink, stderr=subprocess.STDOUT)
@@ -154,7 +164,6 @@ def main() -> None:
     args = parser.parse_args()
     if args.rounds < 1:
         parser.error(f"--rounds must be >= 1, got {args.rounds}")
-    sys.path.insert(0, str(REPOSITORY))
     with (
         base_tree(args.base, args.base_tree) as base,
         tempfile.TemporaryDirectory(prefix="kforge-first-run-") as scratch,
@@ -172,7 +181,7 @@ def main() -> None:
     if args.json:
         base_commit = described["base"]["commit"][:7]
         report = {
-            "command": f"python benchmarks/first_run.py --base {base_commit} --rounds {args.rounds}",
+            "command": f"python -m benchmarks.first_run --base {base_commit} --rounds {args.rounds}",
             "command_runs_in": "a checkout of trees.measured.commit (the same runs as the --base-tree / --tree given)",
             "quickstart": "kforge " + " ".join(QUICKSTART),
             "trees": described,
