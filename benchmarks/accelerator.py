@@ -54,7 +54,7 @@ import numpy as np  # noqa: E402
 
 from benchmarks.engine_speed import JAX2D_PUBLISHED_PEAK_STEPS_PER_SECOND  # noqa: E402
 from benchmarks.kinetix_venv import REPOSITORY  # noqa: E402
-from benchmarks.machine import describe_machine  # noqa: E402
+from benchmarks.machine import describe_machine, provenance  # noqa: E402
 from kforge.engine import SOLVER_LOOP_FORMS  # noqa: E402
 
 XLA_FLAGS = "XLA_FLAGS"
@@ -519,6 +519,7 @@ def run(
             checkpoint(report | {"targets": check_targets(report)})
 
     report = {
+        **provenance(),
         "machine": describe_machine(),
         "backend": jax.default_backend(),
         "devices": [str(device) for device in jax.devices()],

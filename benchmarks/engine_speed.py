@@ -45,7 +45,7 @@ import jax
 import jax.numpy as jnp
 
 from benchmarks.kernels import count_kernels
-from benchmarks.machine import describe_machine
+from benchmarks.machine import describe_machine, provenance
 from benchmarks.scenes import batched_scenes, build_scene
 from benchmarks.sim_overrides import (
     sim_override,
@@ -140,6 +140,7 @@ def run(
     variant = bool(sim_overrides) or bool(scheme) or versus_physics != physics
     engines = ["ours"] + (["ours_sim"] if variant else []) + (["jax2d"] if versus_jax2d else [])
     report = {
+        **provenance(),
         "machine": describe_machine(),
         "physics": physics,
         "steps_per_timed_call": n_steps,
@@ -261,6 +262,7 @@ def count_all_kernels(sizes, batches, log=print, physics: str = DEFAULT_PHYSICS_
     step (auto; accelerator's); Jax2D's physics step; and the ratios to Jax2D."""
     batching = Batching().resolved()
     report = {
+        **provenance(),
         "machine": describe_machine(),
         "physics": physics,
         "batching": batching.mode,

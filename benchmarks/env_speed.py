@@ -23,7 +23,7 @@ import jax
 import jax.numpy as jnp
 
 from benchmarks.kinetix_venv import DEFAULT_KINETIX_VENV, REPOSITORY, baseline_command, kinetix_python
-from benchmarks.machine import describe_machine
+from benchmarks.machine import describe_machine, provenance
 from benchmarks.timing import best_time
 from kforge.env import (
     MULTI_DISCRETE_SIZES,
@@ -186,6 +186,7 @@ def main(argv=None) -> None:
         print(line, file=sys.stderr if args.json else sys.stdout, flush=True)
 
     report = {
+        **provenance(),
         "machine": describe_machine(),
         "steps_per_timed_rollout": args.steps,
         "ours": measure_ours(args.sizes, args.batches, args.steps, args.repeats, log),

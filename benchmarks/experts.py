@@ -47,7 +47,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from benchmarks.machine import describe_machine
+from benchmarks.machine import describe_machine, provenance
 from kforge.agents import collect_windows, evaluate, train_levels
 from kforge.configs import split_path
 from kforge.env import FilterReason, Level, StaticEnvParams, bundled_level_path, filter_levels, load_level
@@ -421,6 +421,7 @@ def main(argv=None) -> None:
         return
 
     report = {
+        **provenance(),
         "machine": describe_machine(),
         "split_config": f"configs/splits/{SPLIT}.yaml",
         "scale": args.scale,

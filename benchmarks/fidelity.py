@@ -41,7 +41,7 @@ import numpy as np
 
 from benchmarks.kinetix_variants import parse_variant, variant_label
 from benchmarks.kinetix_venv import DEFAULT_KINETIX_VENV, REPOSITORY, baseline_command, kinetix_python
-from benchmarks.machine import describe_machine
+from benchmarks.machine import describe_machine, provenance
 from benchmarks.sim_overrides import (
     add_physics_option,
     add_solver_scheme_options,
@@ -369,6 +369,7 @@ def main(argv=None) -> None:
 
     levels = compare(ours, theirs)
     report = {
+        **provenance(),
         "machine": describe_machine(),
         "episodes": args.episodes,
         "compared": compared,

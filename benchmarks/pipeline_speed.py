@@ -32,7 +32,7 @@ from pathlib import Path
 import jax
 
 from benchmarks import pipeline_cost
-from benchmarks.machine import describe_machine
+from benchmarks.machine import describe_machine, provenance
 from kforge.pipeline.generation import load_config, run_job
 from kforge.pipeline.reading import TrajectoryDatasetManager
 from kforge.pipeline.storage import DATA_DIR, STATE_PREFIX, iter_records, open_dataset
@@ -188,6 +188,7 @@ def run(args, log=print) -> dict:
                 results.append(result)
                 log(_line(result))
     report = {
+        **provenance(),
         "machine": describe_machine(),
         "settings": {k: getattr(args, k) for k in ("levels", "budget", "levels_per_batch", "batches_per_shard")},
         "runs": [{k: v for k, v in result.items() if k != "data_digests"} for result in results],
@@ -267,7 +268,7 @@ def main(argv=None) -> None:
         log = functools.partial(print, file=sys.stderr, flush=True) if args.json else print  # progress, figures
         with contextlib.ExitStack() as stack:
             scratch = args.keep or Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="kforge-cost-")))
-            report = pipeline_cost.run_cost(args, scratch, log) | {"machine": describe_machine()}
+            report = pipeline_cost.run_cost(args, scratch, log) | provenance() | {"machine": describe_machine()}
         if args.json:
             print(json.dumps(report, indent=1))
         return
@@ -278,7 +279,7 @@ def main(argv=None) -> None:
         report = run_storage(
             args.sizes[0], args.levels_per_batch, args.batches_per_shard, args.window_steps, args.prefetch
         )
-        report["machine"] = describe_machine()
+        report |= provenance() | {"machine": describe_machine()}
         print(json.dumps(report, indent=1) if args.json else "\n".join(lines(report)))
         return
     report = run(args, log=(lambda _: None) if args.json else print)

@@ -31,7 +31,7 @@ import jax
 import yaml
 
 from benchmarks.kinetix_venv import DEFAULT_KINETIX_VENV, REPOSITORY, baseline_command, kinetix_python
-from benchmarks.machine import describe_machine
+from benchmarks.machine import describe_machine, provenance
 from benchmarks.timing import best_time, best_times_interleaved
 from kforge.agents import Batch, PPOConfig, initial_params, learn, make_optimizer, train_levels
 from kforge.env import MULTI_DISCRETE_SIZES, EnvParams, StaticEnvParams, observation_shape, sample_levels
@@ -210,6 +210,7 @@ def main(argv=None) -> None:
         f"{args.updates} updates per timed call"
     )
     report = {
+        **provenance(),
         "machine": describe_machine(),
         "config": dataclasses.asdict(config),
         "updates_per_call": args.updates,

@@ -3,6 +3,7 @@ of docs/, and every report a doc names is there."""
 
 from __future__ import annotations
 
+import json
 import re
 from pathlib import Path
 
@@ -12,6 +13,10 @@ pytestmark = pytest.mark.smoke
 
 REPO = Path(__file__).resolve().parents[2]
 RESULTS = REPO / "benchmarks" / "results"
+COMMIT_KEYS = {"commit", "commits", "trees", "committed_in"}
+"""How a report names the code it measured: `commit` (benchmarks.machine.provenance), the commits of the trees it
+compared (`commits`, `trees`), or for a report written before reports recorded it, `committed_in`: the commit that
+last wrote the report."""
 REPORT_NAME = re.compile(r"(?:benchmarks/results/)?([A-Za-z0-9.-]*_[A-Za-z0-9_.-]*\.json)")
 """A report as a doc names it: a JSON file name with an underscore (scratch outputs in commands, such as
 `chaos.json` or `kx-random-s.json`, have none), with or without its folder."""
@@ -41,3 +46,10 @@ def test_every_report_a_doc_cites_exists():
     cited = [(page, name) for page, text in docs().items() for name in cited_reports(text)]
     missing = sorted(f"{page}: {name}" for page, name in cited if not (RESULTS / name).exists())
     assert missing == []
+
+
+def test_every_report_records_the_commit_it_measured():
+    unrecorded = sorted(
+        path.name for path in RESULTS.glob("*.json") if not COMMIT_KEYS & set(json.loads(path.read_text()))
+    )
+    assert unrecorded == []
