@@ -228,6 +228,19 @@ def readable_sizes(policy: TrainedPolicy, scheme: PhysicsScheme) -> tuple[str, .
     return (size_of(policy.static, scheme),)
 
 
+def level_set_entry(played: dict[str, tuple[list[str], Outcomes]]) -> dict:
+    """The set entry of levels played by size (size -> (level names, outcomes)): rates over all levels and per size,
+    and each level's success rate of the BC policy (of random when the BC policy did not play)."""
+    parts, per_size, per_level = [], {}, {}
+    for size, (names, outcomes) in played.items():
+        parts.append(outcomes)
+        per_size[size] = {"levels": len(names), "from_start": rates(outcomes)}
+        first = "bc" if "bc" in outcomes else "random"
+        per_level.update(zip(names, map(float, outcomes[first][0].mean(axis=1)), strict=True))
+    overall = rates(_concatenate(parts))
+    return {"levels": len(per_level), "from_start": overall, "sizes": per_size, "per_level": per_level}
+
+
 def play_level_files(
     policy: TrainedPolicy | None,
     files: dict[str, list[str]],
@@ -236,24 +249,15 @@ def play_level_files(
     seed: int,
     greedy: bool = False,
 ) -> dict:
-    """The set entry of Kinetix level files (paths or bundled names) by size, each played under `scheme` with its own
-    params: rates over all files and per size, and per-file BC success (baselines only when `policy` is None)."""
-    parts, per_size, per_level = [], {}, {}
+    """The set entry (`level_set_entry`) of Kinetix level files (paths or bundled names) by size, each played under
+    `scheme` with its own params (the baselines only when `policy` is None)."""
+    played = {}
     for size, sources in files.items():
-        if not sources:
-            continue
-        static = scheme_static(scheme, size)
-        outcomes = play_set(policy, level_file_starts(sources, static, scheme), static, episodes, seed, greedy)
-        parts.append(outcomes)
-        per_size[size] = {"levels": len(sources), "from_start": rates(outcomes)}
-        first = "bc" if policy is not None else "random"
-        per_level.update(zip(sources, map(float, outcomes[first][0].mean(axis=1)), strict=True))
-    return {
-        "levels": len(per_level),
-        "from_start": rates(_concatenate(parts)),
-        "sizes": per_size,
-        "per_level": per_level,
-    }
+        if sources:
+            static = scheme_static(scheme, size)
+            starts = level_file_starts(sources, static, scheme)
+            played[size] = (list(sources), play_set(policy, starts, static, episodes, seed, greedy))
+    return level_set_entry(played)
 
 
 def play_physics(job: JobConfig | None, static: StaticEnvParams) -> tuple[str, EnvParams]:
