@@ -3,16 +3,28 @@
 Public surface: the config, training of a level batch, evaluation, expert windows for the dataset, training in segments
 for adaptive budgets, the learner and its optimiser; for behaviour cloning, its policy networks and objective, and
 episodes of any policy given as an actor function.
+
+The PPO hyperparameters' declaration (`PPOHyperparameters`) loads without JAX, so that a job config's schema can
+derive from it; every other name imports its module when first used.
 """
 
-from kforge.agents.bc_networks import Architecture, NetworkConfig, make_bc_network
-from kforge.agents.collect import collect_windows
-from kforge.agents.config import PPOConfig
-from kforge.agents.evaluate import evaluate, network_actor, run_episode
-from kforge.agents.imitation import ImitationTerms, imitation_terms
-from kforge.agents.ppo import Batch, initial_params, learn, make_optimizer, train_levels
-from kforge.agents.segments import check_segmented, put_slot, start_level, train_segments
-from kforge.agents.stages import EVALUATE, START, stage_functions, train_in_stages
+import importlib
+
+from kforge.agents.hyperparameters import PPOHyperparameters
+
+_SOURCES = {
+    "kforge.agents.bc_networks": "Architecture NetworkConfig make_bc_network",
+    "kforge.agents.collect": "collect_windows",
+    "kforge.agents.config": "PPOConfig",
+    "kforge.agents.evaluate": "evaluate network_actor run_episode",
+    "kforge.agents.imitation": "ImitationTerms imitation_terms",
+    "kforge.agents.ppo": "Batch initial_params learn make_optimizer train_levels",
+    "kforge.agents.segments": "check_segmented put_slot start_level train_segments",
+    "kforge.agents.stages": "EVALUATE START stage_functions train_in_stages",
+}
+"""Module -> the public names it defines (separated by spaces), each imported when first used."""
+
+_MODULE_OF = {name: module for module, names in _SOURCES.items() for name in names.split()}
 
 __all__ = [
     "EVALUATE",
@@ -22,6 +34,7 @@ __all__ = [
     "ImitationTerms",
     "NetworkConfig",
     "PPOConfig",
+    "PPOHyperparameters",
     "check_segmented",
     "collect_windows",
     "evaluate",
@@ -35,7 +48,14 @@ __all__ = [
     "run_episode",
     "stage_functions",
     "start_level",
-    "train_levels",
     "train_in_stages",
+    "train_levels",
     "train_segments",
 ]
+
+
+def __getattr__(name: str):
+    """A public name, imported from its module on first use (PEP 562)."""
+    if name not in _MODULE_OF:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    return getattr(importlib.import_module(_MODULE_OF[name]), name)

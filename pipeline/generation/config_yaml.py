@@ -2,26 +2,12 @@
 
 from __future__ import annotations
 
-import ast
 import dataclasses
-import inspect
-import io
-import textwrap
-import tokenize
 import typing
 
 from omegaconf import OmegaConf
 
-from kforge.pipeline.generation.schema import JobConfig, type_name
-
-
-def field_docs(section: type) -> dict[str, str]:
-    """Field name -> the comment on its line in the schema source (`name: type = default  # comment`)."""
-    source = textwrap.dedent(inspect.getsource(section))
-    tokens = tokenize.generate_tokens(io.StringIO(source).readline)
-    comments = {token.start[0]: token.string.lstrip("#").strip() for token in tokens if token.type == tokenize.COMMENT}
-    body = ast.parse(source).body[0].body
-    return {node.target.id: comments.get(node.lineno, "") for node in body if isinstance(node, ast.AnnAssign)}
+from kforge.pipeline.generation.schema import JobConfig, field_docs, type_name
 
 
 def to_yaml(job: JobConfig) -> str:
@@ -42,3 +28,25 @@ def _yaml_lines(section, indent: str) -> list[str]:
             entry = OmegaConf.to_yaml({field.name: value}).strip()
             lines.append(f"{indent}{entry}  # {type_name(hint)}: {docs[field.name]}")
     return lines
+
+
+SPECIALIST_YAML_HEADER = """\
+# PPO hyperparameters of a specialist (one parameter set per level), read by `agents.PPOConfig.from_mapping`.
+# Generated from their declaration (`agents.PPOHyperparameters` and `agents.PPOConfig`) by
+# `kforge.pipeline.generation.config_yaml.specialist_yaml`; a test keeps this file equal to it.
+# Why these values (Kinetix's where marked, our choice otherwise) and how well the experts do: docs/experts.md.
+"""
+
+
+def specialist_yaml() -> str:
+    """configs/ppo_specialist.yaml: `agents.PPOConfig`'s defaults, each key after the comment it is declared with
+    (imports JAX)."""
+    from kforge.agents import PPOConfig, PPOHyperparameters
+
+    docs = field_docs(PPOHyperparameters) | field_docs(PPOConfig)
+    lines = [SPECIALIST_YAML_HEADER]
+    for field in dataclasses.fields(PPOConfig):
+        value = getattr(PPOConfig(), field.name)
+        entry = OmegaConf.to_yaml({field.name: getattr(value, "value", value)}).strip()
+        lines.append(f"# {docs[field.name][0].upper()}{docs[field.name][1:]}.\n{entry}\n")
+    return "".join(lines)

@@ -2,11 +2,17 @@
 
 from __future__ import annotations
 
+import ast
 import dataclasses
+import inspect
+import io
+import textwrap
+import tokenize
 import typing
 
 from omegaconf import MISSING
 
+from kforge.agents import PPOHyperparameters
 from kforge.pipeline.generation.compile_cache import DEFAULT_COMPILE_CACHE_DIR
 
 PHYSICS_SCHEME_NAMES = ("kforge", "kinetix")
@@ -47,27 +53,42 @@ class FilterConfig:
     noop_steps: int = 256  # env steps of the no-op rollout that detects levels solved by doing nothing
 
 
-@dataclasses.dataclass
-class PPOSection:
-    """Specialist PPO settings; the defaults are `agents.PPOConfig`'s (evidence for them: docs/experts.md)."""
+PPO_KEYS_SET_BY_THE_JOB = {"env_steps_per_level": "split.expert_budget", "select_greedy": "collect.greedy"}
+"""`agents.PPOHyperparameters` fields the `ppo` section leaves out, and the key each comes from."""
 
-    num_envs: int = 16  # parallel episodes per level
-    num_steps: int = 125  # env steps per env between two updates (rollout length)
-    update_epochs: int = 4  # passes over each rollout
-    num_minibatches: int = 4  # minibatches per epoch; must divide num_envs * num_steps
-    learning_rate: float = 3e-4  # Adam step size, constant
-    adam_eps: float = 1e-5  # Adam epsilon (Kinetix)
-    max_grad_norm: float = 1.0  # global-norm gradient clipping before Adam (Kinetix)
-    gamma: float = 0.995  # discount per env step (Kinetix)
-    gae_lambda: float = 0.9  # GAE lambda (Kinetix)
-    clip_eps: float = 0.2  # PPO ratio clip, also the value-clipping range (Kinetix)
-    ent_coef: float = 0.01  # entropy bonus weight (Kinetix)
-    vf_coef: float = 0.5  # value loss weight (Kinetix)
-    hidden_size: int = 64  # units per hidden layer, actor and critic (Kinetix: 128)
-    num_hidden_layers: int = 2  # tanh hidden layers of each MLP (Kinetix: 5)
-    bootstrap_truncation: bool = False  # time-limit ends bootstrap from the last value
-    select_every_updates: int = 50  # evaluate every this many updates and after the last
-    select_episodes: int = 16  # episodes per evaluation (acting as collect.greedy says)
+
+def section_of(declaration: type, name: str, doc: str, leave_out: tuple[str, ...] = ()) -> type:
+    """A config section (a plain dataclass OmegaConf can merge into) with the fields of dataclass `declaration`
+    but `leave_out`, in its order, with its annotations, defaults and line comments (`field_docs`)."""
+    docs = field_docs(declaration)
+    fields = [
+        (field.name, field.type, dataclasses.field(default=field.default, metadata={"doc": docs[field.name]}))
+        for field in dataclasses.fields(declaration)
+        if field.name not in leave_out
+    ]
+    namespace = {"__doc__": doc, "__module__": __name__, "__qualname__": name}
+    return dataclasses.make_dataclass(name, fields, namespace=namespace)
+
+
+def field_docs(section: type) -> dict[str, str]:
+    """Field name -> its meaning: the comment on its line in the class's source (`name: type = default  # comment`),
+    or for a generated section (`section_of`) the comment it was declared with."""
+    fields = dataclasses.fields(section)
+    if fields and all("doc" in field.metadata for field in fields):
+        return {field.name: field.metadata["doc"] for field in fields}
+    source = textwrap.dedent(inspect.getsource(section))
+    tokens = tokenize.generate_tokens(io.StringIO(source).readline)
+    comments = {token.start[0]: token.string.lstrip("#").strip() for token in tokens if token.type == tokenize.COMMENT}
+    body = ast.parse(source).body[0].body
+    return {node.target.id: comments.get(node.lineno, "") for node in body if isinstance(node, ast.AnnAssign)}
+
+
+PPOSection = section_of(
+    PPOHyperparameters,
+    "PPOSection",
+    "Specialist PPO settings, declared by `agents.PPOHyperparameters` (evidence for the values: docs/experts.md).",
+    leave_out=tuple(PPO_KEYS_SET_BY_THE_JOB),
+)
 
 
 @dataclasses.dataclass

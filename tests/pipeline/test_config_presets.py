@@ -8,12 +8,15 @@ import dataclasses
 from pathlib import Path
 
 import pytest
+import yaml
 from omegaconf import OmegaConf
 
-from kforge.agents import PPOConfig
+from kforge.agents import PPOConfig, PPOHyperparameters
+from kforge.configs import PPO_SPECIALIST
 from kforge.pipeline.cli.run import main as run_main
 from kforge.pipeline.generation import ConfigError, JobConfig, load_config, ppo_config, to_yaml
-from kforge.pipeline.generation.schema import PPOSection
+from kforge.pipeline.generation.config_yaml import specialist_yaml
+from kforge.pipeline.generation.schema import PPO_KEYS_SET_BY_THE_JOB, PPOSection
 
 pytestmark = pytest.mark.smoke
 
@@ -196,11 +199,23 @@ def test_run_print_config_prints_the_resolved_config_and_runs_nothing(tmp_path, 
     assert not (tmp_path / "outputs").exists()
 
 
-def test_the_ppo_section_defaults_are_the_agents_defaults():
-    job = load_config("1M/s")
-    defaults = PPOConfig(env_steps_per_level=job.split.expert_budget)
-    assert ppo_config(job) == defaults
-    assert set(dataclasses.asdict(job.ppo)) <= {field.name for field in dataclasses.fields(PPOConfig)}
+def test_the_ppo_section_is_the_agents_declaration_less_the_keys_the_job_sets():
+    declared = [field.name for field in dataclasses.fields(PPOHyperparameters)]
+    section = [field.name for field in dataclasses.fields(PPOSection)]
+    assert section == [name for name in declared if name not in ("env_steps_per_level", "select_greedy")]
+    assert set(PPO_KEYS_SET_BY_THE_JOB) == {"env_steps_per_level", "select_greedy"}
+    job = load_config("1M/s", ["collect.greedy=true"])
+    assert ppo_config(job) == PPOConfig(env_steps_per_level=1_000_000, select_greedy=True)
+    assert "  num_minibatches: 4  # int: minibatches per epoch; must divide num_envs * num_steps" in to_yaml(job)
+
+
+def test_the_specialist_yaml_is_generated_from_the_agents_declaration():
+    assert PPO_SPECIALIST.read_text() == specialist_yaml(), (
+        "configs/ppo_specialist.yaml is out of date; regenerate it: python -c 'from "
+        'kforge.pipeline.generation.config_yaml import specialist_yaml; print(specialist_yaml(), end="")\' '
+        "> configs/ppo_specialist.yaml"
+    )
+    assert PPOConfig.from_mapping(yaml.safe_load(specialist_yaml())) == PPOConfig()
 
 
 def test_a_split_is_named_like_the_release_or_given_as_a_file(tmp_path):
