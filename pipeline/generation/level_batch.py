@@ -63,8 +63,30 @@ def batches_per_shard(job: JobConfig) -> int:
 
 def sample_batch(job: JobConfig, level_indices: np.ndarray) -> Level:
     """The batch's levels, regenerated from their indices."""
+    keys = level_keys(job.split.seed, level_indices, KeyPurpose.SAMPLE)
+    return _compiling_sample_program(job, keys).result()(keys)
+
+
+def _batch_shapes(job: JobConfig, level_indices: np.ndarray) -> Level:
+    """The shapes and types of `sample_batch`'s levels (nothing compiled or run)."""
     _, static = environment(job)
-    return sample_levels(level_keys(job.split.seed, level_indices, KeyPurpose.SAMPLE), static)
+    keys = level_keys(job.split.seed, level_indices, KeyPurpose.SAMPLE)
+    return jax.eval_shape(functools.partial(sample_levels, static=static), keys)
+
+
+def _compiling_sample_program(job: JobConfig, keys: jax.Array) -> Future:
+    """The future of `env.sample_levels` for the job's batches of this many levels: traced here and compiled in a
+    thread of its own, once per process (so a level batch's first step compiles beside the training stages)."""
+    _, static = environment(job)
+    program = (static, keys.shape[0])
+    compiling = _sample_programs.get(program)
+    if compiling is None or (compiling.done() and compiling.exception() is not None):
+        lowered = sample_levels.lower(keys, static)
+        compiling = _sample_programs[program] = _in_background(lowered.compile, "compile-sample")
+    return compiling
+
+
+_sample_programs: dict[tuple, Future] = {}
 
 
 def sample_and_filter(job: JobConfig, indices: np.ndarray):
@@ -111,8 +133,9 @@ def run_level_batch(
     indices = batch_level_indices(job, shard, batch)
     config = ppo_config(job)
     train_keys = level_keys(job.split.seed, indices, KeyPurpose.TRAIN)
+    _compiling_sample_program(job, level_keys(job.split.seed, indices, KeyPurpose.SAMPLE))
     compiling_train = _compiling_train_program(job, indices, train_keys)
-    abstract_levels = jax.eval_shape(lambda: sample_batch(job, indices))
+    abstract_levels = _batch_shapes(job, indices)
     _compiling_filter_program(job, abstract_levels)
     _compiling_collect_program(job, abstract_levels, level_keys(job.split.seed, indices, KeyPurpose.COLLECT))
     levels = sample_batch(job, indices)
@@ -197,7 +220,7 @@ def _compiling_train_program(job: JobConfig, indices: np.ndarray, keys: jax.Arra
     compiling = _train_programs.get(program)
     if compiling is None or any(future.done() and future.exception() is not None for future in compiling.values()):
         stages = stage_functions(config, static)
-        levels = jax.eval_shape(lambda: sample_batch(job, indices))
+        levels = _batch_shapes(job, indices)
         training = jax.eval_shape(stages[START], levels, keys)
         scalar = jax.ShapeDtypeStruct((), jnp.int32)
         shared = {START: (), EVALUATE: (env_params, scalar, scalar)}
