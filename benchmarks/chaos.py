@@ -44,8 +44,7 @@ REPOSITORY = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPOSITORY))  # the project's `pipeline`, not benchmarks/pipeline.py
 
 from kforge.pipeline.generation import load_config, to_yaml  # noqa: E402
-from kforge.pipeline.storage import PROVENANCE, all_committed, iter_records, open_store  # noqa: E402
-from kforge.pipeline.storage.verify import verify_dataset  # noqa: E402
+from kforge.pipeline.storage import PROVENANCE, all_committed, iter_records, open_store, verify_dataset  # noqa: E402
 
 
 def _tiny_job() -> list[str]:

@@ -11,21 +11,14 @@ __getattr__, __all__ = lazy_surface(
     __name__,
     {
         "kforge.pipeline.generation.config_yaml": "to_yaml",
-        "kforge.pipeline.generation.definition": "data_definition data_fingerprint",
-        "kforge.pipeline.generation.loading": (
-            "load_config load_yaml merge_layers parse_overrides read_config to_schema_object"
-        ),
+        "kforge.pipeline.generation.loading": "load_config load_yaml merge_layers parse_overrides to_schema_object",
         "kforge.pipeline.generation.resolved": "environment ppo_config",
         "kforge.pipeline.generation.schema": "TRACKING_MODES ConfigError EnvSection JobConfig",
-        "kforge.pipeline.generation.sources": "absolute_output_dir config_path",
+        "kforge.pipeline.generation.sources": "absolute_output_dir",
         "kforge.pipeline.generation.console": "closing_summary seconds_left",
-        "kforge.pipeline.generation.coordinator": "Commit Coordinator",
         "kforge.pipeline.generation.growth": "ResumeRefused",
-        "kforge.pipeline.generation.level_batch": (
-            "KeyPurpose batches_per_shard level_key level_keys num_shards run_level_batch sample_batch"
-        ),
-        "kforge.pipeline.generation.run": "JobInterrupted prepare_output run_job summarize",
-        "kforge.pipeline.generation.tracking": "start_tracking tracking_mode",
-        "kforge.pipeline.generation.worker": "Worker",
+        "kforge.pipeline.generation.level_batch": "KeyPurpose level_key level_keys sample_batch",
+        "kforge.pipeline.generation.run": "JobInterrupted run_job",
+        "kforge.pipeline.generation.tracking": "tracking_mode",
     },
 )

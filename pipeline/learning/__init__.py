@@ -10,19 +10,8 @@ from kforge.pipeline.lazy import lazy_surface
 __getattr__, __all__ = lazy_surface(
     __name__,
     {
-        "kforge.pipeline.learning.config": (
-            "LEVEL_SETS RUN_CONFIG_FILE BCConfig load_bc_config network_config run_config_file"
-        ),
-        "kforge.pipeline.learning.evaluation": (
-            "Baseline TrainedPolicy evaluate_policy load_policy play play_level_files play_physics play_set rates "
-            "report_table"
-        ),
-        "kforge.pipeline.learning.evaluation_sets": (
-            "UNSEEN_FIRST_LEVEL UNSEEN_LEVELS StartSet check_unseen_disjoint dataset_level_ids hand_starts "
-            "level_file_starts unseen_starts"
-        ),
-        "kforge.pipeline.learning.train": (
-            "LEVELS_FILE METRICS_FILE SUMMARY_FILE Learner TrainingInterrupted TrainSummary train_bc"
-        ),
+        "kforge.pipeline.learning.config": "LEVEL_SETS load_bc_config run_config_file",
+        "kforge.pipeline.learning.evaluation": "evaluate_policy load_policy play_level_files report_table",
+        "kforge.pipeline.learning.train": "TrainingInterrupted train_bc",
     },
 )

@@ -16,6 +16,7 @@ from kforge.agents import PPOConfig, train_levels
 from kforge.engine import SceneBuilder, SimParams
 from kforge.env import EnvParams, Role, StaticEnvParams
 from kforge.env.level_builder import build_level
+from tests.helpers import stack
 
 # Test modules import these helpers as `agents_test_helpers` (works under every pytest import mode).
 sys.modules["agents_test_helpers"] = sys.modules[__name__]
@@ -60,10 +61,6 @@ def thruster_level(green_x: float = GREEN_X, blue_x: float = BLUE_X, angle: floa
 def mirrored_level():
     """The thruster level flipped left-right: green must be pushed left."""
     return thruster_level(green_x=5.0 - GREEN_X, blue_x=5.0 - BLUE_X, angle=jnp.pi)
-
-
-def stack(*trees):
-    return jax.tree.map(lambda *xs: jnp.stack(xs), *trees)
 
 
 def keys(*seeds: int) -> jax.Array:

@@ -23,6 +23,7 @@ import pytest
 from kforge import engine
 from kforge.engine import SceneBuilder, SimParams, SimState, StaticSimParams, StepInfo
 from kforge.engine.state import Bodies, ContactCache, Joints
+from tests.helpers import scan_steps, stack
 
 # Test modules import these helpers as `engine_test_helpers`, which works under every pytest import mode
 # (`from conftest import ...` breaks under --import-mode=importlib and when several conftest.py files exist).
@@ -54,31 +55,24 @@ class Trajectory(NamedTuple):
 
 
 # --------------------------------------------------------------------------- compiled rollouts
-def _scan_steps(static: StaticSimParams):
-    def run(state, params, motor_actions, thruster_actions):
-        def body(carry, actions):
-            new, info = engine.step(carry, params, actions[0], actions[1], static=static)
-            return new, Trajectory(new.bodies, new.joints, new.contacts, info)
-
-        return jax.lax.scan(body, state, (motor_actions, thruster_actions))
-
-    return run
+def _trajectory(state: SimState, info: StepInfo) -> Trajectory:
+    return Trajectory(state.bodies, state.joints, state.contacts, info)
 
 
 @functools.cache
 def rollout_fn(static: StaticSimParams):
     """jit(state, params, motor_actions (K, J), thruster_actions (K, T)) -> (final state, Trajectory)."""
-    return jax.jit(_scan_steps(static))
+    return jax.jit(scan_steps(static, _trajectory))
 
 
 @functools.cache
 def batched_rollout_fn(static: StaticSimParams):
     """Like `rollout_fn`, vmapped over a leading batch axis of states and actions (params shared)."""
-    return jax.jit(jax.vmap(_scan_steps(static), in_axes=(0, None, 0, 0)))
+    return jax.jit(jax.vmap(scan_steps(static, _trajectory), in_axes=(0, None, 0, 0)))
 
 
 def stack_states(states):
-    return jax.tree_util.tree_map(lambda *xs: jnp.stack(xs), *states)
+    return stack(*states)
 
 
 def unstack(tree, index):
@@ -207,33 +201,25 @@ class Motion:
         return self.rotation.shape[0] - 1
 
 
+def _motion_record(state: SimState, info: StepInfo) -> dict:
+    return dict(
+        position=state.bodies.position,
+        rotation=state.bodies.rotation,
+        velocity=state.bodies.velocity,
+        angular_velocity=state.bodies.angular_velocity,
+        normal_impulse=state.contacts.normal_impulse,
+        motor_impulse=state.joints.motor_impulse,
+        linear_impulse=state.joints.linear_impulse,
+        angular_impulse=state.joints.angular_impulse,
+        touching=info.touching,
+        separation=info.separation,
+    )
+
+
 @functools.cache
 def _chunk_runner(static: StaticSimParams):
     """jit(state, params, motor (CHUNK, J), thrust (CHUNK, T), valid_steps) -> (state, per-step record)."""
-
-    def run(state, params, motor, thrust, valid_steps):
-        def body(carry, inputs):
-            index, motor_action, thrust_action = inputs
-            new, info = engine.step(carry, params, motor_action, thrust_action, static=static)
-            keep = index < valid_steps
-            new = jax.tree_util.tree_map(lambda n, o: jnp.where(keep, n, o), new, carry)
-            record = dict(
-                position=new.bodies.position,
-                rotation=new.bodies.rotation,
-                velocity=new.bodies.velocity,
-                angular_velocity=new.bodies.angular_velocity,
-                normal_impulse=new.contacts.normal_impulse,
-                motor_impulse=new.joints.motor_impulse,
-                linear_impulse=new.joints.linear_impulse,
-                angular_impulse=new.joints.angular_impulse,
-                touching=info.touching,
-                separation=info.separation,
-            )
-            return new, record
-
-        return jax.lax.scan(body, state, (jnp.arange(CHUNK), motor, thrust))
-
-    return jax.jit(run)
+    return jax.jit(scan_steps(static, _motion_record, masked=True))
 
 
 def _per_step(actions, steps: int, width: int) -> np.ndarray:

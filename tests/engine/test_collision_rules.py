@@ -21,6 +21,7 @@ from kforge.engine import NO_FEATURE, CollisionRules, SceneBuilder, pair_layout
 from kforge.engine.collision import WorldGeometry, manifolds, polygon_circle, polygon_polygon, world_geometry
 from kforge.engine.physics_step import match_warm_start
 from kforge.engine.state import ContactCache
+from tests.helpers import measured
 
 PAIRS = 600
 """Random pairs drawn per comparison; about half of them overlap."""
@@ -30,11 +31,6 @@ CIRCLE_VERTICES = np.array([[0.0, 1.0], [-1.0, -1.0], [1.0, -1.0]])
 """[m] the vertex array a Jax2D circle carries; its narrowphase reads only the radius."""
 NORMAL_TOLERANCE = 1e-3
 """[-] a corner's normal from a centre close to it loses digits in both engines."""
-
-
-def measured(name: str, **values):
-    text = ", ".join(f"{k}={v}" for k, v in values.items())
-    print(f"\nMEASURED {name}: {text}")
 
 
 def _random_shape(rng) -> np.ndarray:

@@ -17,16 +17,12 @@ from engine_test_helpers import SIZE_S, pair_index, run, zero_gravity
 from kforge.engine import FLOOR_TOP, ContactLaw, ContactPoints, SceneBuilder, SimParams, StaticSimParams, pair_layout
 from kforge.engine.collision import manifolds, world_geometry
 from kforge.engine.params import ContactPoints as ContactPointsFromParams
+from tests.helpers import measured
 
 FLOOR = 0
 """A `SceneBuilder`'s floor: reserved polygon slot 0, its top at `engine.FLOOR_TOP`."""
 JAX2D_SCHEME = dict(num_substeps=1, num_iterations=10, num_relax_iterations=0)
 """Jax2D's solver scheme in ours: one step of 10 passes, positions advanced after the last."""
-
-
-def measured(name: str, **values):
-    text = ", ".join(f"{k}={v}" for k, v in values.items())
-    print(f"\nMEASURED {name}: {text}")
 
 
 def _pair_manifold(builder: SceneBuilder, body_a: int, body_b: int, points: ContactPoints):

@@ -26,17 +26,13 @@ from engine_test_helpers import (
 )
 
 from kforge.engine import ContactLaw, SceneBuilder, SimParams, StaticSimParams
+from tests.helpers import measured
 
 PARAMS = SimParams()
 DT = PARAMS.dt
 FLOOR_TOP = 0.4  # [m] top of the Kinetix floor
 SLOP = PARAMS.touch_distance  # [m] allowed resting penetration
 MU = PARAMS.base_friction * math.sqrt(2.0)  # [-] pair friction of two shapes of friction 1 (0.566)
-
-
-def measured(name: str, **values):
-    text = ", ".join(f"{k}={v:.6g}" if isinstance(v, float) else f"{k}={v}" for k, v in values.items())
-    print(f"\nMEASURED {name}: {text}")
 
 
 def _own_floor(builder: SceneBuilder, slot: int = 0, restitution: float = 0.0, top: float = FLOOR_TOP) -> int:

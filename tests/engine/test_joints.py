@@ -15,6 +15,7 @@ import pytest
 from engine_test_helpers import SIZE_L, SIZE_S, G, crossings, elliptic_k, joint_anchor_error, masses, rotate, run
 
 from kforge.engine import ContactLaw, LimitLaw, MotorLaw, SceneBuilder, SimParams
+from tests.helpers import measured
 
 STATIC = SIZE_L
 PARAMS = SimParams()
@@ -23,11 +24,6 @@ CONSTRAINT_MOTORS = dataclasses.replace(STATIC, motor_law=MotorLaw.CONSTRAINT)
 DT = PARAMS.dt
 SUBSTEP = DT / STATIC.num_substeps
 PIVOT = np.array([5.0, 4.0])
-
-
-def measured(name: str, **values):
-    text = ", ".join(f"{k}={v:.6g}" if isinstance(v, float) else f"{k}={v}" for k, v in values.items())
-    print(f"\nMEASURED {name}: {text}")
 
 
 def _builder_with_pivot(static=STATIC) -> SceneBuilder:

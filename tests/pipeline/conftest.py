@@ -34,6 +34,7 @@ from kforge.pipeline.storage.layout import make_layout
 from kforge.pipeline.storage.lease import LEASE_KEY, LeaseHeld, LeaseHolder, read_holder
 from kforge.pipeline.storage.shard_store import DatasetSpec, Geometry, create_dataset
 from kforge.pipeline.storage.writer import KEPT, BatchTrajectories, write_level_batch
+from tests.helpers import stack
 
 # Test modules import these helpers as `pipeline_test_helpers` (works under every pytest import mode).
 sys.modules["pipeline_test_helpers"] = sys.modules[__name__]
@@ -58,10 +59,6 @@ def drop_level(gap: float, target: Role):
     scene.add_revolute_joint(FLOOR, arm, (3.5, FLOOR_TOP + 0.3), motor_speed=1.0, motor_power=1.0, motor_on=True)
     scene.add_thruster(arm, (4.2, FLOOR_TOP + 0.3), jnp.pi / 2, power=0.5)
     return build_level(scene, roles={green: Role.GREEN, blue: target})
-
-
-def stack(*trees):
-    return jax.tree.map(lambda *xs: jnp.stack(xs), *trees)
 
 
 def rollout(levels, seed: int = 0):

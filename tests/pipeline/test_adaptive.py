@@ -10,8 +10,9 @@ import numpy as np
 import pytest
 from pipeline_test_helpers import run_in_process, tiny_job
 
-from kforge.pipeline.generation import ConfigError, data_definition, data_fingerprint, ppo_config
+from kforge.pipeline.generation import ConfigError, ppo_config
 from kforge.pipeline.generation.adaptive import StopRule, Verdict, streamed_level_batches
+from kforge.pipeline.generation.definition import data_definition, data_fingerprint
 from kforge.pipeline.reading.stats import collect_stats, write_card
 from kforge.pipeline.storage import FILTERED_PREFIX, iter_records
 

@@ -20,17 +20,11 @@ from kforge.engine import physics_scheme
 from kforge.env import EnvParams, StaticEnvParams, action_mask, list_levels, load_level, reset, under_scheme
 from kforge.pipeline.cli import main
 from kforge.pipeline.generation import ConfigError
-from kforge.pipeline.learning import (
-    Baseline,
-    BCConfig,
-    StartSet,
-    hand_starts,
-    load_bc_config,
-    load_policy,
-    play,
-    train_bc,
-)
+from kforge.pipeline.learning import load_bc_config, load_policy, train_bc
 from kforge.pipeline.learning.checkpoints import checkpoint_steps
+from kforge.pipeline.learning.config import BCConfig
+from kforge.pipeline.learning.evaluation import Baseline, play
+from kforge.pipeline.learning.evaluation_sets import StartSet, hand_starts
 from kforge.pipeline.storage import DatasetError
 
 SMALL = [

@@ -59,7 +59,7 @@ def test_the_cache_folder_expands_the_home_directory_and_null_turns_it_off(monke
 def test_a_worker_told_to_turns_on_deterministic_gpu_ops_before_it_computes(tmp_path, monkeypatch):
     import dataclasses
 
-    from kforge.pipeline.generation import Worker
+    from kforge.pipeline.generation.worker import Worker
 
     monkeypatch.setenv("XLA_FLAGS", "--xla_force_host_platform_device_count=1")
     job = tiny_job(tmp_path / "out")
@@ -71,7 +71,7 @@ def test_a_worker_told_to_turns_on_deterministic_gpu_ops_before_it_computes(tmp_
 
 
 def test_a_worker_leaves_xla_flags_alone_by_default(tmp_path, monkeypatch):
-    from kforge.pipeline.generation import Worker
+    from kforge.pipeline.generation.worker import Worker
 
     monkeypatch.setenv("XLA_FLAGS", "--xla_force_host_platform_device_count=1")
     Worker(tiny_job(tmp_path / "out"), "local")

@@ -18,7 +18,8 @@ HEAVY_MODULES = ("jax", "ray", "wandb", "flax", "optax")
 
 CHECK_WITHOUT_HEAVY_MODULES = f"""
 import json, sys
-from kforge.pipeline.generation import ConfigError, load_config, read_config, to_yaml
+from kforge.pipeline.generation import ConfigError, load_config, to_yaml
+from kforge.pipeline.generation.loading import read_config
 errors = []
 for overrides in (["split.size=xl"], ["env.dense_reward_scale=nan"], ["lease.stale_after_s=inf"]):
     try:

@@ -13,7 +13,8 @@ import typing
 import pytest
 from pipeline_test_helpers import environment
 
-from kforge.pipeline.generation import ConfigError, JobConfig, read_config, to_yaml
+from kforge.pipeline.generation import ConfigError, JobConfig, to_yaml
+from kforge.pipeline.generation.loading import read_config
 from tests.pipeline.test_object_storage import BUCKET, S3_ENV
 
 EXIT_USAGE = 2

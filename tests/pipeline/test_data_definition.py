@@ -8,8 +8,13 @@ import json
 import pytest
 
 from kforge.engine import SimParams, StaticSimParams
-from kforge.pipeline.generation import ConfigError, data_definition, data_fingerprint, load_config
-from kforge.pipeline.generation.definition import definition_fingerprint, physics_definition
+from kforge.pipeline.generation import ConfigError, load_config
+from kforge.pipeline.generation.definition import (
+    data_definition,
+    data_fingerprint,
+    definition_fingerprint,
+    physics_definition,
+)
 from kforge.pipeline.generation.run import prepare_output
 from kforge.pipeline.storage import DatasetError
 from kforge.pipeline.storage.shard_store import open_dataset

@@ -12,7 +12,8 @@ from pipeline_test_helpers import tiny_job
 
 from kforge.engine import physics_scheme
 from kforge.env import EnvParams, StaticEnvParams, list_levels, load_level, under_scheme
-from kforge.pipeline.learning import hand_starts, play_physics
+from kforge.pipeline.learning.evaluation import play_physics
+from kforge.pipeline.learning.evaluation_sets import hand_starts
 
 SIZE_S = StaticEnvParams.for_size("s")
 KINETIX_PARAMS, KINETIX_S = under_scheme(physics_scheme("kinetix"), EnvParams(), SIZE_S)
@@ -54,8 +55,7 @@ def test_unseen_levels_are_a_fixed_range_past_every_dataset_that_the_filter_keep
     split's filter keeps there, in order, and is the same levels every time."""
     from kforge.env import filter_levels, reset
     from kforge.pipeline.generation import environment, sample_batch
-    from kforge.pipeline.learning import UNSEEN_FIRST_LEVEL, unseen_starts
-    from kforge.pipeline.learning.evaluation_sets import UNSEEN_SAMPLE_CHUNK
+    from kforge.pipeline.learning.evaluation_sets import UNSEEN_FIRST_LEVEL, UNSEEN_SAMPLE_CHUNK, unseen_starts
 
     assert UNSEEN_FIRST_LEVEL == 2**31
     job = tiny_job(tmp_path)
@@ -76,7 +76,7 @@ def test_unseen_levels_are_a_fixed_range_past_every_dataset_that_the_filter_keep
 def test_unseen_levels_that_are_dataset_levels_are_refused_in_one_line(tmp_path, dataset_dir):
     import dataclasses
 
-    from kforge.pipeline.learning import check_unseen_disjoint, dataset_level_ids, unseen_starts
+    from kforge.pipeline.learning.evaluation_sets import check_unseen_disjoint, dataset_level_ids, unseen_starts
     from kforge.pipeline.storage import DatasetError
 
     held = dataset_level_ids(str(dataset_dir))
@@ -95,7 +95,8 @@ def test_baselines_play_the_same_starts_with_the_same_keys(levels):
     from pipeline_test_helpers import PARAMS, STATIC
 
     from kforge.env import action_mask, reset
-    from kforge.pipeline.learning import StartSet, play_set
+    from kforge.pipeline.learning.evaluation import play_set
+    from kforge.pipeline.learning.evaluation_sets import StartSet
 
     starts = StartSet(
         jax.vmap(reset)(levels),
@@ -114,7 +115,7 @@ def test_baselines_play_the_same_starts_with_the_same_keys(levels):
 
 
 def test_rates_give_the_standard_errors_and_the_paired_difference_to_random():
-    from kforge.pipeline.learning import rates
+    from kforge.pipeline.learning.evaluation import rates
 
     bc = np.array([[True, True], [True, False], [False, False]])  # per start: 1, 0.5, 0
     random = np.array([[True, False], [True, False], [False, False]])  # 0.5, 0.5, 0

@@ -37,7 +37,8 @@ from kforge.engine import SimParams
 from kforge.env import EnvParams
 from kforge.pipeline.cli import EXIT_DATA, EXIT_INTERRUPTED
 from kforge.pipeline.cli.verify import main as verify_main
-from kforge.pipeline.generation import data_fingerprint, load_config, to_yaml
+from kforge.pipeline.generation import load_config, to_yaml
+from kforge.pipeline.generation.definition import data_fingerprint
 from kforge.pipeline.generation.growth import ResumeRefused
 from kforge.pipeline.generation.level_batch import run_level_batch
 from kforge.pipeline.generation.run import DatasetDamaged, prepare_output, run_job

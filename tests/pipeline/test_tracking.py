@@ -9,8 +9,9 @@ from pathlib import Path
 import pytest
 from pipeline_test_helpers import tiny_job
 
-from kforge.pipeline.generation import ConfigError, data_fingerprint
+from kforge.pipeline.generation import ConfigError
 from kforge.pipeline.generation.coordinator import Commit
+from kforge.pipeline.generation.definition import data_fingerprint
 from kforge.pipeline.generation.tracking import WANDB_MODE_ENV, batch_metrics, start_tracking, tracking_mode
 from kforge.pipeline.storage import PROVENANCE
 from kforge.pipeline.storage.manifest import write_record
