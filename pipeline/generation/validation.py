@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 import math
 
+from kforge.agents import PPOHyperparameters
 from kforge.pipeline.generation.resolved import ppo_config
 from kforge.pipeline.generation.schema import (
     BUDGET_MODES,
@@ -57,46 +58,22 @@ def check_config(job: JobConfig) -> None:
     _check_ppo_sizes(job)
 
 
-PPO_COUNTS = ("num_envs", "num_steps", "update_epochs", "num_minibatches", "hidden_size", "num_hidden_layers")
-"""`ppo` keys that count something and must be >= 1 (`select_episodes` too, `select_every_updates` >= 0)."""
-PPO_POSITIVE = ("learning_rate", "adam_eps", "max_grad_norm", "clip_eps")
-PPO_SHARES = ("gamma", "gae_lambda")
-PPO_WEIGHTS = ("ent_coef", "vf_coef")
-
-
 def _check_ppo_sizes(job: JobConfig) -> None:
-    """What `agents.PPOConfig` (and, for adaptive budgets, training in segments) would refuse, on the config's plain
-    values and named by key, so that the error comes before JAX is imported (`check_training` remains the
-    authority)."""
-    ppo = job.ppo
-    for name in (*PPO_COUNTS, "select_episodes"):
-        if getattr(ppo, name) < 1:
-            raise ConfigError(f"ppo.{name} must be >= 1, got {getattr(ppo, name)}")
-    checks = [(PPO_POSITIVE, lambda x: x > 0, "> 0"), (PPO_SHARES, lambda x: 0 <= x <= 1, "in [0, 1]")]
-    for names, holds, rule in [*checks, (PPO_WEIGHTS, lambda x: x >= 0, ">= 0")]:
-        for name in names:
-            if not holds(getattr(ppo, name)):
-                raise ConfigError(f"ppo.{name} must be {rule}, got {getattr(ppo, name)}")
-    if ppo.select_every_updates < 0:
-        raise ConfigError(f"ppo.select_every_updates must be >= 0, got {ppo.select_every_updates}")
-    steps = ppo.num_envs * ppo.num_steps
-    budget = job.split.expert_budget
-    if budget < steps or budget % steps:
-        raise ConfigError(
-            f"split.expert_budget ({budget}) must be a multiple of one update's ppo.num_envs * ppo.num_steps = "
-            f"{ppo.num_envs} * {ppo.num_steps} = {steps}"
+    """What the PPO declaration (`agents.PPOHyperparameters`) refuses and, for streamed and adaptive budgets, an
+    evaluation period that does not divide the updates, named by key before JAX is imported (`check_training`
+    remains the authority)."""
+    values = dataclasses.asdict(job.ppo)
+    try:
+        ppo = PPOHyperparameters(
+            env_steps_per_level=job.split.expert_budget, select_greedy=job.collect.greedy, **values
         )
-    if steps % ppo.num_minibatches:
+    except ValueError as error:
+        raise ConfigError(f"ppo / split.expert_budget: {error}") from error
+    every = ppo.select_every_updates
+    if job.experts.budget_mode != FIXED_BUDGET_MODE and (every < 1 or ppo.num_updates % every):
         raise ConfigError(
-            f"ppo.num_minibatches ({ppo.num_minibatches}) must divide ppo.num_envs * ppo.num_steps = {steps}"
-        )
-    updates = budget // steps
-    if job.experts.budget_mode != FIXED_BUDGET_MODE and (
-        ppo.select_every_updates < 1 or updates % ppo.select_every_updates
-    ):
-        raise ConfigError(
-            f"experts.budget_mode={job.experts.budget_mode}: ppo.select_every_updates ({ppo.select_every_updates}) "
-            f"must be >= 1 and divide the {updates} updates of the budget"
+            f"experts.budget_mode={job.experts.budget_mode}: ppo.select_every_updates ({every}) must be >= 1 and "
+            f"divide the {ppo.num_updates} updates of the budget"
         )
 
 
