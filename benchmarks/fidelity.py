@@ -339,7 +339,7 @@ def main(argv=None) -> None:
         print(line, file=sys.stderr if args.json else sys.stdout, flush=True)
 
     python = kinetix_python(args.kinetix_venv, log)
-    level_dir = args.level_dir or Path(tempfile.mkdtemp(prefix="kforge-fidelity-"))
+    level_dir = (args.level_dir or Path(tempfile.mkdtemp(prefix="kforge-fidelity-"))).absolute()  # for Kinetix's side
     paths = {}
     if not args.no_hand:
         for size in args.sizes:

@@ -75,9 +75,10 @@ TRACED = {
 
 
 def level_path(name: str) -> Path:
-    """A bundled level's name (`s/h1_thrust_over_ball`) or a level file's path."""
+    """A bundled level's name (`s/h1_thrust_over_ball`) or a level file's path, made absolute (Kinetix's side runs
+    from the top of the checkout)."""
     path = Path(name)
-    return path if path.suffix == ".json" else bundled_level_path(name)
+    return path.absolute() if path.suffix == ".json" else bundled_level_path(name)
 
 
 def random_actions(episodes: int, seed: int) -> np.ndarray:
