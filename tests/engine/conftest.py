@@ -60,14 +60,9 @@ def _trajectory(state: SimState, info: StepInfo) -> Trajectory:
 
 
 @functools.cache
-def rollout_fn(static: StaticSimParams):
-    """jit(state, params, motor_actions (K, J), thruster_actions (K, T)) -> (final state, Trajectory)."""
-    return jax.jit(scan_steps(static, _trajectory))
-
-
-@functools.cache
 def batched_rollout_fn(static: StaticSimParams):
-    """Like `rollout_fn`, vmapped over a leading batch axis of states and actions (params shared)."""
+    """jit(states, params, motor_actions (B, K, J), thruster_actions (B, K, T)) -> (final states, Trajectory), the
+    scenes of the batch stepped side by side (params shared)."""
     return jax.jit(jax.vmap(scan_steps(static, _trajectory), in_axes=(0, None, 0, 0)))
 
 
@@ -233,41 +228,27 @@ def _per_step(actions, steps: int, width: int) -> np.ndarray:
     return actions
 
 
-def simulate(state, static: StaticSimParams, steps: int, params: SimParams | None = None, motor=None, thrust=None):
-    """Run `steps` steps; returns (final state, dict of per-step records).
+def run(state, static: StaticSimParams, steps: int, params: SimParams | None = None, motor=None, thrust=None):
+    """Run `steps` steps of one scene, CHUNK steps per compiled call; returns (final state, Motion).
 
     `motor` / `thrust`: None (zeros), one (J,) / (T,) action vector for every step, or (steps, J) / (steps, T).
     """
     params = SimParams() if params is None else params
     motor = _per_step(motor, steps, static.num_joints)
     thrust = _per_step(thrust, steps, static.num_thrusters)
-    runner = _chunk_runner(static)
-    records = []
+    b = state.bodies
+    initial = dict(position=b.position, rotation=b.rotation, velocity=b.velocity, angular_velocity=b.angular_velocity)
+    records = [jax.tree_util.tree_map(lambda x: np.asarray(x)[None], initial)]  # the pose before the first step
     for start in range(0, steps, CHUNK):
         count = min(CHUNK, steps - start)
         m = np.zeros((CHUNK, static.num_joints), np.float32)
         t = np.zeros((CHUNK, static.num_thrusters), np.float32)
         m[:count], t[:count] = motor[start : start + count], thrust[start : start + count]
-        state, record = runner(state, params, m, t, count)
+        state, record = _chunk_runner(static)(state, params, m, t, count)
         records.append(jax.tree_util.tree_map(lambda x, c=count: np.asarray(x)[:c], record))
-    merged = {key: np.concatenate([r[key] for r in records]) for key in records[0]}
+    merged = {key: np.concatenate([r[key] for r in records if key in r]) for key in records[-1]}
     merged = {key: value.astype(np.float64) if value.dtype == np.float32 else value for key, value in merged.items()}
-    return state, merged
-
-
-def run(state, static: StaticSimParams, steps: int, params: SimParams | None = None, motor=None, thrust=None):
-    """Like `simulate`, returning (final state, Motion) with the initial pose prepended."""
-    b = state.bodies
-    initial = dict(
-        position=np.asarray(b.position, np.float64)[None],
-        rotation=np.asarray(b.rotation, np.float64)[None],
-        velocity=np.asarray(b.velocity, np.float64)[None],
-        angular_velocity=np.asarray(b.angular_velocity, np.float64)[None],
-    )
-    final, merged = simulate(state, static, steps, params, motor, thrust)
-    for key, first in initial.items():
-        merged[key] = np.concatenate([first, merged[key]])
-    return final, Motion(**merged)
+    return state, Motion(**merged)
 
 
 def zero_gravity(state):
