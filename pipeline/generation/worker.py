@@ -3,10 +3,8 @@
 from __future__ import annotations
 
 import functools
-import os
 import time
 from collections.abc import Iterator
-from pathlib import Path
 
 from kforge.engine import use_deterministic_ops
 from kforge.pipeline.generation.adaptive import streamed_level_batches
@@ -20,24 +18,8 @@ from kforge.pipeline.storage import (
     commit_age_limit,
     open_dataset,
     stage_level_batch,
+    unmark_committed,
 )
-
-FAULT_INJECTION_ENV = "KFORGE_WORKER_FAULT"
-"""Fault drill: "N:PATH" makes the first worker that finds no file at PATH create it and kill its own process
-right after writing the data files of its N-th level batch, before the commit (the worst moment to die)."""
-
-
-def _maybe_inject_fault(staged: int) -> None:
-    plan = os.environ.get(FAULT_INJECTION_ENV)
-    if not plan:
-        return
-    count, marker = plan.split(":", 1)
-    if staged == int(count):
-        try:
-            Path(marker).touch(exist_ok=False)
-        except FileExistsError:
-            return
-        os._exit(1)
 
 
 class Worker:
@@ -49,7 +31,6 @@ class Worker:
         enable_compile_cache(job.compile_cache.dir)
         self._job = job
         self._name = name
-        self._staged = 0
 
     def run_shard(self, coordinator, shard: int) -> list[dict]:
         """Continue `shard` from its last committed level batch; returns a summary per batch it committed.
@@ -59,19 +40,19 @@ class Worker:
         dataset = open_dataset(self._job.output_dir)
         # Safe under the job's lease on the dataset; the coordinator's shard lease makes this worker its only writer.
         max_lease_age_s = commit_age_limit(self._job.lease.stale_after_s, self._job.lease.heartbeat_s)
-        clean_uncommitted(dataset.store, shard, _call(coordinator.job_id), max_lease_age_s)
+        job_id = _call(coordinator.job_id)
+        clean_uncommitted(dataset.store, shard, job_id, max_lease_age_s)
         summaries = []
         started = time.perf_counter()
         for batch, result in self._batches(coordinator, shard):
             written = time.perf_counter()
-            record = stage_level_batch(dataset, shard, batch, result)
+            record = stage_level_batch(dataset, shard, batch, result, job_id)
             provenance = record.setdefault(PROVENANCE, {"seconds": {}})
             provenance["seconds"]["write"] = time.perf_counter() - written
             provenance["seconds"]["total"] = time.perf_counter() - started
             provenance["worker"] = self._name
-            self._staged += 1
-            _maybe_inject_fault(self._staged)
             _call(coordinator.commit, shard, batch, record, self._name)
+            unmark_committed(dataset.store, shard, batch)
             summaries.append(
                 {
                     "shard": shard,

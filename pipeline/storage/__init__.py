@@ -58,7 +58,13 @@ from kforge.pipeline.storage.shard_store import (
 from kforge.pipeline.storage.state_codec import encode, is_coded
 from kforge.pipeline.storage.store import Store, StoreError, is_remote, join, open_store
 from kforge.pipeline.storage.verify import format_report, verify_dataset
-from kforge.pipeline.storage.writer import BatchTrajectories, clean_uncommitted, learning_curves, stage_level_batch
+from kforge.pipeline.storage.writer import (
+    BatchTrajectories,
+    clean_uncommitted,
+    learning_curves,
+    stage_level_batch,
+    unmark_committed,
+)
 
 __all__ = [
     "ArrayEntry",
@@ -119,6 +125,7 @@ __all__ = [
     "stage_level_batch",
     "static_to_json",
     "unflatten_state",
+    "unmark_committed",
     "verify_dataset",
     "withdraw_bad_batches",
     "withdraw_commit",

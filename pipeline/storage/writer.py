@@ -39,7 +39,7 @@ from kforge.pipeline.storage.manifest import (
 )
 from kforge.pipeline.storage.records import KEPT, ArrayEntry, BatchRecord, LevelRecord, Outcome
 from kforge.pipeline.storage.shard_store import Dataset, array_digest, open_dataset
-from kforge.pipeline.storage.store import Store
+from kforge.pipeline.storage.store import Store, open_store
 
 
 @dataclasses.dataclass(frozen=True)
@@ -202,12 +202,15 @@ def write_level_batch(dataset: Dataset, shard: int, batch: int, result: BatchTra
     return write_record(dataset.root, shard, batch, record)
 
 
-def stage_level_batch(dataset: Dataset, shard: int, batch: int, result: BatchTrajectories) -> dict:
+def stage_level_batch(
+    dataset: Dataset, shard: int, batch: int, result: BatchTrajectories, job_id: str | None = None
+) -> dict:
     """Write the data files of level batch `batch` of `shard` and return the record that commits them.
 
     Order: check, refuse a committed batch (`DatasetError`: a committed batch's files are never rewritten, so a
-    writer that lost its shard or lease cannot change a commit of another), write the data files (each replaced
-    atomically by tensorstore). The batch counts as committed only once the returned record is written
+    writer that lost its shard or lease cannot change a commit of another), mark the batch as staged by job
+    `job_id` (`staging_key`; None: an unleased writer, e.g. a test, marks nothing), write the data files (each
+    replaced atomically by tensorstore). The batch counts as committed only once the returned record is written
     (`manifest.commit_record`, by the coordinator); rerunning after any interruption overwrites the same files.
     """
     geometry, layout = dataset.geometry, dataset.layout
@@ -215,6 +218,8 @@ def stage_level_batch(dataset: Dataset, shard: int, batch: int, result: BatchTra
     arrays = stored_arrays(layout, geometry.levels_per_batch, result)
     if record_exists(dataset.store, shard, batch):
         raise DatasetError(f"{shard_name(shard)} batch {batch}: already committed; its files are not rewritten")
+    if job_id is not None:
+        dataset.store.write(staging_key(shard, batch, job_id), b"")
     dataset.write_batch(global_batch, arrays)
 
     files = {}
@@ -257,30 +262,69 @@ def stage_level_batch(dataset: Dataset, shard: int, batch: int, result: BatchTra
     return record.to_json()
 
 
+STAGING_DIR = "staging"
+"""Prefix of the staging markers: `staging/shard-000012/batch-003/<job id>`, an empty object per job that wrote
+data files of an uncommitted level batch (`stage_level_batch`)."""
+
+
+def staging_key(shard: int, batch: int, job_id: str) -> str:
+    """The key of job `job_id`'s staging marker of a level batch."""
+    return f"{_batch_staging_prefix(shard, batch)}{job_id}"
+
+
+def _batch_staging_prefix(shard: int, batch: int) -> str:
+    return f"{STAGING_DIR}/{shard_name(shard)}/batch-{batch:03d}/"
+
+
+def staged_by(root: str | os.PathLike | Store, shard: int) -> dict[int, set[str]]:
+    """Batch -> the jobs whose staging markers it has, for each level batch of `shard` with one."""
+    store = open_store(root)
+    prefix = f"{STAGING_DIR}/{shard_name(shard)}/"
+    found: dict[int, set[str]] = {}
+    for key in store.list(prefix):
+        batch, _, job_id = key.removeprefix(prefix).partition("/")
+        if batch.startswith("batch-") and job_id:
+            found.setdefault(int(batch.removeprefix("batch-")), set()).add(job_id)
+    return found
+
+
+def unmark_committed(root: str | os.PathLike | Store, shard: int, batch: int) -> None:
+    """Remove every staging marker of a committed level batch (its files are the commit's now)."""
+    store = open_store(root)
+    for key in store.list(_batch_staging_prefix(shard, batch)):
+        store.delete(key)
+
+
 def clean_uncommitted(
     root: str | os.PathLike | Store, shard: int, job_id: str, max_lease_age_s: float | None = None
 ) -> list[str]:
-    """Remove what a crash left in `shard`: data objects of level batches without a record, half-done local writes
-    (tensorstore lock files) and half-written records. Returns the removed keys.
+    """Remove what a crash of this job left in `shard`: data objects of level batches without a record, half-done
+    local writes (tensorstore lock files), half-written records and staging markers. Returns the removed keys.
 
-    Only the shard's single writer may call it, under its job's lease (`LeaseLost` if job `job_id` does not hold the
-    dataset's lease, or its heartbeat is older than `max_lease_age_s`): a job that lost its lease would otherwise
-    delete data the job that took over is about to commit. What it removes was staged by this job's earlier
-    attempt or by a job that lost the lease, which can commit nothing any more (`lease` module doc: fencing).
+    Only the data of batches that no other job marked as staged is removed (`staging_key`): a job that lost the
+    lease may still be writing its batches, and their files stay until this job stages the batch itself (the same
+    bytes: the data is a function of the config) and commits it. Only the shard's single writer may call it, under
+    its job's lease (`LeaseLost` if job `job_id` does not hold the dataset's lease, or its heartbeat is older than
+    `max_lease_age_s`).
     """
     dataset = open_dataset(root)
     require_lease(dataset.store, job_id, max_lease_age_s)
     store = dataset.store
     committed = set(committed_batches(store, shard))
+    staged = staged_by(store, shard)
     removed = list(temp_records(store, shard))
     partial = []
     for batch in range(dataset.geometry.batches_per_shard):
-        global_batch = dataset.geometry.global_batch(shard, batch)
-        for spec in dataset.layout.fields:
-            key = dataset.batch_key(spec.name, global_batch)
-            partial += store.partial_writes(key)
-            if batch not in committed and key in store.list(key):
-                removed.append(key)
+        stagers = staged.get(batch, set())
+        if batch not in committed and stagers - {job_id}:
+            continue  # another job's staged files: not this job's to remove
+        keys = [
+            dataset.batch_key(spec.name, dataset.geometry.global_batch(shard, batch)) for spec in dataset.layout.fields
+        ]
+        partial += [found for key in keys for found in store.partial_writes(key)]
+        if batch not in committed:
+            removed += [key for key in keys if key in store.list(key)]
+        removed += [staging_key(shard, batch, stager) for stager in sorted(stagers)]
     for key in removed:
         store.delete(key)
     for key in partial:

@@ -27,9 +27,9 @@ import zarr
 from kforge.engine import SceneBuilder
 from kforge.env import ActionType, EnvParams, Role, StaticEnvParams, random_action, reset, step
 from kforge.env.level_builder import build_level
-from kforge.pipeline.generation import load_config
+from kforge.pipeline.generation import load_config, to_yaml
 from kforge.pipeline.generation.run import run_job
-from kforge.pipeline.storage import PROVENANCE, Lease, iter_records, open_store
+from kforge.pipeline.storage import PROVENANCE, Lease, all_committed, iter_records, open_store
 from kforge.pipeline.storage.layout import make_layout
 from kforge.pipeline.storage.lease import LEASE_KEY, LeaseHeld, LeaseHolder, read_holder
 from kforge.pipeline.storage.shard_store import DatasetSpec, Geometry, create_dataset
@@ -186,6 +186,53 @@ def uninterrupted(tmp_path_factory):
     return root
 
 
+KEEPING_JOB = [
+    *(item for item in TINY_JOB if not item.startswith(("split.num_levels=", "work.", "compile_cache."))),
+    "split.num_levels=64",
+    "split.seed=10",
+    "work.levels_per_shard=32",
+    "work.levels_per_batch=16",
+    "filter.enabled=false",
+]
+"""The job of the kill-and-resume tests and of benchmarks/chaos.py: the tiny job's training over 64 levels in 2
+shards of 2 level batches of 16, without the trivial-level filter, at split seed 10, where its 4 level batches keep
+3, 4, 3 and 3 trajectories (seeds 1, 4 and 8 keep at least 2 per batch too; 0, 2, 3, 5, 6, 7, 9 and 11 do not), so
+every kill is checked on stored trajectories (`assert_keeps_in_every_batch`)."""
+KEEPING_BATCHES = 4
+MIN_KEPT_PER_BATCH = 2
+
+
+def keeping_job(output_dir, compile_cache, *extra):
+    """`KEEPING_JOB` writing to `output_dir`, its programs in the test session's compilation cache."""
+    return load_config(None, [f"output_dir={output_dir}", *KEEPING_JOB, f"compile_cache.dir={compile_cache}", *extra])
+
+
+@pytest.fixture(scope="session")
+def keeping_cache(tmp_path_factory):
+    """A compilation cache for `KEEPING_JOB`'s programs, shared by the test session's job processes (each would
+    compile them for minutes otherwise; a killed job still has its training and writing as its window)."""
+    return tmp_path_factory.mktemp("keeping-cache")
+
+
+@pytest.fixture(scope="session")
+def uninterrupted_keeping(tmp_path_factory, keeping_cache):
+    """`KEEPING_JOB` run once without interruption, as a `kforge run` process (it fills `keeping_cache`): the dataset
+    the kill-and-resume tests must end with (shared read-only)."""
+    root = tmp_path_factory.mktemp("uninterrupted-keeping") / "dataset"
+    config_file = root.parent / "job.yaml"
+    config_file.write_text(to_yaml(keeping_job(root, keeping_cache, "ray.num_workers=0")))
+    run_job_process(config_file)
+    assert_keeps_in_every_batch(root)
+    return root
+
+
+def assert_keeps_in_every_batch(root) -> None:
+    """Every level batch of the dataset is committed and keeps at least `MIN_KEPT_PER_BATCH` trajectories."""
+    kept = {(record.shard, record.batch): record.num_kept for record in iter_records(root)}
+    assert len(kept) == KEEPING_BATCHES, kept
+    assert min(kept.values()) >= MIN_KEPT_PER_BATCH, kept
+
+
 def batch_file(dataset, name: str, global_batch: int) -> Path:
     """The local file of a level batch's shard object in field `name`'s array (tests that damage files)."""
     return Path(dataset.root) / dataset.batch_key(name, global_batch)
@@ -202,6 +249,17 @@ def session_processes(session: int) -> list[int]:
         if int(fields[3]) == session and fields[0] != "Z":  # fields after ")": state, ppid, pgrp, session
             pids.append(int(stat.parent.name))
     return pids
+
+
+def actor_processes(session: int, title: str = "ray::Worker") -> list[int]:
+    """Pids of the processes of a Unix session whose title starts with `title` (Ray titles an actor's process
+    "ray::<class>", followed by the method it runs: "ray::Worker", "ray::Coordinator")."""
+    pids = []
+    for pid in session_processes(session):
+        with contextlib.suppress(OSError):
+            if Path(f"/proc/{pid}/cmdline").read_bytes().startswith(title.encode()):
+                pids.append(pid)
+    return sorted(pids)
 
 
 def kill_session(session: int) -> None:
@@ -250,6 +308,29 @@ def run_job_process(config_file: Path, until=None) -> str:
         return output
     finally:
         kill_session(process.pid)
+
+
+def start_job(config_file: Path, *options: str) -> subprocess.Popen:
+    """`python -m kforge run CONFIG --no-progress [options]` started in a session of its own, stdout and stderr piped
+    (the test signals it or its Ray processes, then `communicate`s)."""
+    return subprocess.Popen(
+        [sys.executable, "-m", "kforge", "run", str(config_file), "--no-progress", *options],
+        start_new_session=True,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        env={**os.environ, "RAY_AUTH_MODE": "disabled"},
+    )
+
+
+def json_summary(stdout: bytes) -> dict:
+    """The summary that `kforge run --json` printed last."""
+    text = stdout.decode()
+    return json.loads(text[text.index("{\n") :])
+
+
+def committed_count(root: Path) -> int:
+    """Committed level batches of a local dataset (0 before its manifest exists)."""
+    return sum(map(len, all_committed(root).values())) if (root / "manifest").is_dir() else 0
 
 
 def kill_at_points(config_file: Path, kill_points: dict) -> None:

@@ -16,7 +16,14 @@ import threading
 import time
 
 import pytest
-from pipeline_test_helpers import assert_same_dataset, run_in_process, tiny_job
+from pipeline_test_helpers import (
+    assert_keeps_in_every_batch,
+    assert_same_dataset,
+    committed_count,
+    keeping_job,
+    run_job_process,
+    start_job,
+)
 
 from kforge.pipeline.cli import EXIT_DATA
 from kforge.pipeline.generation import to_yaml
@@ -24,7 +31,6 @@ from kforge.pipeline.generation.coordinator import Coordinator, ShardNotHeld
 from kforge.pipeline.storage import (
     Lease,
     LeaseLost,
-    all_committed,
     commit_age_limit,
     commit_record,
     read_record_json,
@@ -32,7 +38,9 @@ from kforge.pipeline.storage import (
 )
 from kforge.pipeline.storage.lease import LEASE_KEY, read_holder
 from kforge.pipeline.storage.manifest import remove_record
+from kforge.pipeline.storage.shard_store import open_dataset
 from kforge.pipeline.storage.verify import verify_dataset
+from kforge.pipeline.storage.writer import STAGING_DIR, clean_uncommitted, staged_by, staging_key
 
 STALE_AFTER_S = 1.5  # [s] the lease's stale limit in these tests
 HEARTBEAT_S = 0.2  # [s]
@@ -119,6 +127,28 @@ def test_a_paused_holder_whose_lease_was_taken_over_changes_nothing(dataset_dir,
     assert all(report.ok for report in reports) and reports[0].committed == [0]
 
 
+def test_cleanup_removes_only_what_its_own_job_staged_and_the_markers_of_committed_batches(dataset_dir, tmp_path):
+    root, records = _uncommitted_copy(dataset_dir, tmp_path)  # shard 0's two batches: files without records
+    dataset = open_dataset(root)
+    keys = {
+        batch: [dataset.batch_key(spec.name, dataset.geometry.global_batch(0, batch)) for spec in dataset.layout.fields]
+        for batch in range(BATCHES_PER_SHARD)
+    }
+    files = {batch: [key for key in keys[batch] if (root / key).is_file()] for batch in keys}
+    assert files[0] and files[1]
+    (root / staging_key(0, 0, "new")).parent.mkdir(parents=True)
+    (root / staging_key(0, 0, "new")).write_bytes(b"")  # this job staged batch 0 before a crash
+    (root / staging_key(0, 1, "old")).parent.mkdir(parents=True)
+    (root / staging_key(0, 1, "old")).write_bytes(b"")  # a job that lost the lease staged batch 1
+    with Lease.acquire(root, job_id="new", heartbeat_s=60):
+        removed = clean_uncommitted(root, 0, "new")
+        assert removed == sorted([*files[0], staging_key(0, 0, "new")])
+        assert all((root / key).is_file() for key in files[1]) and staged_by(root, 0) == {1: {"old"}}
+        assert commit_record(root, 0, 1, records["0/1"])  # this job staged and committed batch 1 since
+        assert clean_uncommitted(root, 0, "new") == [staging_key(0, 1, "old")]  # a committed batch's marker
+    assert all((root / key).is_file() for key in files[1]) and staged_by(root, 0) == {}
+
+
 def test_a_garbage_lease_is_a_lost_lease(tmp_path):
     with Lease.acquire(tmp_path, job_id="mine", heartbeat_s=0.05) as lease:
         (tmp_path / LEASE_KEY).write_bytes(b"\x00 not a lease")
@@ -166,37 +196,32 @@ JOB_TIMEOUT_S = 900.0
 
 @pytest.mark.slow
 def test_a_real_job_paused_past_its_lease_is_fenced_and_the_job_that_took_over_finishes_the_dataset(
-    uninterrupted, tmp_path
+    uninterrupted_keeping, keeping_cache, tmp_path
 ):
     output = tmp_path / "dataset"
     config_file = tmp_path / "job.yaml"
-    config_file.write_text(to_yaml(tiny_job(output, "ray.num_workers=0", *JOB_LEASE)))
-    paused = subprocess.Popen(
-        [sys.executable, "-m", "kforge", "run", str(config_file), "--no-progress"],
-        start_new_session=True,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.STDOUT,
-    )
+    config_file.write_text(to_yaml(keeping_job(output, keeping_cache, "ray.num_workers=0", *JOB_LEASE)))
+    paused = start_job(config_file)
     try:
         deadline = time.monotonic() + JOB_TIMEOUT_S
-        while not (output / "manifest").is_dir() or not all_committed(output):
+        while committed_count(output) < 1:
             assert paused.poll() is None and time.monotonic() < deadline, "the job ended before its first commit"
             time.sleep(0.05)
         paused_job = read_holder(output).job_id
         os.killpg(paused.pid, signal.SIGSTOP)
         time.sleep(3.0)  # its lease goes stale
         outcome = {}
-        taker = threading.Thread(  # takes the lease over and finishes the dataset
-            target=lambda: outcome.update(summary=run_in_process(tiny_job(output, *JOB_LEASE)))
+        taker = threading.Thread(  # a second job takes the lease over and finishes the dataset
+            target=lambda: outcome.update(output=run_job_process(config_file))
         )
         taker.start()
         while (holder := read_holder(output)) is None or holder.job_id == paused_job:
             assert taker.is_alive() and time.monotonic() < deadline, "the second job did not take the lease over"
             time.sleep(0.01)
         os.killpg(paused.pid, signal.SIGCONT)  # resumes while the second job works
-        text = paused.communicate(timeout=JOB_TIMEOUT_S)[0].decode(errors="replace")
+        text = paused.communicate(timeout=JOB_TIMEOUT_S)[1].decode(errors="replace")
         taker.join(JOB_TIMEOUT_S)
-        assert outcome["summary"]["committed_batches"] == 4
+        assert "output" in outcome, "the second job failed"
     finally:
         if paused.poll() is None:
             os.killpg(paused.pid, signal.SIGKILL)
@@ -205,5 +230,59 @@ def test_a_real_job_paused_past_its_lease_is_fenced_and_the_job_that_took_over_f
     # Fenced at its next step: while the second job runs, or once it has ended and released the lease.
     assert re.search(r"this job's lease was (taken over by job \w+ |removed$)", text.splitlines()[-1]), text[-3000:]
     assert not (output / LEASE_KEY).exists()  # the fenced job left the (released) lease alone
+    assert_keeps_in_every_batch(output)
     assert all(report.ok for report in verify_dataset(output))
-    assert_same_dataset(uninterrupted, output)
+    assert_same_dataset(uninterrupted_keeping, output)
+
+
+def _staged_uncommitted(root) -> list[tuple[int, int]]:
+    """(shard, batch) of the level batches with a staging marker and no commit record."""
+    marked = [(shard, batch) for shard in range(NUM_SHARDS) for batch in staged_by(root, shard)]
+    return [(shard, batch) for shard, batch in marked if not (root / record_key(shard, batch)).exists()]
+
+
+@pytest.mark.slow
+def test_a_new_jobs_cleanup_leaves_the_files_a_stopped_job_staged_and_the_stopped_job_commits_nothing(
+    uninterrupted_keeping, keeping_cache, tmp_path
+):
+    output = tmp_path / "dataset"
+    config_file = tmp_path / "job.yaml"
+    config_file.write_text(to_yaml(keeping_job(output, keeping_cache, "ray.num_workers=0", *JOB_LEASE)))
+    stopped = start_job(config_file)
+    try:
+        deadline = time.monotonic() + JOB_TIMEOUT_S
+        staged = []
+        while not staged:  # stop the job as it writes a level batch: marked as staged, not committed
+            assert stopped.poll() is None and time.monotonic() < deadline, "the job ended before it was stopped"
+            if _staged_uncommitted(output):
+                os.killpg(stopped.pid, signal.SIGSTOP)
+                staged = _staged_uncommitted(output)
+                if not staged:  # it committed the batch before the signal landed: catch the next one
+                    os.killpg(stopped.pid, signal.SIGCONT)
+            time.sleep(0.005)
+        (shard, batch), stopped_job = staged[0], read_holder(output).job_id
+        assert staged_by(output, shard)[batch] == {stopped_job}
+        dataset = open_dataset(output)
+        global_batch = dataset.geometry.global_batch(shard, batch)
+        keys = [dataset.batch_key(spec.name, global_batch) for spec in dataset.layout.fields]
+        files = {key: (output / key).read_bytes() for key in keys if (output / key).is_file()}
+        time.sleep(3.0)  # its lease goes stale
+        with Lease.acquire(output, stale_after_s=2, heartbeat_s=0.25, job_id="new", log=lambda line: None):
+            removed = clean_uncommitted(output, shard, "new", commit_age_limit(2, 0.25))
+        assert not set(removed) & set(files)
+        assert {key: (output / key).read_bytes() for key in files} == files  # the stopped job's files, untouched
+        assert staged_by(output, shard)[batch] == {stopped_job}
+        os.killpg(stopped.pid, signal.SIGCONT)
+        text = stopped.communicate(timeout=JOB_TIMEOUT_S)[1].decode(errors="replace")
+    finally:
+        if stopped.poll() is None:
+            os.killpg(stopped.pid, signal.SIGKILL)
+            stopped.wait()
+    assert stopped.returncode == EXIT_DATA, text[-3000:]
+    assert "this job's lease was removed" in text.splitlines()[-1], text[-3000:]
+    assert not (output / record_key(shard, batch)).exists()  # fenced: the stopped job committed nothing
+    run_job_process(config_file)  # a second job finishes the dataset, staging that batch itself
+    assert [path for path in (output / STAGING_DIR).rglob("*") if path.is_file()] == []
+    assert_keeps_in_every_batch(output)
+    assert all(report.ok for report in verify_dataset(output))
+    assert_same_dataset(uninterrupted_keeping, output)

@@ -13,7 +13,14 @@ import threading
 import time
 
 import pytest
-from pipeline_test_helpers import as_a_terminal_job, assert_same_dataset, run_in_process, tiny_job
+from pipeline_test_helpers import (
+    as_a_terminal_job,
+    assert_keeps_in_every_batch,
+    assert_same_dataset,
+    keeping_job,
+    run_in_process,
+    tiny_job,
+)
 
 from kforge.pipeline.generation import ResumeRefused, run_job, to_yaml
 from kforge.pipeline.storage import Lease, LeaseLost
@@ -118,9 +125,9 @@ def test_the_lease_is_gone_after_an_error(tmp_path):
 
 
 @pytest.mark.slow
-def test_the_lease_is_gone_after_success_and_after_sigint(uninterrupted, tmp_path):
+def test_the_lease_is_gone_after_success_and_after_sigint(uninterrupted_keeping, keeping_cache, tmp_path):
     config_file = tmp_path / "job.yaml"
-    config_file.write_text(to_yaml(tiny_job(tmp_path / "dataset")))
+    config_file.write_text(to_yaml(keeping_job(tmp_path / "dataset", keeping_cache)))
     lease = tmp_path / "dataset" / LEASE_KEY
     process = subprocess.Popen(
         [sys.executable, "-m", "kforge", "run", str(config_file), "--no-progress"],
@@ -146,3 +153,5 @@ def test_the_lease_is_gone_after_success_and_after_sigint(uninterrupted, tmp_pat
     )
     assert finished.returncode == 0, finished.stdout[-3000:]
     assert not lease.exists()
+    assert_keeps_in_every_batch(tmp_path / "dataset")
+    assert_same_dataset(uninterrupted_keeping, tmp_path / "dataset")

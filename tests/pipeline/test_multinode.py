@@ -1,6 +1,7 @@
 """Multi-node on one machine: a head node and a second node started with `ray start` on 127.0.0.1, a job on the
 cluster with one worker per node, the second node killed mid-run (SIGKILL of its every process); the job finishes on
-the head node, verifies and equals an uninterrupted run byte for byte (the operator's recipe in docs/operating.md)."""
+the head node, verifies and equals an uninterrupted run byte for byte, kept trajectories included (the operator's
+recipe in docs/operating.md)."""
 
 from __future__ import annotations
 
@@ -13,7 +14,7 @@ import tempfile
 import time
 
 import pytest
-from pipeline_test_helpers import assert_same_dataset, kill_session, tiny_job
+from pipeline_test_helpers import assert_keeps_in_every_batch, assert_same_dataset, keeping_job, kill_session
 
 from kforge.pipeline.generation import to_yaml
 from kforge.pipeline.storage import all_committed
@@ -52,7 +53,9 @@ def _nodes_alive(address: str) -> int:
 
 
 @pytest.mark.slow
-def test_a_job_on_two_nodes_survives_the_loss_of_one_and_equals_an_uninterrupted_run(uninterrupted, tmp_path):
+def test_a_job_on_two_nodes_survives_the_loss_of_one_and_equals_an_uninterrupted_run(
+    uninterrupted_keeping, keeping_cache, tmp_path
+):
     port = _free_port()
     address = f"127.0.0.1:{port}"
     temp_dir = tempfile.mkdtemp(prefix="kfray-")  # short: Ray's socket paths live below it
@@ -69,7 +72,8 @@ def test_a_job_on_two_nodes_survives_the_loss_of_one_and_equals_an_uninterrupted
             time.sleep(1.0)
         output = tmp_path / "dataset"
         config_file = tmp_path / "job.yaml"
-        config_file.write_text(to_yaml(tiny_job(output, f"ray.address={address}", "ray.num_workers=2")))
+        job = keeping_job(output, keeping_cache, f"ray.address={address}", "ray.num_workers=2")
+        config_file.write_text(to_yaml(job))
         job = subprocess.Popen(
             [sys.executable, "-m", "kforge", "run", str(config_file), "--no-progress"],
             start_new_session=True,
@@ -92,5 +96,6 @@ def test_a_job_on_two_nodes_survives_the_loss_of_one_and_equals_an_uninterrupted
             kill_session(second.pid)
         kill_session(head.pid)
         shutil.rmtree(temp_dir, ignore_errors=True)
+    assert_keeps_in_every_batch(output)
     assert all(report.ok for report in verify_dataset(output))
-    assert_same_dataset(uninterrupted, output)
+    assert_same_dataset(uninterrupted_keeping, output)

@@ -15,10 +15,13 @@ import numpy as np
 import pytest
 import tensorstore as ts
 from pipeline_test_helpers import (
+    KEEPING_BATCHES,
+    assert_keeps_in_every_batch,
     assert_lease_refuses_and_takes_over,
     assert_same_batches,
     environment,
     jax_leaves,
+    keeping_job,
     run_in_process,
     run_job_process,
     tiny_job,
@@ -319,19 +322,23 @@ def test_s3_honours_the_conditional_create(s3):
 
 
 @pytest.mark.slow
-def test_a_job_killed_mid_run_on_s3_and_resumed_equals_an_uninterrupted_run(s3, s3_dataset, tmp_path):
+def test_a_job_killed_mid_run_on_s3_and_resumed_equals_an_uninterrupted_run(
+    s3, uninterrupted_keeping, keeping_cache, tmp_path
+):
     url = f"s3://{BUCKET}/killed"
     config_file = tmp_path / "job.yaml"
     # The killed job leaves its lease behind: the resumed run takes it over once its heartbeat is a second old.
-    config_file.write_text(to_yaml(tiny_job(url, "lease.stale_after_s=1", "lease.heartbeat_s=0.25")))
+    job = keeping_job(url, keeping_cache, "lease.stale_after_s=1", "lease.heartbeat_s=0.25")
+    config_file.write_text(to_yaml(job))
     run_job_process(config_file, until=lambda: len(keys(s3, "killed/manifest/")) >= 1)
-    assert 1 <= len(keys(s3, "killed/manifest/")) < 4
+    assert 1 <= len(keys(s3, "killed/manifest/")) < KEEPING_BATCHES
     assert f"killed/{LEASE_KEY}" in keys(s3, "killed/")
     output = run_job_process(config_file)
     assert "taking over the stale lease" in output
     assert f"killed/{LEASE_KEY}" not in keys(s3, "killed/")
+    assert_keeps_in_every_batch(url)
     assert all(report.ok for report in verify_dataset(url))
-    assert_same_contents(url, s3_dataset[0])
+    assert_same_contents(url, str(uninterrupted_keeping))  # the same bytes as the local uninterrupted run
 
 
 def assert_same_contents(first: str, second: str) -> None:

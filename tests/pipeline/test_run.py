@@ -16,22 +16,31 @@ import sys
 import time
 from pathlib import Path
 
+import jax.numpy as jnp
 import pytest
 from pipeline_test_helpers import (
     JOB_TIMEOUT_SECONDS,
+    KEEPING_BATCHES,
     KILL_WAIT_SECONDS,
     POLL_SECONDS,
+    actor_processes,
     as_a_terminal_job,
+    assert_keeps_in_every_batch,
     assert_same_dataset,
+    committed_count,
     dataset_contents,
+    json_summary,
+    keeping_job,
     kill_at_points,
     kill_session,
     run_in_process,
     run_job_process,
     session_processes,
+    start_job,
     tiny_job,
 )
 
+import kforge.pipeline.generation.level_batch
 import kforge.pipeline.generation.worker
 from kforge.engine import SimParams
 from kforge.env import EnvParams
@@ -42,11 +51,10 @@ from kforge.pipeline.generation.definition import data_fingerprint
 from kforge.pipeline.generation.growth import ResumeRefused
 from kforge.pipeline.generation.level_batch import run_level_batch
 from kforge.pipeline.generation.run import DatasetDamaged, prepare_output, run_job
-from kforge.pipeline.generation.worker import FAULT_INJECTION_ENV
 from kforge.pipeline.storage.manifest import committed_batches, iter_records, record_key
-from kforge.pipeline.storage.shard_store import open_dataset
+from kforge.pipeline.storage.shard_store import MANIFEST_DIR, open_dataset
 from kforge.pipeline.storage.verify import verify_dataset
-from kforge.pipeline.storage.writer import stage_level_batch
+from kforge.pipeline.storage.writer import STAGING_DIR, stage_level_batch
 
 
 def test_uninterrupted_run_commits_every_batch_and_verifies(uninterrupted):
@@ -91,6 +99,24 @@ def test_a_failing_shard_of_a_job_without_ray_is_retried_abandoned_and_finished_
     monkeypatch.undo()
     run_in_process(tiny_job(tmp_path))
     assert_same_dataset(uninterrupted, tmp_path)
+
+
+def test_a_level_whose_data_makes_training_nan_fails_alone_and_is_recorded(uninterrupted, tmp_path, monkeypatch):
+    outcomes = {level.level_id: str(level.outcome) for record in iter_records(uninterrupted) for level in record.levels}
+    poisoned = min(level for level, outcome in outcomes.items() if outcome == "unsolved")  # a level that is trained
+    sample = kforge.pipeline.generation.level_batch.sample_batch
+
+    def with_nan_gravity(job, indices):  # the poisoned level's gravity is NaN: its training and window turn NaN
+        levels = sample(job, indices)
+        hit = jnp.asarray(indices) == poisoned
+        return levels.replace(sim=levels.sim.replace(gravity=jnp.where(hit[:, None], jnp.nan, levels.sim.gravity)))
+
+    monkeypatch.setattr(kforge.pipeline.generation.level_batch, "sample_batch", with_nan_gravity)
+    summary = run_in_process(tiny_job(tmp_path))
+    assert summary["worker_failures"] == [] and summary["committed_batches"] == 4  # contained to the level
+    found = {level.level_id: str(level.outcome) for record in iter_records(tmp_path) for level in record.levels}
+    assert found == outcomes | {poisoned: "failed"}
+    assert all(report.ok for report in verify_dataset(tmp_path))
 
 
 WITHOUT_RAY = """
@@ -161,39 +187,67 @@ def test_ray_job_with_two_workers_matches_the_in_process_run(uninterrupted, tmp_
     assert_same_dataset(uninterrupted, tmp_path)
 
 
+def _staging_uncommitted(root: Path) -> list[str]:
+    """Level batches ("shard-000000/batch-001") with a staging marker and no commit record: a worker is writing."""
+    staging = root / STAGING_DIR
+    marked = {f"{shard.name}/{batch.name}" for shard in staging.glob("shard-*") for batch in shard.glob("batch-*")}
+    return sorted(key for key in marked if not (root / MANIFEST_DIR / f"{key}.json").exists())
+
+
 @pytest.mark.slow
-def test_a_worker_killed_mid_shard_is_replaced_and_nothing_is_lost_or_duplicated(uninterrupted, tmp_path, monkeypatch):
-    monkeypatch.setenv("RAY_AUTH_MODE", "disabled")
-    marker = tmp_path / "fault-fired"
-    # The first worker to write its 1st level batch dies before the commit, leaving uncommitted data files.
-    monkeypatch.setenv(FAULT_INJECTION_ENV, f"1:{marker}")
+def test_a_worker_killed_while_staging_is_replaced_and_nothing_is_lost_or_duplicated(
+    uninterrupted_keeping, keeping_cache, tmp_path
+):
     output = tmp_path / "dataset"
-    summary = run_job(tiny_job(output, "ray.num_workers=2"), show_progress=False)
-    assert marker.exists() and len(summary["worker_failures"]) == 1
-    assert summary["abandoned_shards"] == [] and summary["committed_batches"] == 4
-    assert_same_dataset(uninterrupted, output)
+    config_file = tmp_path / "job.yaml"
+    config_file.write_text(to_yaml(keeping_job(output, keeping_cache, "ray.num_workers=1")))
+    process = start_job(config_file, "--json")
+    killed = None
+    try:
+        deadline = time.monotonic() + JOB_TIMEOUT_SECONDS
+        while killed is None and process.poll() is None and time.monotonic() < deadline:
+            if _committed(output) >= 1 and (staging := _staging_uncommitted(output)):
+                killed = staging, actor_processes(process.pid)
+                for pid in killed[1]:  # SIGKILL of the worker's process while it writes a level batch
+                    os.kill(pid, signal.SIGKILL)
+            time.sleep(0.01)
+        out, err = process.communicate(timeout=JOB_TIMEOUT_SECONDS)
+    finally:
+        kill_session(process.pid)
+    assert killed is not None and len(killed[1]) == 1, (killed, err.decode()[-3000:])
+    assert process.returncode == 0, err.decode()[-3000:]
+    summary = json_summary(out)
+    assert len(summary["worker_failures"]) == 1 and summary["abandoned_shards"] == []
+    assert [path for path in (output / STAGING_DIR).rglob("*") if path.is_file()] == []  # every marker committed
+    assert_keeps_in_every_batch(output)
+    assert all(report.ok for report in verify_dataset(output))
+    assert_same_dataset(uninterrupted_keeping, output)
 
 
 def _committed(root: Path) -> int:
-    return sum(len(committed_batches(root, shard)) for shard in range(2)) if (root / "manifest").is_dir() else 0
+    return committed_count(root)
 
 
 @pytest.mark.slow
-def test_a_job_killed_at_several_points_and_resumed_equals_an_uninterrupted_run(uninterrupted, tmp_path):
+def test_a_job_killed_at_several_points_and_resumed_equals_an_uninterrupted_run(
+    uninterrupted_keeping, keeping_cache, tmp_path
+):
     output = tmp_path / "dataset"
     config_file = tmp_path / "job.yaml"
     # A killed job leaves its lease behind: the next run takes it over once its heartbeat is a second old.
-    config_file.write_text(to_yaml(tiny_job(output, "lease.stale_after_s=1", "lease.heartbeat_s=0.25")))
+    job = keeping_job(output, keeping_cache, "lease.stale_after_s=1", "lease.heartbeat_s=0.25")
+    config_file.write_text(to_yaml(job))
     kill_points = {
         "dataset created, nothing committed": lambda: (output / "data" / "zarr.json").exists(),
         "first level batch committed": lambda: _committed(output) >= 1,
         "shard 0 done, shard 1 started": lambda: _committed(output) >= 3,
     }
     kill_at_points(config_file, kill_points)
-    assert _committed(output) < 4  # the last kill came before the end
+    assert _committed(output) < KEEPING_BATCHES  # the last kill came before the end
     run_job_process(config_file)
-    assert_same_dataset(uninterrupted, output)
+    assert_keeps_in_every_batch(output)
     assert all(report.ok for report in verify_dataset(output))
+    assert_same_dataset(uninterrupted_keeping, output)
 
 
 # ------------------------------------------------------------------------------------------- repair and growth
