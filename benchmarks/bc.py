@@ -1,169 +1,260 @@
-"""Proof of use: behaviour cloning on a split 1M/s dataset, with more and more training levels, evaluated on the
-training levels, on unseen levels of the split and on the hand-designed s levels, beside the no-op and random policies.
+"""Proof of use: behaviour cloning on a split's dataset with more and more training levels, each policy evaluated on
+its training levels, on unseen levels of the split and on Kinetix's hand-designed levels beside the no-op and random
+policies, the best one played inside kinetix-env too, with Kinetix's published general agent as an anchor.
 
-    python -m benchmarks.bc --dataset outputs/1M-s-local --train-levels 16 32 64 --steps 1000
-    python -m benchmarks.bc --generate 64 --train-levels 16 64   # first makes the dataset (kforge run 1M/s)
+    python -m benchmarks.bc --dataset DATASET --train-levels 16 64 256 512 \\
+        --json benchmarks/results/bc_scaling.json --plot docs/bc_scaling.png
 
-Each training-level count trains the same model for the same number of gradient steps on the dataset's first N
-kept levels (by level id; 10 % of them held out for validation), then plays every level set with the trained policy
-and the baselines on the same episode keys. Reports, per count: success rates (BC, no-op, random, and the experts'
-recorded success on the training levels), validation accuracy, and the share of step time spent waiting for the
-loader. Goals (issue "Learning from the data"): BC beats random on unseen levels; unseen success rises with the
-number of training levels; training-level success approaches the experts'; loader wait <= 5 % of step time.
+Stages, each kept in `--work-dir/stages/<stage>.json` once done, so an interrupted report resumes at the stage it
+stopped in (and BC training itself resumes from its checkpoints):
+- `train-N` for each N of `--train-levels` the dataset holds: `kforge bc train` on the dataset's first N kept levels
+  (by id; `validation.fraction` of them held out), under one budget rule for every N: `--epochs` passes over the
+  training trajectories in batches of `min(--batch-size, training trajectories)` (the entity transformer, AdamW,
+  gradient clipping: configs/bc.yaml);
+- `evaluate-N`: `pipeline.learning.evaluate_policy` on the train, unseen (`--unseen-levels` filter-kept levels from
+  the fixed split index 2^31) and hand (all 74) sets, `--episodes` first episodes per start, the no-op and random
+  policies on the same starts with the same keys;
+- `transfer`: benchmarks/kinetix_transfer.py with the policy of the largest N: the hand-designed levels and
+  `--kinetix-levels` levels of Kinetix's own sampler played in kinetix-env 3.0.2 and in kforge (`--skip-transfer`
+  leaves it out).
+The stored report holds every stage that is done; counts the dataset does not hold yet are listed as missing.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
-import subprocess
 import sys
-import time
 from pathlib import Path
 
-from benchmarks.machine import describe_machine
-from kforge.pipeline.learning import evaluate_policy, load_bc_config, load_policy, train_bc
+from benchmarks.kinetix_transfer import SAMPLED_LEVELS, transfer
+from benchmarks.kinetix_venv import DEFAULT_KINETIX_VENV
+from benchmarks.machine import describe_machine, provenance
+from kforge.pipeline.learning import UNSEEN_FIRST_LEVEL, evaluate_policy, load_bc_config, load_policy, train_bc
 
-LOADER_WAIT_TARGET = 0.05
-"""Target share of BC step time spent waiting for the loader."""
+SFL_ANCHORS = {
+    "source": (
+        "Kinetix (Matthews et al., 2025), its general SFL agent's success rates as published with its checkpoints "
+        "(Kinetix-Checkpoints); not run here"
+    ),
+    "hand": {"s": 0.42, "m": 0.32, "l": 0.11},
+    "random": {"s": 0.33, "m": 0.24, "l": 0.16},
+}
+"""Kinetix's general agent (trained on millions of sampled levels by SFL) on its hand-designed and on randomly
+sampled levels, by size."""
 
+TRAJECTORIES_PER_BATCH = 32
+"""Trajectories per BC batch (Kinetix's offline BC), or all training trajectories when fewer."""
 
-def generate(num_levels: int, output_dir: Path, workers: int) -> None:
-    """Make (or resume) split 1M/s at the release budget on its first `num_levels` levels."""
-    command = [
-        sys.executable,
-        "-m",
-        "pipeline",
-        "run",
-        "1M/s",
-        "--scale",
-        "local",
-        f"output_dir={output_dir}",
-        f"split.num_levels={num_levels}",
-        f"ray.num_workers={workers}",
-        "work.levels_per_batch=16",
-        "--no-progress",
-    ]
-    subprocess.run(command, check=True)
+VALIDATION_FRACTION = 0.1
+"""Share of each count's levels held out for validation (configs/bc.yaml's default)."""
 
 
-def run_count(args, count: int) -> dict:
-    """Train on the dataset's first `count` kept levels and evaluate; the row of the report."""
+def stage(work_dir: Path, name: str, settings: dict, compute, log) -> dict:
+    """The result of stage `name`: read from its file when done with the same settings, else computed and kept."""
+    path = work_dir / "stages" / f"{name}.json"
+    if path.is_file():
+        kept = json.loads(path.read_text())
+        if kept["settings"] == settings:
+            log(f"{name}: done before, read from {path}")
+            return kept["result"]
+        log(f"{name}: settings changed since it was done, running it again")
+    log(f"{name}: running")
+    result = compute()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    temporary = path.with_suffix(".tmp")
+    temporary.write_text(json.dumps({"settings": settings, "result": result}, indent=1))
+    os.replace(temporary, path)
+    return result
+
+
+def budget(levels: int, epochs: int, batch_size: int) -> dict:
+    """The budget rule: `epochs` passes over the training trajectories (one per level) in batches of at most
+    `batch_size`."""
+    validation = min(levels - 1, max(1, math.ceil(VALIDATION_FRACTION * levels))) if levels > 1 else 0
+    trajectories = levels - validation
+    batch = min(batch_size, trajectories)
+    return {"batch_size": batch, "num_steps": max(1, math.ceil(epochs * trajectories / batch))}
+
+
+def train_stage(args, count: int, log) -> dict:
     run_dir = Path(args.work_dir) / f"bc-{count}-levels"
+    rule = budget(count, args.epochs, args.batch_size)
     overrides = [
         f"output_dir={run_dir}",
         f"train.levels={count}",
-        f"train.num_steps={args.steps}",
-        f"train.batch_size={args.batch_size}",
-        f"model.architecture={args.architecture}",
-        f"validation.every_steps={max(1, args.steps // 4)}",
-        f"checkpoint.every_steps={args.steps}",
+        f"train.num_steps={rule['num_steps']}",
+        f"train.batch_size={rule['batch_size']}",
+        f"validation.every_steps={max(1, rule['num_steps'] // 10)}",
+        f"checkpoint.every_steps={max(1, rule['num_steps'] // 10)}",
         "tracking.wandb=disabled",
     ]
-    config = load_bc_config(args.dataset, overrides)
-    started = time.perf_counter()
-    summary = train_bc(config, show_progress=not args.no_progress, report=lambda line: print(line, file=sys.stderr))
-    trained = time.perf_counter() - started
-    started = time.perf_counter()
-    result = evaluate_policy(
-        load_policy(run_dir),
-        ("train", "unseen", "hand"),
-        episodes=args.episodes,
-        unseen_levels=args.unseen_levels,
-        seed=0,
-        report=lambda line: print(line, file=sys.stderr),
-    )
+    summary = train_bc(load_bc_config(args.dataset, overrides), show_progress=False, report=log)
+    curve = [json.loads(line) for line in (run_dir / "metrics.jsonl").read_text().splitlines() if line]
     return {
+        "run_dir": str(run_dir),
+        "overrides": overrides,
         "training_levels": summary.train_levels,
         "validation_levels": summary.validation_levels,
         "steps": summary.steps,
         "train_loss": summary.train_loss,
         "validation_loss": summary.validation_loss,
         "validation_accuracy": summary.validation_accuracy,
-        "loader_wait_share": summary.loader_wait_share,
         "transitions_per_s": summary.transitions_per_s,
-        "train_seconds": trained,
-        "evaluation_seconds": time.perf_counter() - started,
-        "evaluation": result,
+        "curve": curve,
     }
 
 
-def _rate(row: dict, level_set: str, policy: str) -> float:
-    return row["evaluation"]["sets"][level_set]["from_start"][policy]["success"]
-
-
-def print_table(rows: list[dict]) -> None:
-    print(
-        f"{'levels':>6} | {'train: BC':>9} {'expert':>6} {'random':>6} {'noop':>5} | {'unseen: BC':>10} {'random':>6} "
-        f"{'noop':>5} | {'hand: BC':>8} {'random':>6} {'noop':>5} | {'val acc':>7} {'wait':>6}"
+def evaluate_stage(args, run_dir: str, log) -> dict:
+    return evaluate_policy(
+        load_policy(run_dir),
+        ("train", "unseen", "hand"),
+        episodes=args.episodes,
+        unseen_levels=args.unseen_levels,
+        seed=0,
+        report=log,
     )
+
+
+def _success(entry: dict, player: str) -> str:
+    rates = entry["from_start"][player]
+    return f"{rates['success']:.3f}±{rates['success_se']:.3f}"
+
+
+def table(rows: list[dict]) -> str:
+    """The scaling table: per count, BC's success on each set beside the baselines (and the experts' on train)."""
+    lines = [
+        f"{'levels':>6} {'steps':>6} | {'train BC':>12} {'expert':>6} {'random':>6} | {'unseen BC':>12} "
+        f"{'random':>12} {'noop':>5} {'BC-random':>13} | {'hand BC':>12} {'random':>12} {'BC-random':>13}"
+    ]
     for row in rows:
-        cells = [
-            f"{_rate(row, 'train', 'bc'):>9.3f}",
-            f"{row['evaluation']['sets']['train']['from_start']['expert_recorded']['success']:>6.3f}",
-            f"{_rate(row, 'train', 'random'):>6.3f}",
-            f"{_rate(row, 'train', 'noop'):>5.3f} |",
-            f"{_rate(row, 'unseen', 'bc'):>10.3f}",
-            f"{_rate(row, 'unseen', 'random'):>6.3f}",
-            f"{_rate(row, 'unseen', 'noop'):>5.3f} |",
-            f"{_rate(row, 'hand', 'bc'):>8.3f}",
-            f"{_rate(row, 'hand', 'random'):>6.3f}",
-            f"{_rate(row, 'hand', 'noop'):>5.3f} |",
-            f"{row['validation_accuracy'] or float('nan'):>7.3f}",
-            f"{100 * row['loader_wait_share']:>5.1f}%",
-        ]
-        print(f"{row['training_levels']:>6} | " + " ".join(cells))
+        sets = row["evaluation"]["sets"]
+        train, unseen, hand = sets["train"], sets["unseen"], sets["hand"]
+        expert, train_random = (
+            train["from_start"]["expert_recorded"]["success"],
+            train["from_start"]["random"]["success"],
+        )
+        gains = [s["from_start"]["bc_minus_random"] for s in (unseen, hand)]
+        gain = [f"{g['difference']:+.3f}±{g['se']:.3f}" for g in gains]
+        lines.append(
+            f"{row['training']['training_levels']:>6} {row['training']['steps']:>6} | {_success(train, 'bc'):>12} "
+            f"{expert:>6.3f} {train_random:>6.3f} | {_success(unseen, 'bc'):>12} {_success(unseen, 'random'):>12} "
+            f"{unseen['from_start']['noop']['success']:>5.3f} {gain[0]:>13} | {_success(hand, 'bc'):>12} "
+            f"{_success(hand, 'random'):>12} {gain[1]:>13}"
+        )
+    return "\n".join(lines)
 
 
-def goals(rows: list[dict]) -> dict:
-    """Which of the issue's goals the rows meet."""
-    unseen = [_rate(row, "unseen", "bc") for row in rows]
-    return {
-        "bc_beats_random_on_unseen": all(_rate(row, "unseen", "bc") > _rate(row, "unseen", "random") for row in rows),
-        "unseen_success_rises_with_levels": all(b >= a for a, b in zip(unseen, unseen[1:], strict=False)),
-        "train_success_over_expert": [
-            _rate(row, "train", "bc")
-            / max(row["evaluation"]["sets"]["train"]["from_start"]["expert_recorded"]["success"], 1e-9)
-            for row in rows
-        ],
-        "loader_wait_within_target": all(row["loader_wait_share"] <= LOADER_WAIT_TARGET for row in rows),
-    }
+def plot(rows: list[dict], path: Path) -> None:
+    """Success against training levels on each set (BC, random, no-op; the experts' on train), the SFL anchors as
+    dashed lines on hand and unseen (its random-level figure of the same size)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    counts = [row["training"]["training_levels"] for row in rows]
+    figure, axes = plt.subplots(1, 3, figsize=(12, 3.6), sharey=True)
+    for axis, name in zip(axes, ("train", "unseen", "hand"), strict=True):
+        entries = [row["evaluation"]["sets"][name]["from_start"] for row in rows]
+        for player, style in (("bc", "o-"), ("random", "s--"), ("noop", "x:")):
+            axis.errorbar(
+                counts,
+                [e[player]["success"] for e in entries],
+                yerr=[e[player]["success_se"] for e in entries],
+                fmt=style,
+                capsize=3,
+                label={"bc": "BC", "random": "random", "noop": "no-op"}[player],
+            )
+        if name == "train":
+            axis.plot(counts, [e["expert_recorded"]["success"] for e in entries], "d-", label="experts (recorded)")
+        anchor = {"hand": SFL_ANCHORS["hand"]["s"], "unseen": SFL_ANCHORS["random"]["s"]}.get(name)
+        if anchor is not None:
+            axis.axhline(anchor, color="grey", linestyle="--", linewidth=1, label="SFL (published, s)")
+        axis.set_xscale("log", base=2)
+        axis.set_xticks(counts, [str(c) for c in counts])
+        axis.set_title({"train": "training levels", "unseen": "unseen levels (s)", "hand": "hand-designed (74)"}[name])
+        axis.set_xlabel("training levels")
+        axis.set_ylim(0, 1)
+        axis.legend(fontsize=7)
+    axes[0].set_ylabel("success (first episode)")
+    figure.tight_layout()
+    figure.savefig(path, dpi=110)
 
 
-def main() -> None:
+def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--dataset", help="a split 1M/s dataset (default: the one --generate makes)")
-    parser.add_argument("--generate", type=int, help="first make split 1M/s on this many levels (resumes)")
-    parser.add_argument("--workers", type=int, default=2, help="Ray workers of --generate")
-    parser.add_argument("--train-levels", type=int, nargs="+", default=[16, 64, 256])
-    parser.add_argument("--steps", type=int, default=1000, help="gradient steps of every run")
-    parser.add_argument("--batch-size", type=int, default=16)
-    parser.add_argument("--architecture", default="transformer", choices=["mlp", "transformer"])
-    parser.add_argument("--episodes", type=int, default=8, help="episodes per start state in evaluation")
-    parser.add_argument("--unseen-levels", type=int, default=256)
-    parser.add_argument("--work-dir", default="outputs/benchmarks/bc", help="folder of the BC runs")
-    parser.add_argument("--no-progress", action="store_true")
-    parser.add_argument("--json", help="write the report here")
-    args = parser.parse_args()
-    if args.dataset is None:
-        if args.generate is None:
-            parser.error("give --dataset, or --generate N to make one")
-        args.dataset = str(Path(args.work_dir) / "dataset-1M-s")
-    if args.generate is not None:
-        generate(args.generate, Path(args.dataset), args.workers)
-    rows = [run_count(args, count) for count in args.train_levels]
-    print_table(rows)
-    report = {
+    parser.add_argument("--dataset", required=True, help="a dataset made by kforge run")
+    parser.add_argument("--train-levels", type=int, nargs="+", default=[16, 64, 256, 512])
+    parser.add_argument("--epochs", type=int, default=200, help="passes over the training trajectories, every count")
+    parser.add_argument("--batch-size", type=int, default=TRAJECTORIES_PER_BATCH)
+    parser.add_argument("--episodes", type=int, default=8, help="first episodes per start state in evaluation")
+    parser.add_argument("--unseen-levels", type=int, default=512)
+    parser.add_argument("--kinetix-levels", type=int, default=SAMPLED_LEVELS, help="levels of Kinetix's sampler")
+    parser.add_argument("--skip-transfer", action="store_true", help="leave out the kinetix-env stage")
+    parser.add_argument("--kinetix-venv", type=Path, default=DEFAULT_KINETIX_VENV)
+    parser.add_argument("--work-dir", type=Path, default=Path("outputs/benchmarks/bc"), help="runs and stage results")
+    parser.add_argument("--json", type=Path, help="write the report here")
+    parser.add_argument("--plot", type=Path, help="write the scaling plot here (PNG)")
+    args = parser.parse_args(argv)
+
+    def log(line: str) -> None:
+        print(line, file=sys.stderr, flush=True)
+
+    from kforge.pipeline.learning.data import kept_levels
+
+    held = len(kept_levels(args.dataset))
+    counts = sorted({count for count in args.train_levels if count <= held})
+    missing = sorted(set(args.train_levels) - set(counts))
+    if missing:
+        log(f"{args.dataset} holds {held} kept levels: no run for {missing}")
+    rows = []
+    for count in counts:
+        rule = budget(count, args.epochs, args.batch_size)
+        settings = {"dataset": str(args.dataset), "levels": count, "epochs": args.epochs} | rule
+        training = stage(args.work_dir, f"train-{count}", settings, lambda c=count: train_stage(args, c, log), log)
+        evaluation_settings = settings | {"episodes": args.episodes, "unseen_levels": args.unseen_levels}
+        evaluation = stage(
+            args.work_dir,
+            f"evaluate-{count}",
+            evaluation_settings,
+            lambda run=training["run_dir"]: evaluate_stage(args, run, log),
+            log,
+        )
+        rows.append({"levels": count, "budget": rule, "training": training, "evaluation": evaluation})
+        log(table(rows))
+    report = provenance() | {
         "machine": describe_machine(),
-        "dataset": os.fspath(args.dataset),
-        "settings": {key: value for key, value in vars(args).items() if key not in ("json", "no_progress")},
+        "dataset": {"path": str(args.dataset), "kept_levels": held},
+        "budget_rule": {
+            "epochs": args.epochs,
+            "batch_size": args.batch_size,
+            "validation_fraction": VALIDATION_FRACTION,
+        },
+        "unseen_first_level": UNSEEN_FIRST_LEVEL,
+        "missing_counts": missing,
         "rows": rows,
-        "goals": goals(rows),
+        "anchors": SFL_ANCHORS,
     }
-    print(json.dumps(report["goals"], indent=1))
+    if rows and not args.skip_transfer:
+        run_dir = Path(rows[-1]["training"]["run_dir"])
+        settings = {"run": str(run_dir), "kinetix_levels": args.kinetix_levels, "episodes": args.episodes}
+        report["transfer"] = stage(
+            args.work_dir,
+            "transfer",
+            settings,
+            lambda: transfer(
+                run_dir, args.kinetix_levels, args.episodes, 0, 0, args.work_dir / "transfer", args.kinetix_venv, log
+            ),
+            log,
+        )
+    print(table(rows))
     if args.json:
-        Path(args.json).write_text(json.dumps(report, indent=1))
+        args.json.write_text(json.dumps(report, indent=1) + "\n")
+    if args.plot and rows:
+        plot(rows, args.plot)
 
 
 if __name__ == "__main__":
