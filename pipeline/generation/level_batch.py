@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import enum
 import functools
+import queue
 import threading
 import time
 from collections.abc import Callable
@@ -75,14 +76,14 @@ def _batch_shapes(job: JobConfig, level_indices: np.ndarray) -> Level:
 
 
 def _compiling_sample_program(job: JobConfig, keys: jax.Array) -> Future:
-    """The future of `env.sample_levels` for the job's batches of this many levels: traced here and compiled in a
-    thread of its own, once per process (so a level batch's first step compiles beside the training stages)."""
+    """The future of `env.sample_levels` for the job's batches of this many levels: traced here and compiled in the
+    background, once per process (so a level batch's first step compiles beside the training stages)."""
     _, static = environment(job)
     program = (static, keys.shape[0])
     compiling = _sample_programs.get(program)
     if compiling is None or (compiling.done() and compiling.exception() is not None):
         lowered = sample_levels.lower(keys, static)
-        compiling = _sample_programs[program] = _in_background(lowered.compile, "compile-sample")
+        compiling = _sample_programs[program] = _in_background(lowered.compile)
     return compiling
 
 
@@ -104,14 +105,14 @@ def filter_batch(job: JobConfig, levels: Level):
 
 def _compiling_filter_program(job: JobConfig, levels: Level) -> Future:
     """The future of `env.filter_levels` as one program for the job's level batches of this size: traced here
-    (`levels` may be abstract) and compiled in a thread of its own, once per process."""
+    (`levels` may be abstract) and compiled in the background, once per process."""
     env_params, static = environment(job)
     program = (static, job.filter.noop_steps, jax.tree.structure(levels), jax.tree.leaves(levels)[0].shape[0])
     compiling = _filter_programs.get(program)
     if compiling is None or (compiling.done() and compiling.exception() is not None):
         verdicts = functools.partial(filter_levels, static=static, noop_steps=job.filter.noop_steps)
         lowered = jax.jit(verdicts).lower(levels, env_params)
-        compiling = _filter_programs[program] = _in_background(lowered.compile, "compile-filter")
+        compiling = _filter_programs[program] = _in_background(lowered.compile)
     return compiling
 
 
@@ -211,7 +212,7 @@ def _compiling_train_program(job: JobConfig, indices: np.ndarray, keys: jax.Arra
     """The futures of the training stages (`agents.stage_functions`) for the job's level batches of this size, spread
     over the local devices: compiled (or loaded from the persistent compilation cache) once per config and level
     count in a process. Each is traced here, before the batch is sampled (tracing is Python: it holds the GIL), the
-    largest first, and compiled in a thread of its own while the calling thread traces the next stage and the
+    largest first, and compiled in the background while the calling thread traces the next stage and the
     collection program, and samples and filters the batch (XLA compiles without holding the GIL: the stages'
     compilations, the rollout's physics apart from the evaluation's, share the cores)."""
     env_params, static = environment(job)
@@ -230,7 +231,7 @@ def _compiling_train_program(job: JobConfig, indices: np.ndarray, keys: jax.Arra
             arguments = shared.get(name, (env_params,))
             spread = over_local_devices(stages[name], len(keys), level_args=2, shared_args=len(arguments))
             lowered = jax.jit(spread).lower(*level_args, *arguments)
-            compiling[name] = _in_background(lowered.compile, f"compile-{name}")
+            compiling[name] = _in_background(lowered.compile)
         _train_programs[program] = compiling
     return compiling
 
@@ -243,18 +244,36 @@ def _program_key(job: JobConfig, num_levels: int) -> tuple:
 _train_programs: dict[tuple, dict[str, Future]] = {}
 
 
-def _in_background(function: Callable[[], object], name: str) -> Future:
-    """The future of `function()`, run in a daemon thread (an interrupted job exits without waiting for it)."""
-    future = Future()
+COMPILE_THREADS = 2
+"""Compilations in flight at once (`_in_background`): two keep two cores busy; each holds its program's HLO and
+machine code in memory (a quickstart process with six at once held 4 GB when a shared machine ran out of memory)."""
 
-    def run() -> None:
+
+def _in_background(function: Callable[[], object]) -> Future:
+    """The future of `function()` (a compilation), run by one of `COMPILE_THREADS` daemon threads in the
+    order asked for (an interrupted job exits without waiting for them)."""
+    future = Future()
+    _compile_queue.put((function, future))
+    with _compile_threads_lock:
+        while len(_compile_threads) < COMPILE_THREADS:
+            thread = threading.Thread(target=_compile_forever, name=f"compile-{len(_compile_threads)}", daemon=True)
+            _compile_threads.append(thread)
+            thread.start()
+    return future
+
+
+def _compile_forever() -> None:
+    while True:
+        function, future = _compile_queue.get()
         try:
             future.set_result(function())
         except BaseException as error:  # handed to whoever waits for the result
             future.set_exception(error)
 
-    threading.Thread(target=run, name=name, daemon=True).start()
-    return future
+
+_compile_queue: queue.SimpleQueue = queue.SimpleQueue()
+_compile_threads: list[threading.Thread] = []
+_compile_threads_lock = threading.Lock()
 
 
 def _compiled_collect_program(job: JobConfig, levels: Level, keys: jax.Array) -> jax.stages.Compiled:
@@ -265,7 +284,7 @@ def _compiled_collect_program(job: JobConfig, levels: Level, keys: jax.Array) ->
 
 def _compiling_collect_program(job: JobConfig, levels: Level, keys: jax.Array) -> Future:
     """The future of `_compiled_collect_program`: traced here (`levels` may be abstract: the experts' parameters have
-    the shapes of fresh ones, so nothing needs to be trained first) and compiled in a thread of its own, so that it
+    the shapes of fresh ones, so nothing needs to be trained first) and compiled in the background, so that it
     compiles beside the training stages and while the experts train."""
     env_params, static = environment(job)
     config = ppo_config(job)
@@ -274,7 +293,7 @@ def _compiling_collect_program(job: JobConfig, levels: Level, keys: jax.Array) -
     if compiling is None or (compiling.done() and compiling.exception() is not None):
         params = jax.eval_shape(jax.vmap(lambda key: initial_params(key, config, static)), keys)
         lowered = jax.jit(_collect_program(*program)).lower(params, levels, keys, env_params)
-        compiling = _collect_programs[program] = _in_background(lowered.compile, "compile-collect")
+        compiling = _collect_programs[program] = _in_background(lowered.compile)
     return compiling
 
 
