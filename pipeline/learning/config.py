@@ -31,8 +31,9 @@ LEVEL_SETS = ("train", "validation", "unseen", "hand")
 ARCHITECTURES = ("mlp", "transformer")
 """Values of `model.architecture` (agents.Architecture's), named here so that checking a config imports no JAX."""
 
-DEFAULT_BATCH_SIZE = 16
-"""[trajectories] `train.batch_size` when it is null and the dataset's training trajectories fill it."""
+DEFAULT_BATCH_SIZE = 32
+"""[trajectories] `train.batch_size` when it is null and the dataset's training trajectories fill it (Kinetix's offline
+BC: 8192 transitions per step, 32 trajectories of 256 steps)."""
 
 
 @dataclasses.dataclass
@@ -43,16 +44,17 @@ class ModelSection:
     hidden_size: int = 256  # mlp: units per hidden layer; transformer: units of the head after pooling
     num_hidden_layers: int = 3  # mlp: hidden ReLU layers
     embed_size: int = 128  # transformer: entity embedding width
-    num_heads: int = 4  # transformer: attention heads; divides embed_size
+    num_heads: int = 4  # transformer: attention heads; divides attention_size
     num_layers: int = 2  # transformer: attention blocks (Kinetix's BC: 2)
+    attention_size: int = 16  # transformer: query/key/value width over all heads (Kinetix's BC: 16)
 
 
 @dataclasses.dataclass
 class TrainSection:
     """Optimisation; all of it defines the run's parameters except the step count, which may be raised to continue."""
 
-    num_steps: int = 2000  # gradient steps in all (raise it and re-run to train on)
-    batch_size: int | None = None  # trajectories per step, a multiple of the devices; null: 16 or what the data fills
+    num_steps: int = 20000  # most gradient steps (fewer when validation stops at a plateau; raise it to train on)
+    batch_size: int | None = None  # trajectories per step, a multiple of the devices; null: 32 or what the data fills
     learning_rate: float = 3.0e-4  # AdamW step size (Kinetix's offline BC: 3e-4)
     anneal: bool = True  # decay the step size linearly to 0 at num_steps
     weight_decay: float = 1.0e-4  # AdamW decoupled weight decay
@@ -69,7 +71,9 @@ class ValidationSection:
 
     fraction: float = 0.1  # share of the dataset's levels held out (at least one level when the dataset has two)
     every_steps: int = 100  # steps between two validations (and after the last step)
-    batch_size: int = 16  # trajectories per validation batch
+    batch_size: int = 32  # trajectories per validation batch
+    patience: int = 10  # [validations] stop after this many in a row without an improvement; 0: never stop early
+    min_improvement: float = 1.0e-3  # [nats] a loss this much below the best so far is an improvement
 
 
 @dataclasses.dataclass
@@ -104,9 +108,14 @@ class BCConfig:
     tracking: BCTrackingSection = dataclasses.field(default_factory=BCTrackingSection)
 
 
-RESUMABLE_CHANGES = {("train", "num_steps"), ("train", "prefetch"), ("train", "cache_gb"), ("output_dir",)} | {
-    ("tracking", field.name) for field in dataclasses.fields(BCTrackingSection)
-}
+RESUMABLE_CHANGES = {
+    ("train", "num_steps"),
+    ("train", "prefetch"),
+    ("train", "cache_gb"),
+    ("validation", "patience"),
+    ("validation", "min_improvement"),
+    ("output_dir",),
+} | {("tracking", field.name) for field in dataclasses.fields(BCTrackingSection)}
 """Keys a resumed run may change; any other difference from the run directory's config is refused."""
 
 
@@ -152,6 +161,7 @@ def network_config(config: BCConfig):
             embed_size=model.embed_size,
             num_heads=model.num_heads,
             num_layers=model.num_layers,
+            attention_size=model.attention_size,
         )
     except ValueError as error:
         raise ConfigError(f"model: {error}") from error
@@ -163,11 +173,13 @@ def check_bc_config(config: BCConfig) -> None:
     model = config.model
     if model.architecture not in ARCHITECTURES:
         raise ConfigError(f"model.architecture must be one of {', '.join(ARCHITECTURES)}, got {model.architecture!r}")
-    for name in ("hidden_size", "num_hidden_layers", "embed_size", "num_heads", "num_layers"):
+    for name in ("hidden_size", "num_hidden_layers", "embed_size", "num_heads", "num_layers", "attention_size"):
         if getattr(model, name) < 1:
             raise ConfigError(f"model.{name} must be >= 1, got {getattr(model, name)}")
-    if model.embed_size % model.num_heads:
-        raise ConfigError(f"model.num_heads ({model.num_heads}) must divide model.embed_size ({model.embed_size})")
+    if model.attention_size % model.num_heads:
+        raise ConfigError(
+            f"model.num_heads ({model.num_heads}) must divide model.attention_size ({model.attention_size})"
+        )
     if config.train.batch_size is not None and config.train.batch_size < 1:
         raise ConfigError(f"train.batch_size must be >= 1 or null, got {config.train.batch_size}")
     positive = (
@@ -187,6 +199,10 @@ def check_bc_config(config: BCConfig) -> None:
             raise ConfigError(f"{key} must be > 0, got {getattr(getattr(config, section), name)}")
     if config.train.weight_decay < 0:
         raise ConfigError(f"train.weight_decay must be >= 0, got {config.train.weight_decay}")
+    if config.validation.patience < 0:
+        raise ConfigError(f"validation.patience must be >= 0, got {config.validation.patience}")
+    if config.validation.min_improvement < 0:
+        raise ConfigError(f"validation.min_improvement must be >= 0, got {config.validation.min_improvement}")
     if config.train.levels is not None and config.train.levels < 1:
         raise ConfigError(f"train.levels must be >= 1 or null, got {config.train.levels}")
     if config.train.cache_gb < 0:

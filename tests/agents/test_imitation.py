@@ -137,6 +137,23 @@ def test_the_transformer_ignores_the_order_of_entities():
     assert float(jnp.abs(network.apply(params, changed) - logits).max()) > 1e-5
 
 
+@pytest.mark.smoke
+def test_the_transformer_reads_nothing_of_inactive_entities():
+    """A polygon no joint or thruster is attached to, masked off, is not read; active, it is."""
+    car = load_level("m/h7_car_flip")
+    obs = observe(reset(car.level), car.static, ObservationType.SYMBOLIC_ENTITY)
+    network = make_bc_network(NetworkConfig(architecture=Architecture.TRANSFORMER, embed_size=32, num_heads=2))
+    params = network.init(jax.random.key(0), obs)
+    attached = set(np.asarray(obs.joint_indexes).ravel().tolist()) | set(np.asarray(obs.thruster_indexes).tolist())
+    free = int(next(i for i in np.flatnonzero(np.asarray(obs.polygon_mask)) if i not in attached))
+    hidden = obs.replace(polygon_mask=obs.polygon_mask.at[free].set(False))
+    logits = network.apply(params, hidden)
+    changed = hidden.replace(polygons=hidden.polygons.at[free].add(3.0))
+    np.testing.assert_array_equal(network.apply(params, changed), logits)
+    shown = obs.replace(polygons=obs.polygons.at[free].add(3.0))
+    assert float(jnp.abs(network.apply(params, shown) - network.apply(params, obs)).max()) > 1e-5
+
+
 def test_a_scripted_actor_gets_the_outcome_kinematics_predict():
     level = thruster_level()
     mask = action_mask(level)

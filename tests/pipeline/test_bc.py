@@ -63,7 +63,7 @@ def test_config_errors_name_the_key(dataset_dir):
     with pytest.raises(ConfigError, match=r"validation.fraction must be in \[0, 1\)"):
         load_bc_config(str(dataset_dir), ["validation.fraction=1.5"])
     with pytest.raises(ConfigError, match="num_heads"):
-        load_bc_config(str(dataset_dir), ["model.embed_size=30", "model.num_heads=4"])
+        load_bc_config(str(dataset_dir), ["model.attention_size=30", "model.num_heads=4"])
     assert load_bc_config(str(dataset_dir)).output_dir == f"outputs/bc/{Path(dataset_dir).name}-transformer"
 
 
@@ -96,7 +96,7 @@ def test_a_resumed_run_refuses_a_changed_key(dataset_dir, tmp_path):
 
 
 def test_a_small_dataset_fits_the_default_batch_and_a_refused_run_blocks_no_retry(dataset_dir, tmp_path):
-    """The dataset holds 8 kept trajectories of 8 levels, one held out: 7 training trajectories, fewer than 16."""
+    """The dataset holds 8 kept trajectories of 8 levels, one held out: 7 training trajectories, fewer than 32."""
     small = [key for key in SMALL if not key.startswith("train.batch_size")]
     run_dir = tmp_path / "run"
     with pytest.raises(
@@ -113,7 +113,7 @@ def test_a_small_dataset_fits_the_default_batch_and_a_refused_run_blocks_no_retr
     assert config.train.batch_size is None
     summary = train_bc(config, show_progress=False, report=lines.append)
     assert summary.steps == 1 and summary.resumed_from == 0
-    assert lines == [f"train.batch_size=7 (not 16): {dataset_dir} holds 7 training trajectories"]
+    assert lines == [f"train.batch_size=7 (not 32): {dataset_dir} holds 7 training trajectories"]
     stored = load_bc_config(None, [], run_dir / "config.yaml")
     assert stored.train.batch_size == 7  # the run directory records the batch size it trained with
     chosen = tmp_path / "chosen"  # trained with a batch size of its own: a re-run with the default keeps it
@@ -229,3 +229,101 @@ def test_hand_levels_are_played_under_the_datasets_physics_scheme():
     assert np.array_equal(np.asarray(starts.params.sim.base_friction), own)
     with pytest.raises(DatasetError, match="none of Kinetix's s, m and l"):
         hand_starts(StaticEnvParams.for_size("s"))  # the engine's own scheme's size s (4 substeps) under kinetix
+
+
+def _learner_and_batches(dataset_dir, tmp_path, count, *extra):
+    from kforge.pipeline.learning.train import Learner
+    from kforge.pipeline.reading import TrajectoryDatasetManager
+    from kforge.pipeline.storage import open_dataset
+
+    config = small_config(dataset_dir, tmp_path, *extra)
+    layout = open_dataset(str(dataset_dir)).layout
+    learner = Learner(config, layout.static, layout.num_steps)
+    loader = TrajectoryDatasetManager(str(dataset_dir), batch_size=config.train.batch_size, seed=0)
+    return learner, [loader.load_next_batch() for _ in range(count)]
+
+
+def _train_batch(batch):
+    from kforge.pipeline.learning.train import TrainBatch
+
+    return TrainBatch(batch.env_state, batch.action, batch.action_mask)
+
+
+def test_the_compiled_loop_takes_the_steps_one_by_one_steps_take(dataset_dir, tmp_path):
+    """Four steps per call (the validation and checkpoint intervals allow it); three batches leave the fourth step
+    inactive."""
+    learner, batches = _learner_and_batches(
+        dataset_dir, tmp_path, 3, "validation.every_steps=4", "checkpoint.every_steps=4"
+    )
+    assert learner.steps_per_dispatch == 4
+    looped, metrics = learner.steps(learner.init(0), batches)
+    single = jax.jit(learner.train_step)
+    state = learner.init(0)
+    losses = []
+    for batch in batches:
+        state, step_metrics = single(state, _train_batch(batch))
+        losses.append(float(step_metrics["loss"]))
+    assert int(looped.step) == int(state.step) == 3
+    for got, expected in zip(jax.tree.leaves(looped), jax.tree.leaves(state), strict=True):
+        np.testing.assert_allclose(got, expected, rtol=0, atol=1e-6)
+    np.testing.assert_allclose([float(m["loss"]) for m in metrics], losses, rtol=1e-6)
+
+
+def test_the_gradient_in_time_slices_is_the_whole_batchs(dataset_dir, tmp_path):
+    from kforge.agents import imitation_terms
+
+    learner, (batch,) = _learner_and_batches(dataset_dir, tmp_path, 1, "model.architecture=transformer")
+    assert learner.chunk_steps < batch.action.shape[1]  # the batch is taken in several slices
+    params = learner.init(0).params
+
+    def whole_loss(p):
+        logits = learner.network.apply(p, learner.observations(batch.env_state))
+        return imitation_terms(logits, batch.action, batch.action_mask).loss
+
+    expected = jax.grad(whole_loss)(params)
+    sliced, (loss, _) = jax.jit(learner.gradient)(params, _train_batch(batch))
+    np.testing.assert_allclose(float(loss), float(whole_loss(params)), rtol=1e-5)
+    for got, want in zip(jax.tree.leaves(sliced), jax.tree.leaves(expected), strict=True):
+        np.testing.assert_allclose(got, want, rtol=1e-4, atol=1e-7)
+
+
+@pytest.mark.smoke
+def test_the_patience_rule_stops_at_the_patience_th_validation_without_an_improvement():
+    from kforge.pipeline.learning.stopping import loss_curve, plateau
+
+    losses = [1.0, 0.8, 0.7995, 0.79, 0.85, 0.6, 0.61]
+    # 0.7995 and 0.79 are not 0.01 below the best (0.8); 0.85 is the third validation in a row without an improvement
+    stopped = plateau(losses, patience=3, min_improvement=0.01)
+    assert (stopped.best_index, stopped.stop_index) == (1, 4)
+    assert plateau(losses, patience=4, min_improvement=0.01).stop_index is None  # 0.6 improves on 0.8 in time
+    assert plateau(losses, patience=4, min_improvement=0.01).best_index == 5
+    assert plateau(losses, patience=0, min_improvement=0.01).stop_index is None
+    lines = [
+        {"step": 10 * (i + 1), "train": {"loss": 2.0}, "validation": {"loss": loss}} for i, loss in enumerate(losses)
+    ]
+    curve = loss_curve(lines, patience=3, min_improvement=0.01)
+    assert (curve["plateau_step"], curve["best_step"], curve["best_validation_loss"]) == (50, 20, 0.8)
+    assert curve["gradient_steps"] == 70 and curve["validation_loss"] == losses and curve["steps"][0] == 10
+
+
+@pytest.mark.smoke
+def test_the_validation_split_is_disjoint_complete_and_fixed_by_its_seed():
+    from kforge.pipeline.learning.data import validation_split
+
+    ids = list(range(100, 140))
+    train, validation = validation_split(ids, fraction=0.1, seed=3)
+    assert len(validation) == 4 and not set(train) & set(validation) and sorted(train + validation) == ids
+    assert validation_split(list(reversed(ids)), fraction=0.1, seed=3) == (train, validation)
+    assert validation_split(ids, fraction=0.1, seed=4)[1] != validation
+
+
+def test_a_run_stops_at_a_validation_plateau_and_records_its_curve(dataset_dir, tmp_path):
+    """No validation loss can improve by 100 nats on the first: the run stops at its second validation."""
+    stop = ["train.num_steps=20", "validation.patience=1", "validation.min_improvement=100"]
+    summary = train_bc(small_config(dataset_dir, tmp_path, *stop), show_progress=False)
+    assert (summary.steps, summary.stopped, summary.best_step) == (4, "plateau", 2)
+    curve = json.loads((tmp_path / "curve.json").read_text())
+    assert curve["gradient_steps"] == 4 and curve["steps"] == [2, 4] and curve["plateau_step"] == 4
+    assert all(loss > 0 for loss in curve["train_loss"] + curve["validation_loss"])
+    again = train_bc(small_config(dataset_dir, tmp_path, *stop), show_progress=False)
+    assert (again.resumed_from, again.steps, again.stopped) == (4, 4, "plateau")

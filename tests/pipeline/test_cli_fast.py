@@ -45,7 +45,7 @@ def argument_errors(tmp: Path) -> list[list[str]]:
         ["bc", "train", missing, "--stop-after", "0"],
         ["bc", "train", dataset, "train.batch_size=x"],
         ["bc", "train", dataset, "model.architecture=cnn"],
-        ["bc", "train", dataset, "model.embed_size=30"],
+        ["bc", "train", dataset, "model.attention_size=30"],
         ["evaluate", missing],
         ["evaluate", missing, "--episodes", "0"],
         ["evaluate", missing, "--max-levels", "0"],
