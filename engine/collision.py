@@ -73,14 +73,16 @@ def _best_edge(normals, vertices, edge_valid, other_vertices):
     return separation[edge], edge
 
 
-def _clip(p1, p2, id1, id2, plane_normal, offset, clip_id):
-    """Keep the part of segment p1-p2 with dot(plane_normal, x) <= offset; returns points, ids, ok."""
+def _clip(segment, ids, plane_normal, offset, clip_id):
+    """Keep the part of `segment` (p1, p2) with dot(plane_normal, x) <= offset; returns its points, their ids (`ids`, or
+    `clip_id` for a point moved onto the plane), and whether any of it is kept."""
+    (p1, p2), (id1, id2) = segment, ids
     d1 = dot2(plane_normal, p1) - offset
     d2 = dot2(plane_normal, p2) - offset
     crossing = p1 + (d1 / jnp.where(d1 == d2, 1.0, d1 - d2)) * (p2 - p1)
     q1 = jnp.where(d1 <= 0, p1, crossing)
     q2 = jnp.where(d2 <= 0, p2, crossing)
-    return q1, q2, jnp.where(d1 <= 0, id1, clip_id), jnp.where(d2 <= 0, id2, clip_id), (d1 <= 0) | (d2 <= 0)
+    return (q1, q2), (jnp.where(d1 <= 0, id1, clip_id), jnp.where(d2 <= 0, id2, clip_id)), (d1 <= 0) | (d2 <= 0)
 
 
 def _deepest_two(vertices, valid, normal):
@@ -96,6 +98,35 @@ def _clamp_to_face(point, r1, tangent, length):
     along = dot2(point - r1, tangent)
     clamped = jnp.clip(along, 0.0, length)
     return point + (clamped - along) * tangent, clamped != along
+
+
+def _jax2d_incident_points(inc: WorldGeometry, normal, r1, tangent, length):
+    """Jax2D's points of two polygons: the incident polygon's two deepest vertices, each moved along the reference
+    face (from `r1` along `tangent`, `length` long) into its extent. Returns the points, whether they stand (always),
+    the incident feature and the points' ids."""
+    deepest, next_deepest = _deepest_two(inc.vertices, inc.edge_valid, normal)
+    k1, moved1 = _clamp_to_face(inc.vertices[deepest], r1, tangent, length)
+    k2, moved2 = _clamp_to_face(inc.vertices[next_deepest], r1, tangent, length)
+    point_ids = jnp.stack(
+        [
+            jnp.where(moved1, MAX_POLYGON_VERTICES, deepest),
+            jnp.where(moved2, MAX_POLYGON_VERTICES + 1, next_deepest),
+        ]
+    )
+    return jnp.stack([k1, k2]), True, deepest, point_ids
+
+
+def _clipped_incident_edge(inc: WorldGeometry, normal, face, tangent):
+    """Box2D's points of two polygons: the incident edge most anti-parallel to the reference normal, clipped to the
+    sides of the reference face `face` (r1, r2). Returns the points, whether both clips kept some of the edge, the
+    incident edge and the points' ids."""
+    r1, r2 = face
+    inc_edge = jnp.argmin(jnp.where(inc.edge_valid, dot2(inc.normals, normal), jnp.inf))
+    inc_next = inc.next_vertex[inc_edge]
+    edge = (inc.vertices[inc_edge], inc.vertices[inc_next])
+    edge, ids, ok1 = _clip(edge, (inc_edge, inc_next), -tangent, -dot2(tangent, r1), MAX_POLYGON_VERTICES)
+    edge, ids, ok2 = _clip(edge, ids, tangent, dot2(tangent, r2), MAX_POLYGON_VERTICES + 1)
+    return jnp.stack(edge), ok1 & ok2, inc_edge, jnp.stack(ids)
 
 
 def polygon_polygon(
@@ -119,38 +150,9 @@ def polygon_polygon(
     tangent = (r2 - r1) / jnp.maximum(length, DIRECTION_EPSILON)
 
     if jax2d_geometry:
-        # Jax2D's: the two deepest vertices, each moved along the face into its extent.
-        deepest, next_deepest = _deepest_two(inc.vertices, inc.edge_valid, normal)
-        k1, moved1 = _clamp_to_face(inc.vertices[deepest], r1, tangent, length)
-        k2, moved2 = _clamp_to_face(inc.vertices[next_deepest], r1, tangent, length)
-        points = jnp.stack([k1, k2])
-        clipped = True
-        incident_feature = deepest
-        point_ids = jnp.stack(
-            [
-                jnp.where(moved1, MAX_POLYGON_VERTICES, deepest),
-                jnp.where(moved2, MAX_POLYGON_VERTICES + 1, next_deepest),
-            ]
-        )
+        points, clipped, incident_feature, point_ids = _jax2d_incident_points(inc, normal, r1, tangent, length)
     else:
-        # Box2D's: the incident edge most anti-parallel to the reference normal, clipped to the reference face's sides.
-        inc_edge = jnp.argmin(jnp.where(inc.edge_valid, dot2(inc.normals, normal), jnp.inf))
-        inc_next = inc.next_vertex[inc_edge]
-        p1, p2, id1, id2, ok1 = _clip(
-            inc.vertices[inc_edge],
-            inc.vertices[inc_next],
-            inc_edge,
-            inc_next,
-            -tangent,
-            -dot2(tangent, r1),
-            MAX_POLYGON_VERTICES,
-        )
-        p1, p2, id1, id2, ok2 = _clip(p1, p2, id1, id2, tangent, dot2(tangent, r2), MAX_POLYGON_VERTICES + 1)
-        points = jnp.stack([p1, p2])
-        clipped = ok1 & ok2
-        incident_feature = inc_edge
-        point_ids = jnp.stack([id1, id2])
-
+        points, clipped, incident_feature, point_ids = _clipped_incident_edge(inc, normal, (r1, r2), tangent)
     separation = dot2(points, normal) - dot2(normal, r1)
     pair_separation = jnp.maximum(separation_a, separation_b)
     valid = clipped & (separation < margin) & (pair_separation < margin)

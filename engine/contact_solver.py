@@ -12,6 +12,9 @@ quantity is its own (C, W, *batch) array.
 
 from __future__ import annotations
 
+import dataclasses
+import functools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -65,19 +68,18 @@ class ContactImpulses:
     max_normal: tuple  # (2,) of arrays [N s] largest normal impulse of the step (restitution needs contact)
 
 
+@struct.dataclass
+class PairConstants:
+    """Per candidate pair (K,) constants of one step."""
+
+    enabled: jnp.ndarray  # (K,) bool: both active, not both static, their collision modes and matrix allow contact
+    friction: jnp.ndarray  # (K,) [-] mixed coefficient
+    restitution: jnp.ndarray  # (K,) [-] mixed coefficient
+    softness: Softness  # fields (K,): stiffer against static bodies
+
+
 def prepare_contacts(
-    manifolds: Manifolds,
-    pair_enabled,
-    *,
-    pair_static,
-    centre,
-    velocity,
-    acceleration,
-    friction,
-    restitution,
-    layout: PairLayout,
-    softness: Softness,
-    static_softness: Softness,
+    manifolds: Manifolds, pairs: PairConstants, centre, velocity, acceleration, layout: PairLayout
 ) -> ContactGeometry:
     """Contact geometry of every candidate pair, gathered into colour layout.
 
@@ -88,7 +90,7 @@ def prepare_contacts(
     a, b = layout.body_a, layout.body_b
     lever_a = manifolds.point - centre[a][:, None, :]
     lever_b = manifolds.point - centre[b][:, None, :]
-    enabled = manifolds.valid & pair_enabled[:, None]
+    enabled = manifolds.valid & pairs.enabled[:, None]
 
     def normal_rate(per_body):
         def point_rate(index, lever):
@@ -102,17 +104,16 @@ def prepare_contacts(
     gap = jnp.maximum(manifolds.separation, 0.0)
     impact_speed = -jnp.sqrt(jnp.maximum(start_speed**2 - 2.0 * closing_acceleration * gap, 0.0))
     approach = jnp.where(start_speed < 0, impact_speed, start_speed)
-    soft = jax.tree_util.tree_map(lambda s, h: jnp.where(pair_static, h, s)[:, None], softness, static_softness)
     per_pair = ContactGeometry(
         normal=manifolds.normal,
         lever_a=lever_a,
         lever_b=lever_b,
         separation=jnp.where(enabled, manifolds.separation, 0.0),
         approach_velocity=jnp.where(enabled, approach, 0.0),
-        friction=friction[:, None],
-        restitution=restitution[:, None],
+        friction=pairs.friction[:, None],
+        restitution=pairs.restitution[:, None],
         enabled=enabled,
-        softness=soft,
+        softness=jax.tree_util.tree_map(lambda x: x[:, None], pairs.softness),
     )
     return to_colour_layout(per_pair, layout)
 
@@ -372,85 +373,123 @@ def _block_normal_impulses(rows: ContactRows, impulse, targets):
     return usable & found, (x0, x1)
 
 
+@dataclasses.dataclass(frozen=True)
+class ContactPass:
+    """How one sweep over the contacts solves: the step's push-out settings, the laws (static) and the sweep's form."""
+
+    inverse_substep: jnp.ndarray  # [1/s]
+    max_push_velocity: jnp.ndarray  # [m/s]
+    use_bias: bool | jnp.ndarray  # the soft position-correcting solve, otherwise the relaxing solve (may be traced)
+    baumgarte_law: bool  # static: every point follows Baumgarte's push-out (`engine.params.ContactLaw.BAUMGARTE`)
+    push_law: PushLaw
+    block: bool  # static: a pair's two rigid normal rows are solved together (`_block_normal_impulses`)
+    sweep: Sweep  # one of `engine.sweep.SWEEPS`
+
+
+def _push_target(rows: ContactRows, p: int, separation, settings: ContactPass):
+    """Bias [m/s] of normal row `p` at its current `separation`, with its mass and impulse scales (None: a rigid row,
+    Baumgarte's law). Points deeper than `push_law.depth` at the step's start follow Baumgarte's push-out under the
+    soft law too."""
+    push_law = settings.push_law
+    speculative = separation > 0
+    baumgarte_bias = push_law.rate * jnp.minimum(separation + push_law.slop, 0.0)
+    if settings.baumgarte_law:
+        return jnp.where(speculative, separation * settings.inverse_substep, baumgarte_bias), None
+    use_bias = settings.use_bias
+    pushing = use_bias & ~speculative
+    soft_push = jnp.maximum(rows.softness.bias_rate * separation, -settings.max_push_velocity)
+    bias = jnp.where(speculative, separation * settings.inverse_substep, jnp.where(use_bias, soft_push, 0.0))
+    mass_scale = jnp.where(pushing, rows.softness.mass_scale, 1.0)
+    impulse_scale = jnp.where(pushing, rows.softness.impulse_scale, 0.0)
+    deep = rows.separation[p] < -push_law.depth
+    bias = jnp.where(deep & ~speculative, baumgarte_bias, bias)
+    mass_scale = jnp.where(deep, 1.0, mass_scale)
+    impulse_scale = jnp.where(deep, 0.0, impulse_scale)
+    return bias, (mass_scale, impulse_scale)
+
+
+def _normal_impulses(rows: ContactRows, impulse, velocities: tuple[Motion, Motion], separations, settings: ContactPass):
+    """New impulses of both normal rows of every pair of a colour, one after the other (or together, with
+    `settings.block`); `velocities` holds the motions of the pairs' bodies a and b."""
+    deltas, new_impulses, targets = [], [], []
+    for p in range(NUM_POINTS):
+        bias, scales = _push_target(rows, p, separations[p], settings)
+        speed = _row_speed(rows, p, *velocities)
+        if settings.block:
+            rigid = True if scales is None else (scales[0] == 1.0) & (scales[1] == 0.0)
+            targets.append((speed + bias, rigid))
+        speed = _speed_after(rows, p, speed, deltas)
+        old = impulse[p]
+        if scales is None:
+            new = old - rows.mass[p] * (speed + bias)
+        else:
+            new = old - rows.mass[p] * scales[0] * (speed + bias) - scales[1] * old
+        new = jnp.where(rows.enabled[p], jnp.maximum(new, 0.0), 0.0)
+        deltas.append(new - old)
+        new_impulses.append(new)
+    if settings.block:
+        solved, together = _block_normal_impulses(rows, impulse, targets)
+        new_impulses = [jnp.where(solved, t, n) for t, n in zip(together, new_impulses, strict=True)]
+    return new_impulses
+
+
+def _friction_impulses(rows: ContactRows, impulse, velocities: tuple[Motion, Motion], normal):
+    """New impulses of both friction rows of every pair of a colour, after its new normal impulses `normal`, each
+    bounded by its point's normal impulse times the friction coefficient."""
+    deltas = [new - old for new, old in zip(normal, impulse[:NUM_POINTS], strict=True)]
+    new_impulses = []
+    for p in range(NUM_POINTS):
+        r = NUM_POINTS + p
+        speed = _speed_after(rows, r, _row_speed(rows, r, *velocities), deltas)
+        old = impulse[r]
+        bound = rows.friction * normal[p]
+        new = jnp.clip(old - rows.mass[r] * speed, -bound, bound)
+        deltas.append(new - old)
+        new_impulses.append(new)
+    return new_impulses
+
+
 def solve_contacts(
     velocity: Motion,
     moved: Motion | None,
     rows: ContactRows,
     impulses: ContactImpulses,
     layout: PairLayout,
-    inverse_substep,
-    max_push_velocity,
-    use_bias,
-    baumgarte_law: bool,
-    push_law: PushLaw,
-    sweep: Sweep,
-    block: bool = False,
+    settings: ContactPass,
 ):
     """One sweep of normal rows, then friction rows, of every pair; returns velocities and impulses.
 
-    `moved` is each body's displacement since the start of the step (None: every body is where it started);
-    `use_bias` (bool, may be traced) selects the soft position-correcting solve, otherwise the relaxing solve without
-    position bias. Under Baumgarte's law (`baumgarte_law`, static: every point; otherwise the points deeper than
-    `push_law.depth` at the step's start) both solve the same rigid rows with `push_law`'s bias. `sweep` (one of
-    `engine.sweep.SWEEPS`) visits the colours. With `block` (static) a pair's two normal rows are solved together
-    where both are rigid (`_block_normal_impulses`).
+    `moved` is each body's displacement since the start of the step (None: every body is where it started).
+    `settings.use_bias` selects the soft position-correcting solve, otherwise the relaxing solve without position
+    bias. Under Baumgarte's law (every point; otherwise the points deeper than `push_law.depth` at the step's start)
+    both solve the same rigid rows with `push_law`'s bias.
     """
 
     def solve_colour(rows, impulse, vel_a, vel_b, bodies_of, _):
-        moved_a, moved_b = (None, None) if moved is None else bodies_of(moved)
-        deltas, new_impulses, targets = [], [], []
-        for p in range(NUM_POINTS):
-            separation = rows.separation[p]
-            if moved is not None:
-                separation = separation + _row_speed(rows, p, moved_a, moved_b)
-            speculative = separation > 0
-            baumgarte_bias = push_law.rate * jnp.minimum(separation + push_law.slop, 0.0)
-            if baumgarte_law:
-                bias = jnp.where(speculative, separation * inverse_substep, baumgarte_bias)
-                rigid = True
-            else:
-                pushing = use_bias & ~speculative
-                bias = jnp.where(
-                    speculative,
-                    separation * inverse_substep,
-                    jnp.where(use_bias, jnp.maximum(rows.softness.bias_rate * separation, -max_push_velocity), 0.0),
-                )
-                mass_scale = jnp.where(pushing, rows.softness.mass_scale, 1.0)
-                impulse_scale = jnp.where(pushing, rows.softness.impulse_scale, 0.0)
-                deep = rows.separation[p] < -push_law.depth
-                bias = jnp.where(deep & ~speculative, baumgarte_bias, bias)
-                mass_scale = jnp.where(deep, 1.0, mass_scale)
-                impulse_scale = jnp.where(deep, 0.0, impulse_scale)
-                rigid = (mass_scale == 1.0) & (impulse_scale == 0.0)
-            speed = _row_speed(rows, p, vel_a, vel_b)
-            if block:
-                targets.append((speed + bias, rigid))
-            speed = _speed_after(rows, p, speed, deltas)
-            old = impulse[p]
-            if baumgarte_law:
-                new = old - rows.mass[p] * (speed + bias)
-            else:
-                new = old - rows.mass[p] * mass_scale * (speed + bias) - impulse_scale * old
-            new = jnp.where(rows.enabled[p], jnp.maximum(new, 0.0), 0.0)
-            deltas.append(new - old)
-            new_impulses.append(new)
-        if block:
-            solved, together = _block_normal_impulses(rows, impulse, targets)
-            new_impulses = [jnp.where(solved, t, n) for t, n in zip(together, new_impulses, strict=True)]
-            deltas = [new - old for new, old in zip(new_impulses, impulse[:NUM_POINTS], strict=True)]
-        for p in range(NUM_POINTS):
-            r = NUM_POINTS + p
-            speed = _speed_after(rows, r, _row_speed(rows, r, vel_a, vel_b), deltas)
-            old = impulse[r]
-            bound = rows.friction * new_impulses[p]
-            new = jnp.clip(old - rows.mass[r] * speed, -bound, bound)
-            deltas.append(new - old)
-            new_impulses.append(new)
-        return tuple(new_impulses)
+        separations = rows.separation
+        if moved is not None:
+            moved_a, moved_b = bodies_of(moved)
+            separations = tuple(rows.separation[p] + _row_speed(rows, p, moved_a, moved_b) for p in range(NUM_POINTS))
+        normal = _normal_impulses(rows, impulse, (vel_a, vel_b), separations, settings)
+        return tuple(normal + _friction_impulses(rows, impulse, (vel_a, vel_b), normal))
 
-    velocity, impulse = _sweep(velocity, rows, impulses.impulse, layout, solve_colour, sweep)
+    velocity, impulse = _sweep(velocity, rows, impulses.impulse, layout, solve_colour, settings.sweep)
     max_normal = tuple(jnp.maximum(m, i) for m, i in zip(impulses.max_normal, impulse[:NUM_POINTS], strict=True))
     return velocity, ContactImpulses(impulse, max_normal)
+
+
+def _bounces(rows: ContactRows, max_normal, threshold, p: int):
+    """Whether point `p` of each slot bounces: enabled, elastic, pushed during the step, and approached faster than
+    `threshold`."""
+    approach = rows.approach_velocity[p]
+    return rows.enabled[p] & (rows.restitution > 0) & (approach < -threshold) & (max_normal[p] > 0)
+
+
+def bounces_anywhere(rows: ContactRows, impulses: ContactImpulses, threshold) -> jnp.ndarray:
+    """Whether any point of the arrays bounces (`apply_restitution` would change it): one decision for every scene they
+    hold."""
+    points = [jnp.any(_bounces(rows, impulses.max_normal, threshold, p)) for p in range(NUM_POINTS)]
+    return functools.reduce(jnp.logical_or, points)
 
 
 def apply_restitution(
@@ -461,11 +500,11 @@ def apply_restitution(
     def solve_colour(rows, impulse, vel_a, vel_b, _, max_normal):
         deltas, normal = [], []
         for p in range(NUM_POINTS):
-            approach = rows.approach_velocity[p]
-            applies = rows.enabled[p] & (rows.restitution > 0) & (approach < -threshold) & (max_normal[p] > 0)
+            applies = _bounces(rows, max_normal, threshold, p)
             old = impulse[p]
             speed = _speed_after(rows, p, _row_speed(rows, p, vel_a, vel_b), deltas)
-            new = jnp.where(applies, jnp.maximum(old - rows.mass[p] * (speed + rows.restitution * approach), 0.0), old)
+            bounce_speed = rows.restitution * rows.approach_velocity[p]
+            new = jnp.where(applies, jnp.maximum(old - rows.mass[p] * (speed + bounce_speed), 0.0), old)
             deltas.append(new - old)
             normal.append(new)
         return tuple(normal)

@@ -9,6 +9,8 @@ depends only on poses (`JointFrames`) is computed for all joints at once before 
 
 from __future__ import annotations
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 from flax import struct
@@ -16,7 +18,7 @@ from flax import struct
 from kforge.engine.geometry import rotate
 from kforge.engine.params import LimitLaw
 from kforge.engine.softness import Softness
-from kforge.engine.state import Joints
+from kforge.engine.state import Joints, StartBodies
 from kforge.engine.sweep import Motion, Sweep
 
 SINGULAR_DETERMINANT = 1e-12
@@ -56,11 +58,12 @@ class JointImpulses:
     limit: jnp.ndarray  # (J, 2) [N m s] lower, upper (both >= 0)
 
 
-def prepare_joints(
-    joints: Joints, pose, response_scale, motor_actions, base_motor_speed, base_motor_power, substep, motor_rows
-) -> JointRows:
-    """Joint constants from start-of-step poses (N+1, 3); `motor_actions` (J,) in [-1, 1]; motors are solved as
-    rows only where `motor_rows` (the constraint motor law)."""
+def prepare_joints(joints: Joints, start: StartBodies, motor_actions, params, substep, motor_rows: bool) -> JointRows:
+    """Joint constants from the bodies at the start of the step; `motor_actions` (J,) in [-1, 1]; motors are solved as
+    rows only where `motor_rows` (the constraint motor law); `params` (`engine.SimParams`) scales the motors, whose
+    impulses are bounded per `substep` [s]."""
+    pose, response_scale = start.pose, start.response_scale
+    base_motor_speed, base_motor_power = params.base_motor_speed, params.base_motor_power
     a, b = joints.body_a, joints.body_b
     response_a, response_b = response_scale[a], response_scale[b]
     inverse_inertia_sum = response_a[:, 2] + response_b[:, 2]
@@ -92,17 +95,16 @@ def prepare_joints(
     )
 
 
-def servo_motor_kick(
-    joints: Joints, bodies_active, velocity, pose, response_scale, motor_actions, params
-) -> jnp.ndarray:
+def servo_motor_kick(joints: Joints, start: StartBodies, motor_actions, params) -> jnp.ndarray:
     """(N+1,) change of angular velocity [rad/s] that the servo motor law (`engine.params.MotorLaw.SERVO`) applies
-    once per step, before the solve; `velocity` and `pose` (N+1, 3) are the bodies' at the start of the step.
+    once per step, before the solve, to the bodies `start` at the start of the step.
 
     Each motorised revolute joint gives its two bodies opposite angular impulses of
     base_motor_power x motor_power x dt x axial inertia x tanh(motor_decay x speed error), the speed error being the
     joint's relative angular velocity minus its target; near an angle limit the impulse fades linearly to zero over
     `motor_limit_fade` while it drives the joint further towards the limit.
     """
+    velocity, pose, response_scale, bodies_active = start.velocity, start.pose, start.response_scale, start.active
     a, b = joints.body_a, joints.body_b
     action = jnp.clip(motor_actions, -1.0, 1.0)
     inverse_inertia_a, inverse_inertia_b = response_scale[a, 2], response_scale[b, 2]
@@ -239,139 +241,132 @@ def warm_start_joints(velocity: Motion, rows: JointRows, frames: JointFrames, im
     return velocity
 
 
-def _angular_row(
-    axial_mass,
-    relative_speed,
-    error,
-    old,
-    softness: Softness,
-    use_bias,
-    inverse_substep,
-    one_sided: bool,
-    return_rate=None,
-):
+@dataclasses.dataclass(frozen=True)
+class JointPass:
+    """How one sweep over the joints solves: the soft rows' settings, the laws (static) and the sweep's form."""
+
+    softness: Softness
+    inverse_substep: jnp.ndarray  # [1/s]
+    use_bias: bool | jnp.ndarray  # the soft position-correcting solve, otherwise the relaxing solve (may be traced)
+    limit_law: LimitLaw  # static
+    limit_recovery_rate: jnp.ndarray  # [1/s] LimitLaw.KINETIX, BOUNDED_RETURN: return per radian beyond a limit
+    constraint_motors: bool  # static: motors are rows (`engine.params.MotorLaw.CONSTRAINT`)
+    sweep: Sweep  # one of `engine.sweep.SWEEPS`
+
+
+def _angular_row(axial_mass, relative_speed, error, old, settings: JointPass, one_sided: bool):
     """New impulse of an angular row driving `relative_speed` and the position `error` to zero.
 
     One-sided rows (limits) are speculative while `error` > 0: they only stop the motion that would cross it; past it
-    (`error` < 0) they turn back at most `return_rate` [1/s] x the excess (None: as fast as the joint's softness).
+    (`error` < 0) they turn back at most `limit_recovery_rate` x the excess under `LimitLaw.BOUNDED_RETURN`
+    (otherwise as fast as the joint's softness).
     """
+    softness, use_bias = settings.softness, settings.use_bias
     bias = jnp.where(use_bias, softness.bias_rate * error, 0.0)
-    if one_sided and return_rate is not None:
-        bias = jnp.where(error < 0, jnp.maximum(bias, return_rate * error), bias)
+    if one_sided and settings.limit_law == LimitLaw.BOUNDED_RETURN:
+        bias = jnp.where(error < 0, jnp.maximum(bias, settings.limit_recovery_rate * error), bias)
     mass_scale = jnp.where(use_bias, softness.mass_scale, 1.0)
     impulse_scale = jnp.where(use_bias, softness.impulse_scale, 0.0)
     if one_sided:
         ahead = error > 0
-        bias = jnp.where(ahead, error * inverse_substep, bias)
+        bias = jnp.where(ahead, error * settings.inverse_substep, bias)
         mass_scale = jnp.where(ahead, 1.0, mass_scale)
         impulse_scale = jnp.where(ahead, 0.0, impulse_scale)
     return old - axial_mass * mass_scale * (relative_speed + bias) - impulse_scale * old
 
 
-def solve_joints(
-    velocity: Motion,
-    rows: JointRows,
-    frames: JointFrames,
-    impulses: JointImpulses,
-    softness: Softness,
-    inverse_substep,
-    use_bias,
-    limit_law: LimitLaw,
-    limit_recovery_rate,
-    constraint_motors: bool,
-    sweep: Sweep,
-):
-    """One sweep (`sweep`, one of `engine.sweep.SWEEPS`) over the joints in index order: motor, limits, fixed
-    angle, then the point constraint.
-
-    `use_bias` (bool, may be traced) selects the soft position-correcting solve, otherwise the relaxing solve.
-    `limit_law` (static) chooses how limits hold: under `LimitLaw.KINETIX` the lower limit slot holds the signed sum
-    of this substep's limit impulses, and the upper slot 0; under `LimitLaw.BOUNDED_RETURN` the speculative rows
-    turn a joint back from beyond a limit at most `limit_recovery_rate` [1/s] per radian. Motors are rows only with
-    `constraint_motors` (static, `engine.params.MotorLaw.CONSTRAINT`). Returns the velocities and the new impulses.
-    """
-
-    def solve_joint(row: JointRows, frame: JointFrames, impulse: JointImpulses, vel_a: Motion, vel_b: Motion):
-        """New impulses of one joint, its rows solved in order, each seeing the velocity changes of the ones before."""
+def _motor_row(row: JointRows, impulse: JointImpulses, wa, wb, settings: JointPass):
+    """The motor's velocity row with a bounded impulse (the servo law acted before the solve): new motor impulse and
+    the two angular velocities after it."""
+    new_motor = impulse.motor
+    if settings.constraint_motors:
         ia, ib = row.response_a[2], row.response_b[2]
-        mass = row.axial_mass
-        wa, wb = vel_a[2], vel_b[2]
-        # Motor: velocity row with a bounded impulse (the servo law acted before the solve).
-        new_motor = impulse.motor
-        if constraint_motors:
-            bound = row.motor_max_impulse
-            new_motor = jnp.clip(impulse.motor - mass * (wb - wa - row.motor_target), -bound, bound)
-            new_motor = jnp.where(row.solve_motor, new_motor, 0.0)
-            wa, wb = wa - ia * (new_motor - impulse.motor), wb + ib * (new_motor - impulse.motor)
-        # Limits: one-sided rows (speculative laws), or Kinetix's turning back from beyond a limit.
-        lower_old, upper_old = impulse.limit[0], impulse.limit[1]
-        if limit_law == LimitLaw.KINETIX:
-            excess = row.start_excess
-            outward = row.solve_limits & (excess != 0.0) & (jnp.sign(wb - wa) == jnp.sign(excess))
-            lower = lower_old + jnp.where(outward, -mass * (wb - wa + limit_recovery_rate * excess), 0.0)
-            upper = upper_old
-        else:
-            return_rate = limit_recovery_rate if limit_law == LimitLaw.BOUNDED_RETURN else None
-            lower = _angular_row(
-                mass,
-                wb - wa,
-                frame.angle - row.lower_angle,
-                lower_old,
-                softness,
-                use_bias,
-                inverse_substep,
-                True,
-                return_rate,
-            )
-            lower = jnp.where(row.solve_limits, jnp.maximum(lower, 0.0), 0.0)
-            lower_change = lower - lower_old
-            upper = _angular_row(
-                mass,
-                (wa - ia * lower_change) - (wb + ib * lower_change),
-                row.upper_angle - frame.angle,
-                upper_old,
-                softness,
-                use_bias,
-                inverse_substep,
-                True,
-                return_rate,
-            )
-            upper = jnp.where(row.solve_limits, jnp.maximum(upper, 0.0), 0.0)
-        wa, wb = wa - ia * (lower - lower_old), wb + ib * (lower - lower_old)
-        wa, wb = wa - ia * (upper_old - upper), wb + ib * (upper_old - upper)
-        # Fixed joint: relative angle held at the reference.
-        new_angular = _angular_row(
-            mass, wb - wa, frame.angle, impulse.angular, softness, use_bias, inverse_substep, False
-        )
-        new_angular = jnp.where(row.solve_angle, new_angular, 0.0)
-        wa, wb = wa - ia * (new_angular - impulse.angular), wb + ib * (new_angular - impulse.angular)
-        # Point constraint: anchors coincide (2x2 effective-mass solve).
-        (ax, ay), (bx, by) = frame.lever_a, frame.lever_b
-        bias_rate = jnp.where(use_bias, softness.bias_rate, 0.0)
-        target_x = (vel_b[0] - wb * by) - (vel_a[0] - wa * ay) + bias_rate * frame.gap[0]
-        target_y = (vel_b[1] + wb * bx) - (vel_a[1] + wa * ax) + bias_rate * frame.gap[1]
-        k11, k12, k22 = frame.point_matrix
-        solved_x = frame.inverse_determinant * (k22 * target_x - k12 * target_y)
-        solved_y = frame.inverse_determinant * (k11 * target_y - k12 * target_x)
-        mass_scale = jnp.where(use_bias, softness.mass_scale, 1.0)
-        impulse_scale = jnp.where(use_bias, softness.impulse_scale, 0.0)
-        solvable = frame.inverse_determinant != 0.0
-        linear = tuple(
-            jnp.where(solvable, old - mass_scale * change - impulse_scale * old, 0.0)
-            for old, change in ((impulse.linear[0], solved_x), (impulse.linear[1], solved_y))
-        )
-        return JointImpulses(
-            linear=jnp.stack(linear), angular=new_angular, motor=new_motor, limit=jnp.stack([lower, upper])
-        )
+        bound = row.motor_max_impulse
+        new_motor = jnp.clip(impulse.motor - row.axial_mass * (wb - wa - row.motor_target), -bound, bound)
+        new_motor = jnp.where(row.solve_motor, new_motor, 0.0)
+        wa, wb = wa - ia * (new_motor - impulse.motor), wb + ib * (new_motor - impulse.motor)
+    return new_motor, wa, wb
+
+
+def _limit_rows(row: JointRows, frame: JointFrames, impulse: JointImpulses, wa, wb, settings: JointPass):
+    """The angle limits: one-sided rows (speculative laws), or Kinetix's turning back from beyond a limit. Returns the
+    new lower and upper limit impulses and the two angular velocities after them."""
+    ia, ib = row.response_a[2], row.response_b[2]
+    mass = row.axial_mass
+    lower_old, upper_old = impulse.limit[0], impulse.limit[1]
+    if settings.limit_law == LimitLaw.KINETIX:
+        excess = row.start_excess
+        outward = row.solve_limits & (excess != 0.0) & (jnp.sign(wb - wa) == jnp.sign(excess))
+        lower = lower_old + jnp.where(outward, -mass * (wb - wa + settings.limit_recovery_rate * excess), 0.0)
+        upper = upper_old
+    else:
+        lower = _angular_row(mass, wb - wa, frame.angle - row.lower_angle, lower_old, settings, True)
+        lower = jnp.where(row.solve_limits, jnp.maximum(lower, 0.0), 0.0)
+        lower_change = lower - lower_old
+        upper_speed = (wa - ia * lower_change) - (wb + ib * lower_change)
+        upper = _angular_row(mass, upper_speed, row.upper_angle - frame.angle, upper_old, settings, True)
+        upper = jnp.where(row.solve_limits, jnp.maximum(upper, 0.0), 0.0)
+    wa, wb = wa - ia * (lower - lower_old), wb + ib * (lower - lower_old)
+    wa, wb = wa - ia * (upper_old - upper), wb + ib * (upper_old - upper)
+    return (lower, upper), wa, wb
+
+
+def _point_row(frame: JointFrames, old_linear, velocities: tuple[Motion, Motion], wa, wb, settings: JointPass):
+    """The point constraint, anchors coinciding (a 2x2 effective-mass solve): the new linear impulse (x, y);
+    `velocities` holds the motions of bodies a and b, `wa` and `wb` their angular velocities after the angular rows."""
+    vel_a, vel_b = velocities
+    softness, use_bias = settings.softness, settings.use_bias
+    (ax, ay), (bx, by) = frame.lever_a, frame.lever_b
+    bias_rate = jnp.where(use_bias, softness.bias_rate, 0.0)
+    target_x = (vel_b[0] - wb * by) - (vel_a[0] - wa * ay) + bias_rate * frame.gap[0]
+    target_y = (vel_b[1] + wb * bx) - (vel_a[1] + wa * ax) + bias_rate * frame.gap[1]
+    k11, k12, k22 = frame.point_matrix
+    solved_x = frame.inverse_determinant * (k22 * target_x - k12 * target_y)
+    solved_y = frame.inverse_determinant * (k11 * target_y - k12 * target_x)
+    mass_scale = jnp.where(use_bias, softness.mass_scale, 1.0)
+    impulse_scale = jnp.where(use_bias, softness.impulse_scale, 0.0)
+    solvable = frame.inverse_determinant != 0.0
+    return tuple(
+        jnp.where(solvable, old - mass_scale * change - impulse_scale * old, 0.0)
+        for old, change in ((old_linear[0], solved_x), (old_linear[1], solved_y))
+    )
+
+
+def _solve_joint(
+    row: JointRows, frame: JointFrames, impulse: JointImpulses, velocities: tuple[Motion, Motion], settings: JointPass
+) -> JointImpulses:
+    """New impulses of one joint, its rows solved in order (motor, limits, fixed angle, point), each seeing the velocity
+    changes of the ones before; `velocities` holds the motions of its bodies a and b."""
+    vel_a, vel_b = velocities
+    ia, ib = row.response_a[2], row.response_b[2]
+    new_motor, wa, wb = _motor_row(row, impulse, vel_a[2], vel_b[2], settings)
+    limit, wa, wb = _limit_rows(row, frame, impulse, wa, wb, settings)
+    # Fixed joint: relative angle held at the reference.
+    new_angular = _angular_row(row.axial_mass, wb - wa, frame.angle, impulse.angular, settings, False)
+    new_angular = jnp.where(row.solve_angle, new_angular, 0.0)
+    wa, wb = wa - ia * (new_angular - impulse.angular), wb + ib * (new_angular - impulse.angular)
+    linear = _point_row(frame, impulse.linear, velocities, wa, wb, settings)
+    return JointImpulses(linear=jnp.stack(linear), angular=new_angular, motor=new_motor, limit=jnp.stack(limit))
+
+
+def solve_joints(velocity: Motion, rows: JointRows, frames: JointFrames, impulses: JointImpulses, settings: JointPass):
+    """One sweep (`settings.sweep`) over the joints in index order: motor, limits, fixed angle, then the point
+    constraint.
+
+    `settings.limit_law` (static) chooses how limits hold: under `LimitLaw.KINETIX` the lower limit slot holds the
+    signed sum of this substep's limit impulses, and the upper slot 0; under `LimitLaw.BOUNDED_RETURN` the speculative
+    rows turn a joint back from beyond a limit at most `limit_recovery_rate` [1/s] per radian. Returns the velocities
+    and the new impulses.
+    """
 
     def gather(velocity, j):
         frame = _take(frames, j)
         return _select_motion(velocity, frame.mask_a), _select_motion(velocity, frame.mask_b)
 
     def solve(velocities, j, start: JointImpulses):
-        return solve_joint(_take(rows, j), _take(frames, j), start, *velocities)
+        return _solve_joint(_take(rows, j), _take(frames, j), start, velocities, settings)
 
     def apply(velocity, j, change: JointImpulses):
         return _apply_impulse(velocity, _take(rows, j), _take(frames, j), change.linear, _axial(change))
 
-    return sweep(velocity, rows.body_a.shape[0], impulses, gather, solve, apply)
+    return settings.sweep(velocity, rows.body_a.shape[0], impulses, gather, solve, apply)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 
 import jax
@@ -9,14 +10,24 @@ import jax.numpy as jnp
 from flax import struct
 
 from kforge.engine.batch_last import Batching, vmap_batch_last, vmap_in_chunks
-from kforge.engine.collision import WorldGeometry, circle_contact_clearance, manifolds, world_geometry
+from kforge.engine.collision import (
+    Manifolds,
+    WorldGeometry,
+    circle_contact_clearance,
+    manifolds,
+    world_geometry,
+)
 from kforge.engine.collision_filter import modes_collide
 from kforge.engine.contact_solver import (
     NUM_POINTS,
     ContactGeometry,
     ContactImpulses,
+    ContactPass,
+    ContactRows,
+    PairConstants,
     PushLaw,
     apply_restitution,
+    bounces_anywhere,
     build_rows,
     from_colour_layout,
     prepare_contacts,
@@ -26,7 +37,9 @@ from kforge.engine.contact_solver import (
 )
 from kforge.engine.geometry import cross2, dot2, norm2, rotate
 from kforge.engine.joint_solver import (
+    JointFrames,
     JointImpulses,
+    JointPass,
     JointRows,
     joint_frames,
     prepare_joints,
@@ -34,7 +47,7 @@ from kforge.engine.joint_solver import (
     solve_joints,
     warm_start_joints,
 )
-from kforge.engine.pairs import pair_layout
+from kforge.engine.pairs import PairLayout, pair_layout
 from kforge.engine.params import (
     CollisionRules,
     ContactLaw,
@@ -46,8 +59,8 @@ from kforge.engine.params import (
     StaticSimParams,
 )
 from kforge.engine.softness import Softness, make_softness
-from kforge.engine.state import NO_FEATURE, ContactCache, SimState
-from kforge.engine.sweep import SWEEPS
+from kforge.engine.state import NO_FEATURE, Bodies, ContactCache, Joints, SimState, StartBodies
+from kforge.engine.sweep import SWEEPS, Motion, Sweep
 
 STATIC_CONTACT_STIFFNESS_FACTOR = 2.0
 """Contacts against static bodies are this many times stiffer (in Hz) than between movable bodies."""
@@ -154,6 +167,145 @@ def force_substeps(static: StaticSimParams, index) -> jnp.ndarray:
     return jnp.where(index >= 0, 1, 0)
 
 
+@dataclasses.dataclass(frozen=True)
+class _Substeps:
+    """What every solver pass of one step reads: the laws and counts (static), the sweep's form, the constraint rows,
+    the poses at the step's start and, with one substep, the joints' frames at them."""
+
+    static: StaticSimParams
+    layout: PairLayout
+    sweep: Sweep
+    unrolled: bool  # the substeps and passes written out, not looped
+    rows: ContactRows
+    joint_rows: JointRows
+    scalars: SolverScalars
+    acceleration: Motion
+    movable: jnp.ndarray  # (N+1, *batch) bool
+    start_pose: Motion
+    start_frames: JointFrames | None  # with one substep: the position-correcting passes all see the starting poses
+
+    def frames_at(self, pose: Motion, use_bias: bool) -> JointFrames:
+        """The joints' frames at `pose` (the starting ones for a position-correcting pass of a single substep)."""
+        if self.start_frames is not None and use_bias:
+            return self.start_frames
+        return joint_frames(self.joint_rows, pose, self.start_pose[2])
+
+    def joint_pass(self, use_bias: bool) -> JointPass:
+        """How a pass solves the joints."""
+        limit_law, constraint_motors = self.static.limit_law, self.static.motor_law == MotorLaw.CONSTRAINT
+        scalars = self.scalars
+        return JointPass(
+            softness=scalars.joint_softness,
+            inverse_substep=scalars.inverse_substep,
+            use_bias=use_bias,
+            limit_law=limit_law,
+            limit_recovery_rate=scalars.limit_recovery_rate,
+            constraint_motors=constraint_motors,
+            sweep=self.sweep,
+        )
+
+    def contact_pass(self, use_bias: bool) -> ContactPass:
+        """How a pass solves the contacts."""
+        baumgarte, block = self.static.contact_law == ContactLaw.BAUMGARTE, self.static.block_contacts
+        scalars = self.scalars
+        return ContactPass(
+            inverse_substep=scalars.inverse_substep,
+            max_push_velocity=scalars.max_push_velocity,
+            use_bias=use_bias,
+            baumgarte_law=baumgarte,
+            push_law=scalars.push_law,
+            block=block,
+            sweep=self.sweep,
+        )
+
+
+def _solver_pass(substeps: _Substeps, carry, use_bias: bool, advance: bool, contacts: bool = True):
+    """Joints then, if `contacts`, contacts; then, if `advance`, integrate positions. `carry`: velocities, poses,
+    contact and joint impulses."""
+    velocity, pose, contact_impulses, joint_impulses = carry
+    frames = substeps.frames_at(pose, use_bias)
+    velocity, joint_impulses = solve_joints(
+        velocity, substeps.joint_rows, frames, joint_impulses, substeps.joint_pass(use_bias)
+    )
+    if contacts:
+        unmoved = substeps.start_frames is not None and use_bias
+        moved = None if unmoved else tuple(p - s for p, s in zip(pose, substeps.start_pose, strict=True))
+        settings = substeps.contact_pass(use_bias)
+        velocity, contact_impulses = solve_contacts(
+            velocity, moved, substeps.rows, contact_impulses, substeps.layout, settings
+        )
+    step_length, move = substeps.scalars.substep, substeps.movable
+    pose = tuple(jnp.where(move & advance, p + step_length * v, p) for p, v in zip(pose, velocity, strict=True))
+    return velocity, pose, contact_impulses, joint_impulses
+
+
+def _substep(substeps: _Substeps, carry, index):
+    """Integrate velocities, warm start, soft solve, integrate positions, then relax without bias."""
+    static, scalars = substeps.static, substeps.scalars
+    velocity, pose, contact_impulses, joint_impulses = carry
+    if static.limit_law == LimitLaw.KINETIX:  # Kinetix's: nothing carried
+        joint_impulses = joint_impulses.replace(limit=jnp.zeros_like(joint_impulses.limit))
+    share = force_substeps(static, index) * scalars.substep
+    velocity = tuple(v + share * a for v, a in zip(velocity, substeps.acceleration, strict=True))
+    velocity = warm_start_joints(velocity, substeps.joint_rows, substeps.frames_at(pose, True), joint_impulses)
+    velocity = warm_start_contacts(velocity, substeps.rows, contact_impulses, substeps.layout)
+    carry = (velocity, pose, contact_impulses, joint_impulses)
+    if static.num_iterations > 1:
+        carry, _ = jax.lax.scan(
+            lambda c, _: (_solver_pass(substeps, c, True, False), None),
+            carry,
+            None,
+            length=static.num_iterations - 1,
+            unroll=substeps.unrolled,
+        )
+    carry = _solver_pass(substeps, carry, True, True)
+    for _ in range(static.num_relax_iterations):
+        carry = _solver_pass(substeps, carry, False, False, static.relax_contacts)
+    return carry, None
+
+
+def _components(x) -> tuple:
+    return tuple(x[:, k] for k in range(x.shape[1]))
+
+
+def _solve(static: StaticSimParams, solver_loops: str, skip_idle_bounce: bool, solver_input: SolverInput):
+    """The substeps and restitution of one step (rank-polymorphic: any trailing batch axes)."""
+    layout = pair_layout(static)
+    sweep = SWEEPS["looped" if solver_loops == "looped" else "unrolled"]
+    velocity, start_pose = _components(solver_input.velocity), _components(solver_input.pose)
+    rows = build_rows(solver_input.contact_geometry, solver_input.response_scale, layout)
+    joint_rows, scalars = solver_input.joint_rows, solver_input.scalars
+    unmoved = static.num_substeps == 1
+    substeps = _Substeps(
+        static=static,
+        layout=layout,
+        sweep=sweep,
+        unrolled=solver_loops == "unrolled",
+        rows=rows,
+        joint_rows=joint_rows,
+        scalars=scalars,
+        acceleration=_components(solver_input.acceleration),
+        movable=solver_input.movable,
+        start_pose=start_pose,
+        start_frames=joint_frames(joint_rows, start_pose, start_pose[2]) if unmoved else None,
+    )
+    carry = (velocity, start_pose, solver_input.contact_impulses, solver_input.joint_impulses)
+    (velocity, pose, contact_impulses, joint_impulses), _ = jax.lax.scan(
+        functools.partial(_substep, substeps), carry, jnp.arange(static.num_substeps), unroll=substeps.unrolled
+    )
+    threshold = scalars.restitution_threshold
+
+    def bounce(velocity, contact_impulses):
+        return apply_restitution(velocity, rows, contact_impulses, layout, threshold, sweep)
+
+    if skip_idle_bounce:  # one decision for the whole (batch-last) batch
+        bounces = bounces_anywhere(rows, contact_impulses, threshold)
+        velocity, contact_impulses = jax.lax.cond(bounces, bounce, lambda *carry: carry, velocity, contact_impulses)
+    else:
+        velocity, contact_impulses = bounce(velocity, contact_impulses)
+    return SolverOutput(jnp.stack(velocity, 1), jnp.stack(pose, 1), contact_impulses, joint_impulses)
+
+
 @functools.cache
 def substep_solver(static: StaticSimParams, batch_last: bool = True, solver_loops: str = "looped"):
     """The substep loop and restitution for `static`: `SolverInput -> SolverOutput`, batch-last under vmap if asked,
@@ -162,101 +314,15 @@ def substep_solver(static: StaticSimParams, batch_last: bool = True, solver_loop
 
     A substep runs `num_iterations` passes with position bias (all but the last in a `lax.scan`), advances the
     positions after the last, then `num_relax_iterations` passes without bias, of joints only unless `relax_contacts`
-    (soft step: 1, 1; Jax2D's scheme: 10 iterations in one substep and no relaxing pass). Looped, substeps, passes,
-    joints and colours are `lax.scan`s, so the compiled size does not grow with their number; unrolled, they are
-    written out in order (fewer kernels, a larger program); "unrolled_sweeps" writes out joints and colours only.
-    Joints' warm starting (nothing solved) is unrolled into one fusion either way. The laws of `static` are chosen
-    here, in Python: the program holds only their kernels.
+    (soft step: 1, 1; Jax2D's scheme: 10 iterations in one substep and no relaxing pass). With one substep the
+    position-correcting passes all see the step's starting poses (positions advance after the last): their joint
+    frames are computed once, and their contacts have moved nowhere. Looped, substeps, passes, joints and colours are
+    `lax.scan`s, so the compiled size does not grow with their number; unrolled, they are written out in order (fewer
+    kernels, a larger program); "unrolled_sweeps" writes out joints and colours only. Joints' warm starting (nothing
+    solved) is unrolled into one fusion either way. Batch-last, the restitution sweep runs only when some point of
+    the batch bounces. The laws of `static` are chosen here, in Python: the program holds only their kernels.
     """
-    layout = pair_layout(static)
-    sweep = SWEEPS["looped" if solver_loops == "looped" else "unrolled"]
-    unrolled = solver_loops == "unrolled"
-
-    def solve(solver_input: SolverInput) -> SolverOutput:
-        def components(x):
-            return tuple(x[:, k] for k in range(x.shape[1]))
-
-        velocity, start_pose = components(solver_input.velocity), components(solver_input.pose)
-        rows = build_rows(solver_input.contact_geometry, solver_input.response_scale, layout)
-        joint_rows, scalars = solver_input.joint_rows, solver_input.scalars
-        acceleration = components(solver_input.acceleration)
-        move = solver_input.movable
-        # With one substep the position-correcting passes all see the step's starting poses (positions advance after
-        # the last): their joint frames are computed once, and their contacts have moved nowhere.
-        unmoved = static.num_substeps == 1
-        start_frames = joint_frames(joint_rows, start_pose, start_pose[2]) if unmoved else None
-
-        def frames_at(pose, use_bias: bool):
-            return start_frames if unmoved and use_bias else joint_frames(joint_rows, pose, start_pose[2])
-
-        def solver_pass(carry, use_bias: bool, advance: bool, contacts: bool = True):
-            """Joints then, if `contacts`, contacts; then, if `advance`, integrate positions."""
-            velocity, pose, contact_impulses, joint_impulses = carry
-            velocity, joint_impulses = solve_joints(
-                velocity,
-                joint_rows,
-                frames_at(pose, use_bias),
-                joint_impulses,
-                scalars.joint_softness,
-                scalars.inverse_substep,
-                use_bias,
-                static.limit_law,
-                scalars.limit_recovery_rate,
-                static.motor_law == MotorLaw.CONSTRAINT,
-                sweep,
-            )
-            if contacts:
-                velocity, contact_impulses = solve_contacts(
-                    velocity,
-                    None if unmoved and use_bias else tuple(p - s for p, s in zip(pose, start_pose, strict=True)),
-                    rows,
-                    contact_impulses,
-                    layout,
-                    scalars.inverse_substep,
-                    scalars.max_push_velocity,
-                    use_bias,
-                    static.contact_law == ContactLaw.BAUMGARTE,
-                    scalars.push_law,
-                    sweep,
-                    static.block_contacts,
-                )
-            pose = tuple(
-                jnp.where(move & advance, p + scalars.substep * v, p) for p, v in zip(pose, velocity, strict=True)
-            )
-            return velocity, pose, contact_impulses, joint_impulses
-
-        def substep_body(carry, index):
-            """Integrate velocities, warm start, soft solve, integrate positions, then relax without bias."""
-            velocity, pose, contact_impulses, joint_impulses = carry
-            if static.limit_law == LimitLaw.KINETIX:  # Kinetix's: nothing carried
-                joint_impulses = joint_impulses.replace(limit=jnp.zeros_like(joint_impulses.limit))
-            share = force_substeps(static, index) * scalars.substep
-            velocity = tuple(v + share * a for v, a in zip(velocity, acceleration, strict=True))
-            velocity = warm_start_joints(velocity, joint_rows, frames_at(pose, True), joint_impulses)
-            velocity = warm_start_contacts(velocity, rows, contact_impulses, layout)
-            carry = (velocity, pose, contact_impulses, joint_impulses)
-            if static.num_iterations > 1:
-                carry, _ = jax.lax.scan(
-                    lambda c, _: (solver_pass(c, True, False), None),
-                    carry,
-                    None,
-                    length=static.num_iterations - 1,
-                    unroll=unrolled,
-                )
-            carry = solver_pass(carry, True, True)
-            for _ in range(static.num_relax_iterations):
-                carry = solver_pass(carry, False, False, static.relax_contacts)
-            return carry, None
-
-        carry = (velocity, start_pose, solver_input.contact_impulses, solver_input.joint_impulses)
-        (velocity, pose, contact_impulses, joint_impulses), _ = jax.lax.scan(
-            substep_body, carry, jnp.arange(static.num_substeps), unroll=unrolled
-        )
-        velocity, contact_impulses = apply_restitution(
-            velocity, rows, contact_impulses, layout, scalars.restitution_threshold, sweep
-        )
-        return SolverOutput(jnp.stack(velocity, 1), jnp.stack(pose, 1), contact_impulses, joint_impulses)
-
+    solve = functools.partial(_solve, static, solver_loops, batch_last)
     return vmap_batch_last(solve) if batch_last else solve
 
 
@@ -275,36 +341,39 @@ def _external_acceleration(state: SimState, params: SimParams, thruster_actions,
     return jnp.where(movable[:, None], response_scale * external + gravity, 0.0)
 
 
-def prepare_step(
-    state: SimState, params: SimParams, motor_actions, thruster_actions, static: StaticSimParams
-) -> Prepared:
-    """Everything computed once per step before the substeps: manifolds, constraint rows, external accelerations."""
-    layout = pair_layout(static)
-    bodies, joints = state.bodies, state.joints
-    n = static.num_bodies
-    substep = params.dt / static.num_substeps
-    static_body = bodies.is_static
+def _extend(x):
+    """`x` with a zero row appended: row N is a dummy body that colour padding reads and writes."""
+    return jnp.concatenate([x, jnp.zeros((1,) + x.shape[1:], x.dtype)])
 
-    # Extended body arrays: row N is a dummy body that colour padding reads and writes.
-    def extend(x):
-        return jnp.concatenate([x, jnp.zeros((1,) + x.shape[1:], x.dtype)])
 
-    movable = extend(bodies.active & ~static_body)
-    pose = extend(jnp.concatenate([bodies.position, bodies.rotation[:, None]], -1))
-    velocity = extend(jnp.concatenate([bodies.velocity, bodies.angular_velocity[:, None]], -1))
+def _start_bodies(state: SimState, params: SimParams, motor_actions, thruster_actions, static: StaticSimParams):
+    """The bodies at the start of the step (N+1 rows), after the servo motors' kick under `MotorLaw.SERVO`."""
+    bodies = state.bodies
+    movable = _extend(bodies.active & ~bodies.is_static)
     inverse_masses = jnp.stack([bodies.inverse_mass, bodies.inverse_mass, bodies.inverse_inertia], -1)
-    response_scale = jnp.where(movable[:, None], extend(inverse_masses), 0.0)
-    acceleration = _external_acceleration(state, params, thruster_actions, movable, response_scale)
-    servo = static.motor_law == MotorLaw.SERVO
-    if servo:
-        kick = servo_motor_kick(joints, extend(bodies.active), velocity, pose, response_scale, motor_actions, params)
-        velocity = velocity.at[:, 2].add(kick)
+    response_scale = jnp.where(movable[:, None], _extend(inverse_masses), 0.0)
+    start = StartBodies(
+        velocity=_extend(jnp.concatenate([bodies.velocity, bodies.angular_velocity[:, None]], -1)),
+        pose=_extend(jnp.concatenate([bodies.position, bodies.rotation[:, None]], -1)),
+        acceleration=_external_acceleration(state, params, thruster_actions, movable, response_scale),
+        movable=movable,
+        active=_extend(bodies.active),
+        response_scale=response_scale,
+    )
+    if static.motor_law == MotorLaw.SERVO:
+        kick = servo_motor_kick(state.joints, start, motor_actions, params)
+        start = start.replace(velocity=start.velocity.at[:, 2].add(kick))
+    return start
 
-    # Narrowphase with a speculative margin covering this step's motion.
+
+def _contact_margin(bodies: Bodies, start: StartBodies, geometry: WorldGeometry, params: SimParams, layout: PairLayout):
+    """(K,) [m] each pair's speculative distance: the base distance plus this step's motion, unless the pair moves
+    less than `overlap_allowance` of its thinner shape and does not bounce (then it may overlap for a step)."""
+    n = layout.num_bodies
     a, b = layout.body_a, layout.body_b
+    velocity, acceleration = start.velocity, start.acceleration
     reach = norm2(velocity[:n, :2]) + jnp.abs(velocity[:n, 2]) * _bounding_radius(bodies)
     reach = reach + params.dt * norm2(acceleration[:n, :2])
-    geometry = world_geometry(bodies)
     motion = params.dt * (reach[a] + reach[b])
     inner = _inner_radius(geometry)
     thinner = jnp.minimum(inner[a], inner[b])
@@ -312,41 +381,65 @@ def prepare_step(
     # A pair that bounces keeps its margin: its restitution then acts at the surface, not from an overlap's depth.
     allowed = (motion <= params.overlap_allowance * thinner) & (restitution <= 0.0)
     motion = jnp.where(allowed, 0.0, motion)
-    margin = params.speculative_distance + params.speculative_reach * motion
-    jax2d_rules = static.collision_rules == CollisionRules.JAX2D
-    manifold = manifolds(geometry, layout, margin, static.contact_points == ContactPoints.KINETIX, jax2d_rules)
+    return params.speculative_distance + params.speculative_reach * motion
+
+
+def _touching(state: SimState, manifold: Manifolds, params: SimParams, layout: PairLayout) -> StepInfo:
+    """Which pairs touch at the step's start, and their smallest separation."""
+    bodies = state.bodies
+    a, b = layout.body_a, layout.body_b
     both_active = bodies.active[a] & bodies.active[b]
     modes = modes_collide(bodies.collision_mode[a], bodies.collision_mode[b])
     present = manifold.valid & both_active[:, None]
     touch = present & (manifold.separation < params.touch_distance)
     point_separation = jnp.where(present, manifold.separation, jnp.inf)
-    info = StepInfo(
+    return StepInfo(
         touching=modes & (touch[:, 0] | touch[:, 1]),
         separation=jnp.minimum(point_separation[:, 0], point_separation[:, 1]),
     )
 
-    # Contact rows, warm-started from last step's impulses of the same features.
-    pair_enabled = both_active & modes & state.collision_matrix[a, b] & ~(static_body[a] & static_body[b])
+
+def _pair_constants(bodies: Bodies, state: SimState, params: SimParams, substep, layout: PairLayout) -> PairConstants:
+    """Whether each candidate pair may collide this step, and its mixed friction, restitution and softness."""
+    a, b = layout.body_a, layout.body_b
+    static_body = bodies.is_static
+    both_active = bodies.active[a] & bodies.active[b]
+    modes = modes_collide(bodies.collision_mode[a], bodies.collision_mode[b])
+    softness = make_softness(params.contact_hertz, params.contact_damping_ratio, substep)
+    static_softness = make_softness(
+        STATIC_CONTACT_STIFFNESS_FACTOR * params.contact_hertz, params.contact_damping_ratio, substep
+    )
+    pair_static = static_body[a] | static_body[b]
+    return PairConstants(
+        enabled=both_active & modes & state.collision_matrix[a, b] & ~(static_body[a] & static_body[b]),
+        friction=params.base_friction * jnp.sqrt(bodies.friction[a] ** 2 + bodies.friction[b] ** 2),
+        restitution=jnp.minimum(bodies.restitution[a], bodies.restitution[b]),
+        softness=jax.tree_util.tree_map(lambda s, h: jnp.where(pair_static, h, s), softness, static_softness),
+    )
+
+
+def _contact_constraints(state: SimState, start: StartBodies, params: SimParams, static: StaticSimParams):
+    """Narrowphase with a speculative margin covering this step's motion, then the contact rows, warm-started from
+    last step's impulses of the same features: (contact geometry, impulses, touching info, manifolds, points
+    enabled)."""
+    layout = pair_layout(static)
+    n = static.num_bodies
+    bodies = state.bodies
+    geometry = world_geometry(bodies)
+    margin = _contact_margin(bodies, start, geometry, params, layout)
+    jax2d_rules = static.collision_rules == CollisionRules.JAX2D
+    manifold = manifolds(geometry, layout, margin, static.contact_points == ContactPoints.KINETIX, jax2d_rules)
+    info = _touching(state, manifold, params, layout)
+    pairs = _pair_constants(bodies, state, params, params.dt / static.num_substeps, layout)
     # A circle's speculative contact is dropped when free motion carries it past what it faces (a near miss).
     if static.swept_speculative_contacts:
         check_times = [0.5 * params.dt, params.dt]
-        misses = circle_contact_clearance(manifold, geometry, layout, velocity[:n], acceleration[:n], check_times)
+        velocity, acceleration = start.velocity[:n], start.acceleration[:n]
+        misses = circle_contact_clearance(manifold, geometry, layout, velocity, acceleration, check_times)
         manifold = manifold.replace(valid=manifold.valid & ~misses[:, None])
-    point_enabled = manifold.valid & pair_enabled[:, None]
+    point_enabled = manifold.valid & pairs.enabled[:, None]
     contact_geometry = prepare_contacts(
-        manifold,
-        pair_enabled,
-        pair_static=static_body[a] | static_body[b],
-        centre=pose[:n, :2],
-        velocity=velocity[:n],
-        acceleration=acceleration[:n],
-        friction=params.base_friction * jnp.sqrt(bodies.friction[a] ** 2 + bodies.friction[b] ** 2),
-        restitution=restitution,
-        layout=layout,
-        softness=make_softness(params.contact_hertz, params.contact_damping_ratio, substep),
-        static_softness=make_softness(
-            STATIC_CONTACT_STIFFNESS_FACTOR * params.contact_hertz, params.contact_damping_ratio, substep
-        ),
+        manifold, pairs, start.pose[:n, :2], start.velocity[:n], start.acceleration[:n], layout
     )
     normal_warm, tangent_warm = match_warm_start(state.contacts, manifold.feature, jax2d_rules)
     warm = jnp.where(jnp.tile(point_enabled, (1, 2)), jnp.concatenate([normal_warm, tangent_warm], -1), 0.0)
@@ -357,17 +450,25 @@ def prepare_step(
         ),
         layout,
     )
+    return contact_geometry, contact_impulses, info, manifold, point_enabled
 
-    # Joints (a servo motor acted above).
-    motor_speed, motor_power, rows = params.base_motor_speed, params.base_motor_power, not servo
-    joint_rows = prepare_joints(joints, pose, response_scale, motor_actions, motor_speed, motor_power, substep, rows)
+
+def _joint_constraints(joints: Joints, start: StartBodies, motor_actions, params: SimParams, static: StaticSimParams):
+    """The joints' rows and warm-start impulses (a servo motor acted before)."""
+    substep = params.dt / static.num_substeps
+    joint_rows = prepare_joints(joints, start, motor_actions, params, substep, static.motor_law == MotorLaw.CONSTRAINT)
     joint_impulses = JointImpulses(
         linear=jnp.where(joints.active[:, None], joints.linear_impulse, 0.0),
         angular=jnp.where(joints.active, joints.angular_impulse, 0.0),
         motor=jnp.where(joint_rows.solve_motor, joints.motor_impulse, 0.0),
         limit=jnp.where(joint_rows.solve_limits[:, None], joints.limit_impulse, 0.0),
     )
-    scalars = SolverScalars(
+    return joint_rows, joint_impulses
+
+
+def _solver_scalars(params: SimParams, static: StaticSimParams) -> SolverScalars:
+    substep = params.dt / static.num_substeps
+    return SolverScalars(
         substep=substep,
         inverse_substep=1.0 / substep,
         max_push_velocity=params.max_push_velocity,
@@ -380,17 +481,28 @@ def prepare_step(
             slop=params.contact_slop,
         ),
     )
+
+
+def prepare_step(
+    state: SimState, params: SimParams, motor_actions, thruster_actions, static: StaticSimParams
+) -> Prepared:
+    """Everything computed once per step before the substeps: manifolds, constraint rows, external accelerations."""
+    start = _start_bodies(state, params, motor_actions, thruster_actions, static)
+    contact_geometry, contact_impulses, info, manifold, point_enabled = _contact_constraints(
+        state, start, params, static
+    )
+    joint_rows, joint_impulses = _joint_constraints(state.joints, start, motor_actions, params, static)
     solver_input = SolverInput(
-        velocity=velocity,
-        pose=pose,
-        acceleration=acceleration,
-        movable=movable,
-        response_scale=response_scale,
+        velocity=start.velocity,
+        pose=start.pose,
+        acceleration=start.acceleration,
+        movable=start.movable,
+        response_scale=start.response_scale,
         contact_geometry=contact_geometry,
         contact_impulses=contact_impulses,
         joint_rows=joint_rows,
         joint_impulses=joint_impulses,
-        scalars=scalars,
+        scalars=_solver_scalars(params, static),
     )
     return Prepared(solver_input, info, point_enabled, manifold.feature)
 

@@ -37,6 +37,17 @@ class _Material:
     static: bool
 
 
+@dataclasses.dataclass(frozen=True)
+class _Placement:
+    """Where one body starts, as given to an `add_*` call: position [m], rotation [rad], velocity [m/s] and angular
+    velocity [rad/s]."""
+
+    position: np.ndarray
+    rotation: float
+    velocity: tuple
+    angular_velocity: float
+
+
 def _box_vertices(width: float, height: float) -> np.ndarray:
     half_w, half_h = width / 2, height / 2
     return np.array([[-half_w, -half_h], [half_w, -half_h], [half_w, half_h], [-half_w, half_h]])
@@ -113,7 +124,9 @@ class SceneBuilder:
         b.n_vertices[index] = len(local)
         b.radius[index] = 0.0
         world_centroid = np.asarray(position, np.float64) + rotate_host(rotation, centroid)
-        self._set_body(index, world_centroid, rotation, velocity, angular_velocity, mass, inertia, material)
+        self._set_body(
+            index, _Placement(world_centroid, rotation, velocity, angular_velocity), (mass, inertia), material
+        )
         return index
 
     def add_box(self, position, size, **kwargs) -> int:
@@ -145,9 +158,8 @@ class SceneBuilder:
         material = self._check_material(index, density, friction, restitution, collision_mode, static)
         mass, inertia = (float(x) for x in circle_mass_properties(radius, density))
         self._state.bodies.radius[index] = radius
-        self._set_body(
-            index, np.asarray(position, np.float64), rotation, velocity, angular_velocity, mass, inertia, material
-        )
+        placement = _Placement(np.asarray(position, np.float64), rotation, velocity, angular_velocity)
+        self._set_body(index, placement, (mass, inertia), material)
         return index
 
     # ----------------------------------------------------------------- joints and thrusters
@@ -240,7 +252,11 @@ class SceneBuilder:
             raise ValueError(f"body {index}: collision_mode must be 0, 1 or 2, got {collision_mode}")
         return _Material(density, friction, restitution, collision_mode, static)
 
-    def _set_body(self, index, position, rotation, velocity, angular_velocity, mass, inertia, material: _Material):
+    def _set_body(self, index, placement: _Placement, mass_properties, material: _Material):
+        """Write body `index`: its placement, its (mass [kg], inertia [kg m^2]) and its material."""
+        position, rotation = placement.position, placement.rotation
+        velocity, angular_velocity = placement.velocity, placement.angular_velocity
+        mass, inertia = mass_properties
         values = np.concatenate([np.ravel(position), np.ravel(velocity), [rotation, angular_velocity]])
         if not np.all(np.isfinite(values)) or len(values) != 6:
             raise ValueError(f"body {index}: position, velocity, rotation must be finite 2-vectors/scalars")

@@ -40,6 +40,19 @@ class Bodies:
 
 
 @struct.dataclass
+class StartBodies:
+    """The bodies at the start of a step, as the solver reads them: N+1 rows, the last a dummy body that colour padding
+    reads and writes (zero, never moves)."""
+
+    velocity: jnp.ndarray  # (N+1, 3) vx [m/s], vy [m/s], w [rad/s]
+    pose: jnp.ndarray  # (N+1, 3) x [m], y [m], rotation [rad]
+    acceleration: jnp.ndarray  # (N+1, 3) from gravity and thrusters, held over the step; 0 if it cannot move
+    movable: jnp.ndarray  # (N+1,) bool: active and not static
+    active: jnp.ndarray  # (N+1,) bool
+    response_scale: jnp.ndarray  # (N+1, 3) inverse mass, inverse mass, inverse inertia; 0 if it cannot move
+
+
+@struct.dataclass
 class Joints:
     """Revolute and fixed joints, shape J."""
 

@@ -39,7 +39,11 @@ class RolloutResult:
     length: jnp.ndarray  # (B,) i32 env steps until the first episode ended; the rollout length if it did not
 
 
-@functools.partial(jax.jit, static_argnames=("static", "policy", "num_steps", "action_type"))
+ROLLOUT_ACTION_TYPE = ActionType.MULTI_DISCRETE
+"""The action space a rollout's policy acts in (its no-op or uniform random actions)."""
+
+
+@functools.partial(jax.jit, static_argnames=("static", "policy", "num_steps"))
 def first_episode_outcomes(
     levels: Level,
     params: EnvParams,
@@ -47,9 +51,9 @@ def first_episode_outcomes(
     policy: Policy = Policy.NOOP,
     key: jax.Array | None = None,
     num_steps: int | None = None,
-    action_type: ActionType = ActionType.MULTI_DISCRETE,
 ) -> RolloutResult:
-    """Run `policy` on every level of the batch for up to `num_steps` env steps (default: a full episode).
+    """Run `policy` on every level of the batch for up to `num_steps` env steps (default: a full episode), in
+    `ROLLOUT_ACTION_TYPE`'s actions.
 
     `key` is required for the random policy (a fresh action per level and step). Stops early once every level's
     first episode has ended.
@@ -61,6 +65,7 @@ def first_episode_outcomes(
         raise ValueError("the uniform random policy needs a PRNG key")
     batch = jax.tree.leaves(levels)[0].shape[0]
     step_batch = jax.vmap(advance, in_axes=(0, 0, None, None, None))
+    action_type = ROLLOUT_ACTION_TYPE
 
     def actions(t):
         if policy is Policy.NOOP:

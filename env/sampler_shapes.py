@@ -313,11 +313,9 @@ def _sticks_out(small, big):
     return jnp.where(small_is_polygon, polygon_out, disc_out)
 
 
-def propose_connected_shape(u, level: Level, static: StaticEnvParams):
-    """A shape jointed to an existing one (Kinetix `mutate_add_connected_shape`): (Shape, Attachment, hidden).
-
-    `hidden`: one shape of the pair would be hidden inside the other.
-    """
+def _connection_weights(level: Level, static: StaticEnvParams):
+    """(N,) weight of each body as the target of a new joint (Kinetix's: fewer joints, more weight; a fixated body
+    less), and (N,) which bodies are candidates (active, not reserved)."""
     bodies = level.sim.bodies
     n, p, reserved = static.num_bodies, static.sim.num_polygons, static.sim.num_reserved_static
     index = jnp.arange(n)
@@ -329,18 +327,48 @@ def propose_connected_shape(u, level: Level, static: StaticEnvParams):
         jnp.maximum(MAX_POLYGON_JOINTS - connections, 0) / MAX_POLYGON_JOINTS,
         (connections == 0).astype(jnp.float32),
     )
-    weight = jnp.where(candidate, weight, 0.0)
-    polygon_slot, circle_slot, space_polygon, space_circle = free_slots(level, static)
+    return jnp.where(candidate, weight, 0.0), candidate
+
+
+def _connection_target(u, level: Level, static: StaticEnvParams, space_polygon):
+    """The body a new shape is jointed to, and whether it is a polygon: first its kind, then a body of that kind by
+    `_connection_weights` (without a weighted one, any active body of that kind, boundaries included)."""
+    is_polygon_slot = jnp.arange(static.num_bodies) < static.sim.num_polygons
+    weight, candidate = _connection_weights(level, static)
     circle_weight = jnp.sum(jnp.where(is_polygon_slot, 0.0, weight))
     target_kind_weights = jnp.stack(
         [jnp.any(candidate & is_polygon_slot), jnp.any(candidate & ~is_polygon_slot) & (circle_weight > 0)]
     ).astype(jnp.float32)
     target_is_polygon = (categorical(u[Draw.TARGET_KIND], target_kind_weights) == 0) | ~space_polygon
-    # Targets of the chosen kind; without a weighted one, any active body of that kind (boundaries included).
     kind_mask = is_polygon_slot == target_is_polygon
     kind_weight = jnp.where(kind_mask, weight, 0.0)
-    kind_weight = jnp.where(jnp.sum(kind_weight) > 0, kind_weight, (kind_mask & bodies.active).astype(jnp.float32))
-    target = categorical(u[Draw.TARGET], kind_weight)
+    active = level.sim.bodies.active
+    kind_weight = jnp.where(jnp.sum(kind_weight) > 0, kind_weight, (kind_mask & active).astype(jnp.float32))
+    return categorical(u[Draw.TARGET], kind_weight), target_is_polygon
+
+
+def _roles_next_to(target_role):
+    """(4,) 1 for each role a shape jointed to a body of `target_role` may take: attached to green or blue, neither
+    the opposite goal nor red; attached to red, no goal role."""
+    return jnp.where(
+        target_role == Role.DEFAULT,
+        jnp.ones(len(Role)),
+        jnp.where(
+            target_role == Role.RED,
+            jnp.asarray([1.0, 0.0, 0.0, 1.0]),
+            jnp.ones(len(Role)).at[Role.GREEN + Role.BLUE - target_role].set(0.0).at[Role.RED].set(0.0),
+        ),
+    )
+
+
+def propose_connected_shape(u, level: Level, static: StaticEnvParams):
+    """A shape jointed to an existing one (Kinetix `mutate_add_connected_shape`): (Shape, Attachment, hidden).
+
+    `hidden`: one shape of the pair would be hidden inside the other.
+    """
+    bodies = level.sim.bodies
+    polygon_slot, circle_slot, space_polygon, space_circle = free_slots(level, static)
+    target, target_is_polygon = _connection_target(u, level, static, space_polygon)
 
     # A disc target always gets a rectangle when one fits (no disc-disc joints).
     is_polygon = (_shape_kind(u, space_polygon, space_circle) | ~target_is_polygon) & space_polygon
@@ -358,17 +386,7 @@ def propose_connected_shape(u, level: Level, static: StaticEnvParams):
     joint_point = bodies.position[target] + rotate(bodies.rotation[target], anchor_target)
     position = joint_point - rotate(rotation, anchor_new)
 
-    # Attached to green or blue: neither the opposite goal nor red. Attached to red: no goal role.
-    target_role = level.task.roles[target]
-    allowed = jnp.where(
-        target_role == Role.DEFAULT,
-        jnp.ones(len(Role)),
-        jnp.where(
-            target_role == Role.RED,
-            jnp.asarray([1.0, 0.0, 0.0, 1.0]),
-            jnp.ones(len(Role)).at[Role.GREEN + Role.BLUE - target_role].set(0.0).at[Role.RED].set(0.0),
-        ),
-    )
+    allowed = _roles_next_to(level.task.roles[target])
     shape = Shape(
         is_polygon=is_polygon,
         half_extents=half_extents,

@@ -385,3 +385,24 @@ def test_auto_batching_chunks_and_loops_on_cpu_only():
         engine.Batching(solver_loops="fast")
     with pytest.raises(ValueError, match="chunk_limit must be a positive number of scenes, got 0"):
         engine.Batching(chunk_limit=0)
+
+
+def _elastic_drop_scene(restitution: float):
+    """A ball falling onto a floor, both of `restitution` (a pair bounces with the smaller of its two)."""
+    b = SceneBuilder(SIZE_M, boundaries=False)
+    b.add_box((2.5, -0.1), (10.0, 1.0), static=True, slot=0, restitution=restitution)
+    b.add_circle((2.5, 1.0), 0.15, velocity=(0.0, -4.0), restitution=restitution)
+    return b.build()
+
+
+def test_a_bounce_beside_scenes_that_do_not_bounce():
+    """The batched step skips the restitution sweep only when no point of the whole batch bounces: an elastic ball
+    falling onto the floor beside resting scenes rebounds at nearly its impact speed, and an inelastic one does not."""
+    resting = [_stack_scene(), SceneBuilder(SIZE_M).build()]
+    _, trajectory = run_batch([_elastic_drop_scene(1.0), _elastic_drop_scene(0.0), *resting])
+    ball = SIZE_M.num_polygons  # the first circle slot
+    vertical = trajectory.bodies.velocity[:, :, ball, 1]
+    impact = -np.min(vertical[0])
+    assert impact > 4.0  # guard: the ball fell onto the floor within the rollout
+    assert np.max(vertical[0]) > 0.9 * impact
+    assert np.max(vertical[1, np.argmin(vertical[1]) :]) < 0.1 * impact
