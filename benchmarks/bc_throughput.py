@@ -209,7 +209,7 @@ def main() -> None:
                 f"python -m benchmarks.bc_throughput --base {base_commit} --dataset DATASET "
                 f"--batch-size {args.batch_size} --steps {args.steps} --rounds {args.rounds}"
             ),
-            "dataset": dataset,
+            "dataset": Path(dataset).name,  # the folder's name: no machine path in the report
             "trees": described,
             "machine": describe_machine() | {"load_average_1_5_15_min": list(os.getloadavg())},
             "batch_size": args.batch_size,
