@@ -60,7 +60,8 @@ def sampled_files(python: Path, size: str, count: int, seed: int, folder: Path, 
     if not all(path.is_file() for path in paths):
         log(f"sampling {count} {size} levels with Kinetix's sampler (key {seed})")
         command = baseline_command(python, "kinetix_fidelity_baseline", "--sample", f"{size}:{count}:{seed}")
-        subprocess.run([*command, "--sample-dir", str(folder.absolute())], check=True, cwd=REPOSITORY)
+        sample = [*command, "--sample-dir", str(folder.absolute())]
+        subprocess.run(sample, check=True, cwd=REPOSITORY, stdout=subprocess.DEVNULL)  # the paths are known
     return [str(path.absolute()) for path in paths]
 
 
