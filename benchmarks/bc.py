@@ -32,7 +32,14 @@ from pathlib import Path
 from benchmarks.kinetix_transfer import SAMPLED_LEVELS, transfer
 from benchmarks.kinetix_venv import DEFAULT_KINETIX_VENV
 from benchmarks.machine import describe_machine, provenance
-from kforge.pipeline.learning import UNSEEN_FIRST_LEVEL, evaluate_policy, load_bc_config, load_policy, train_bc
+from kforge.pipeline.learning import (
+    UNSEEN_FIRST_LEVEL,
+    evaluate_policy,
+    kept_levels,
+    load_bc_config,
+    load_policy,
+    train_bc,
+)
 
 SFL_ANCHORS = {
     "source": (
@@ -202,8 +209,6 @@ def main(argv=None) -> None:
 
     def log(line: str) -> None:
         print(line, file=sys.stderr, flush=True)
-
-    from kforge.pipeline.learning.data import kept_levels
 
     held = len(kept_levels(args.dataset))
     counts = sorted({count for count in args.train_levels if count <= held})

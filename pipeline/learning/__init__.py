@@ -11,6 +11,7 @@ __getattr__, __all__ = lazy_surface(
     __name__,
     {
         "kforge.pipeline.learning.config": "LEVEL_SETS load_bc_config run_config_file",
+        "kforge.pipeline.learning.data": "kept_levels",
         "kforge.pipeline.learning.evaluation": (
             "evaluate_policy level_set_entry load_policy play_level_files readable_sizes report_table"
         ),
