@@ -37,7 +37,7 @@ from kforge.env import (
     under_scheme,
     write_state_gif,
 )
-from kforge.pipeline.generation import EnvSection, KeyPurpose, environment, level_keys, sample_batch
+from kforge.pipeline.generation import EnvSection, KeyPurpose, level_keys, resolve, sample_batch
 
 LEVELS_DIR = Path("outputs") / "levels"
 """Default parent folder of written levels and previews."""
@@ -101,15 +101,14 @@ def sample_command(args: argparse.Namespace) -> None:
 
 def export_command(args: argparse.Namespace) -> None:
     """`levels export`: the job's config, its ids checked against split.num_levels, sampled batch by batch."""
-    job, level_ids = args.job, args.level_ids
-    params, static = environment(job)
+    job, level_ids = resolve(args.job), args.level_ids
     levels = _sampled_levels(
         sorted(set(level_ids)),
         job.work.levels_per_batch,
         functools.partial(sample_batch, job),
         progress=not args.no_progress,
     )
-    _write_levels(levels, static, params, args.out or LEVELS_DIR / job.split.name.replace("/", "-"))
+    _write_levels(levels, job.static, job.env_params, args.out or LEVELS_DIR / job.split.name.replace("/", "-"))
 
 
 # ---------------------------------------------------------------------------------------------------- preview

@@ -37,8 +37,8 @@ from kforge.pipeline.generation.level_batch import (
     sample_and_filter,
     windows_successful,
 )
-from kforge.pipeline.generation.resolved import environment, ppo_config
-from kforge.pipeline.generation.schema import ADAPTIVE_BUDGET_MODE, JobConfig
+from kforge.pipeline.generation.resolved import ResolvedJob
+from kforge.pipeline.generation.schema import ADAPTIVE_BUDGET_MODE
 from kforge.pipeline.storage import BatchTrajectories
 
 
@@ -60,8 +60,9 @@ class StopRule:
     num_evaluations: int  # evaluations of the whole budget
 
     @classmethod
-    def of(cls, job: JobConfig, config: PPOConfig) -> StopRule:
+    def of(cls, job: ResolvedJob) -> StopRule:
         """The job's rule: adaptive's, or for the streamed mode one that only stops when the budget is spent."""
+        config = job.ppo
         segment_steps = config.select_every_updates * config.steps_per_update
         num_evaluations = config.num_updates // config.select_every_updates
         if job.experts.budget_mode != ADAPTIVE_BUDGET_MODE:
@@ -118,13 +119,22 @@ class _BatchWork:
     filtered: object
     dropped: np.ndarray
     clock: PhaseClock
-    params: list  # per position: the expert's parameters (None until done)
-    success_rate: np.ndarray
-    env_steps: np.ndarray
-    trained_env_steps: np.ndarray
-    curve_success_rate: np.ndarray
-    curve_mean_return: np.ndarray
+    num_updates: dataclasses.InitVar[int]  # PPO updates of the whole budget (the learning curves' length)
+    params: list = dataclasses.field(init=False)  # per position: the expert's parameters (None until done)
+    success_rate: np.ndarray = dataclasses.field(init=False)  # (L,) f32, NaN until done
+    env_steps: np.ndarray = dataclasses.field(init=False)  # (L,) int
+    trained_env_steps: np.ndarray = dataclasses.field(init=False)  # (L,) int
+    curve_success_rate: np.ndarray = dataclasses.field(init=False)  # (L, U) f32, NaN where not trained
+    curve_mean_return: np.ndarray = dataclasses.field(init=False)  # (L, U) f32
     train_seconds: float = 0.0
+
+    def __post_init__(self, num_updates: int):
+        count, curve = len(self.indices), (len(self.indices), num_updates)
+        self.params = [None] * count
+        self.success_rate = np.full(count, np.nan, np.float32)
+        self.env_steps, self.trained_env_steps = np.zeros(count, np.int64), np.zeros(count, np.int64)
+        self.curve_success_rate = np.full(curve, np.nan, np.float32)
+        self.curve_mean_return = np.full(curve, np.nan, np.float32)
 
     @property
     def pending(self) -> int:
@@ -132,7 +142,7 @@ class _BatchWork:
 
 
 def streamed_level_batches(
-    job: JobConfig,
+    job: ResolvedJob,
     shard: int,
     claim: Callable[[], int | None],
     on_progress: Callable[[int, int, int], None] | None = None,
@@ -140,50 +150,149 @@ def streamed_level_batches(
     """(batch, its data) for every level batch of `shard` that `claim` hands out (None: no more), each as soon as
     all its levels are trained and rolled out. `on_progress(batch, updates done, updates of the whole budget)` is
     told after every evaluation period, summed over the batch's levels."""
-    config = ppo_config(job)
-    check_segmented(config)
-    env_params, static = environment(job)
-    rule = StopRule.of(job, config)
-    num_slots = job.work.levels_per_batch
-    segment_steps = config.select_every_updates * config.steps_per_update
-    works: dict[int, _BatchWork] = {}
-    queue: collections.deque[_LevelRun] = collections.deque()
-    slots: list[_LevelRun | None] = [None] * num_slots
-    slot_levels = trainings = None
-    claiming = True
+    check_segmented(job.ppo)
+    yield from _SlotStream(job, shard, claim).batches(on_progress)
 
-    def train_key(work: _BatchWork, position: int):
-        return level_key(job.split.seed, int(work.indices[position]), KeyPurpose.TRAIN)
 
-    def claim_work() -> list[tuple[int, BatchTrajectories]]:
+class _SlotStream:
+    """The slots of one training program over a shard's levels: claimed level batches queue their trainable levels,
+    each free slot takes the next, and a batch is handed back once its last level stops."""
+
+    def __init__(self, job: ResolvedJob, shard: int, claim: Callable[[], int | None]):
+        self.job, self.shard, self.claim = job, shard, claim
+        self.rule = StopRule.of(job)
+        self.num_slots = job.work.levels_per_batch
+        self.segment_steps = job.ppo.select_every_updates * job.ppo.steps_per_update
+        self.works: dict[int, _BatchWork] = {}
+        self.queue: collections.deque[_LevelRun] = collections.deque()
+        self.slots: list[_LevelRun | None] = [None] * self.num_slots
+        self.slot_levels = self.trainings = None  # stacked over the slots once the first level starts
+        self.claiming = True
+
+    def batches(self, on_progress) -> Iterator[tuple[int, BatchTrajectories]]:
+        """Fill the free slots, train one evaluation period, stop the levels whose verdict is in; until no level is
+        left. Yields each batch as soon as it is complete."""
+        while True:
+            yield from self._fill_slots()
+            occupied = [slot for slot in range(self.num_slots) if self.slots[slot] is not None]
+            if not occupied:
+                return
+            self._train_period(occupied)
+            ready = self._stop_decided(occupied, self._windows_successful(occupied))
+            if on_progress is not None:
+                _report(on_progress, self.works, self.slots, self.job.ppo)
+            yield from ready
+
+    def _fill_slots(self) -> list[tuple[int, BatchTrajectories]]:
+        """Start a queued level in every free slot, claiming batches while the queue is empty; returns the claimed
+        batches that had nothing to train."""
+        ready = []
+        for slot in range(self.num_slots):
+            if self.slots[slot] is not None:
+                continue
+            while not self.queue and self.claiming:
+                ready += self._claim_work()
+            if not self.queue:
+                break
+            self._start(slot, self.queue.popleft())
+        return ready
+
+    def _start(self, slot: int, run: _LevelRun) -> None:
+        """Put the level of `run`, freshly initialised, in `slot`."""
+        work = self.works[run.batch]
+        level = _level_at(work.levels, run.position)
+        training = start_level(level, self._train_key(work, run.position), self.job.ppo, self.job.static)
+        if self.trainings is None:  # the first level fills every slot; the others take theirs as they come
+            self.slot_levels = jax.tree.map(lambda x: jnp.stack([x] * self.num_slots), level)
+            self.trainings = jax.tree.map(lambda x: jnp.stack([x] * self.num_slots), training)
+        else:
+            self.slot_levels = put_slot(self.slot_levels, jnp.int32(slot), level)
+            self.trainings = put_slot(self.trainings, jnp.int32(slot), training)
+        self.slots[slot] = run
+
+    def _train_key(self, work: _BatchWork, position: int) -> jax.Array:
+        return level_key(self.job.split.seed, int(work.indices[position]), KeyPurpose.TRAIN)
+
+    def _claim_work(self) -> list[tuple[int, BatchTrajectories]]:
         """Claim and prepare the next level batch: its trainable levels join the queue; the rest get fresh
         parameters (they are never kept). Returns it at once if it has nothing to train."""
-        nonlocal claiming
-        batch = claim()
+        batch = self.claim()
         if batch is None:
-            claiming = False
+            self.claiming = False
             return []
-        clock = PhaseClock()
-        indices = batch_level_indices(job, shard, batch)
+        job, clock = self.job, PhaseClock()
+        indices = batch_level_indices(job, self.shard, batch)
         levels, filtered, dropped = sample_and_filter(job, indices)
-        count, curve = len(indices), (len(indices), config.num_updates)
-        work = _BatchWork(
-            batch, indices, levels, filtered, dropped, clock, [None] * count,
-            np.full(count, np.nan, np.float32), np.zeros(count, np.int64), np.zeros(count, np.int64),
-            np.full(curve, np.nan, np.float32), np.full(curve, np.nan, np.float32),
-        )  # fmt: skip
+        work = _BatchWork(batch, indices, levels, filtered, dropped, clock, job.ppo.num_updates)
         clock.lap("sample_and_filter")
-        works[batch] = work
-        for position in range(count):
+        self.works[batch] = work
+        for position in range(len(indices)):
             if dropped[position] or indices[position] >= job.split.num_levels:
-                fresh = start_level(_level_at(levels, position), train_key(work, position), config, static)
+                key = self._train_key(work, position)
+                fresh = start_level(_level_at(levels, position), key, job.ppo, job.static)
                 work.params[position] = jax.device_get(fresh.best.params)
             else:
-                queue.append(_LevelRun(batch, position))
-        return [finish(work)] if work.pending == 0 else []
+                self.queue.append(_LevelRun(batch, position))
+        return [self._finish(work)] if work.pending == 0 else []
 
-    def finish(work: _BatchWork) -> tuple[int, BatchTrajectories]:
-        del works[work.batch]
+    def _train_period(self, occupied: list[int]) -> None:
+        """Train every slot one evaluation period and record the evaluation of each occupied one."""
+        started = time.perf_counter()
+        job = self.job
+        self.trainings, output = train_segments(self.slot_levels, self.trainings, job.ppo, job.env_params, job.static)
+        output = jax.device_get(output)
+        seconds = time.perf_counter() - started
+        for slot in occupied:
+            run = self.slots[slot]
+            self.works[run.batch].train_seconds += seconds / len(occupied)
+            run.success_rates.append(float(output.success_rate[slot]))
+            rates = np.asarray(output.metrics.success_rate[slot])
+            run.succeeded_in_training |= bool(np.nanmax(rates, initial=0.0) > 0.0)
+            run.curve_success_rate.append(rates)
+            run.curve_mean_return.append(np.asarray(output.metrics.mean_return[slot]))
+
+    def _windows_successful(self, occupied: list[int]) -> np.ndarray:
+        """(slots,) bool: whether each slot's window would succeed; rolled out only when the rule needs it and a
+        level's evaluations say solved."""
+        rule, slots = self.rule, self.slots
+        if not (rule.solved_window and any(rule.evaluations_solved(slots[slot].success_rates) for slot in occupied)):
+            return np.zeros(self.num_slots, bool)
+        started = time.perf_counter()
+        indices = [self.works[run.batch].indices[run.position] if run is not None else 0 for run in slots]
+        params = self.trainings.best.params
+        successful = windows_successful(self.job, params, self.slot_levels, np.asarray(indices))
+        for slot in occupied:
+            self.works[slots[slot].batch].train_seconds += (time.perf_counter() - started) / len(occupied)
+        return successful
+
+    def _stop_decided(self, occupied: list[int], window_successful: np.ndarray) -> list[tuple[int, BatchTrajectories]]:
+        """Free the slots whose level has a verdict; returns the batches those levels completed."""
+        ready = []
+        for slot in occupied:
+            run = self.slots[slot]
+            verdict = self.rule.verdict(run.success_rates, run.succeeded_in_training, bool(window_successful[slot]))
+            if verdict is not None:
+                self.slots[slot] = None
+                ready += self._done(slot, run)
+        return ready
+
+    def _done(self, slot: int, run: _LevelRun) -> list[tuple[int, BatchTrajectories]]:
+        """Record the level of `slot`, which has stopped, in its batch; the batch if it is complete."""
+        work = self.works[run.batch]
+        best = jax.device_get(jax.tree.map(lambda x: x[slot], self.trainings.best))
+        trained = len(run.success_rates)
+        work.params[run.position] = best.params
+        work.success_rate[run.position] = run.success_rates[int(best.index)]
+        work.env_steps[run.position] = (int(best.index) + 1) * self.segment_steps
+        work.trained_env_steps[run.position] = trained * self.segment_steps
+        updates = trained * self.job.ppo.select_every_updates
+        work.curve_success_rate[run.position, :updates] = np.concatenate(run.curve_success_rate)
+        work.curve_mean_return[run.position, :updates] = np.concatenate(run.curve_mean_return)
+        return [self._finish(work)] if work.pending == 0 else []
+
+    def _finish(self, work: _BatchWork) -> tuple[int, BatchTrajectories]:
+        """Roll out the complete batch `work`: its data."""
+        del self.works[work.batch]
         work.clock.seconds["train"] = work.train_seconds  # its share of the segments its levels trained in
         work.clock.restart()
         experts = Experts(
@@ -194,76 +303,10 @@ def streamed_level_batches(
             curve_success_rate=work.curve_success_rate,
             curve_mean_return=work.curve_mean_return,
         )
+        job = self.job
         return work.batch, batch_result(
             job, work.indices, work.levels, work.filtered, work.dropped, experts, work.clock, job.experts.budget_mode
         )
-
-    def done(slot: int, run: _LevelRun) -> list[tuple[int, BatchTrajectories]]:
-        """Record the level of `slot`, which has stopped, in its batch; the batch if it is complete."""
-        work = works[run.batch]
-        best = jax.device_get(jax.tree.map(lambda x: x[slot], trainings.best))
-        trained = len(run.success_rates)
-        work.params[run.position] = best.params
-        work.success_rate[run.position] = run.success_rates[int(best.index)]
-        work.env_steps[run.position] = (int(best.index) + 1) * segment_steps
-        work.trained_env_steps[run.position] = trained * segment_steps
-        updates = trained * config.select_every_updates
-        work.curve_success_rate[run.position, :updates] = np.concatenate(run.curve_success_rate)
-        work.curve_mean_return[run.position, :updates] = np.concatenate(run.curve_mean_return)
-        return [finish(work)] if work.pending == 0 else []
-
-    while True:
-        ready = []
-        for slot in range(num_slots):
-            if slots[slot] is not None:
-                continue
-            while not queue and claiming:
-                ready += claim_work()
-            if not queue:
-                break
-            run = queue.popleft()
-            work = works[run.batch]
-            level = _level_at(work.levels, run.position)
-            training = start_level(level, train_key(work, run.position), config, static)
-            if trainings is None:  # the first level fills every slot; the others take theirs as they come
-                slot_levels = jax.tree.map(lambda x: jnp.stack([x] * num_slots), level)
-                trainings = jax.tree.map(lambda x: jnp.stack([x] * num_slots), training)
-            else:
-                slot_levels = put_slot(slot_levels, jnp.int32(slot), level)
-                trainings = put_slot(trainings, jnp.int32(slot), training)
-            slots[slot] = run
-        yield from ready
-        occupied = [slot for slot in range(num_slots) if slots[slot] is not None]
-        if not occupied:
-            return
-        started = time.perf_counter()
-        trainings, output = train_segments(slot_levels, trainings, config, env_params, static)
-        output = jax.device_get(output)
-        seconds = time.perf_counter() - started
-        ready = []
-        for slot in occupied:
-            run = slots[slot]
-            works[run.batch].train_seconds += seconds / len(occupied)
-            run.success_rates.append(float(output.success_rate[slot]))
-            rates = np.asarray(output.metrics.success_rate[slot])
-            run.succeeded_in_training |= bool(np.nanmax(rates, initial=0.0) > 0.0)
-            run.curve_success_rate.append(rates)
-            run.curve_mean_return.append(np.asarray(output.metrics.mean_return[slot]))
-        window_successful = np.zeros(num_slots, bool)
-        if rule.solved_window and any(rule.evaluations_solved(slots[slot].success_rates) for slot in occupied):
-            started = time.perf_counter()
-            indices = [works[run.batch].indices[run.position] if run is not None else 0 for run in slots]
-            window_successful = windows_successful(job, trainings.best.params, slot_levels, np.asarray(indices))
-            for slot in occupied:
-                works[slots[slot].batch].train_seconds += (time.perf_counter() - started) / len(occupied)
-        for slot in occupied:
-            run = slots[slot]
-            if rule.verdict(run.success_rates, run.succeeded_in_training, bool(window_successful[slot])) is not None:
-                slots[slot] = None
-                ready += done(slot, run)
-        if on_progress is not None:
-            _report(on_progress, works, slots, config)
-        yield from ready
 
 
 def _level_at(levels, position: int):

@@ -26,7 +26,7 @@ from kforge.agents import collect_windows, initial_params, train_levels
 from kforge.env import FilterReason, Level, filter_levels, sample_levels
 from kforge.pipeline.generation.devices import over_local_devices
 from kforge.pipeline.generation.estimated_progress import ProgressListener, estimated_progress
-from kforge.pipeline.generation.resolved import environment, ppo_config
+from kforge.pipeline.generation.resolved import ResolvedJob
 from kforge.pipeline.generation.schema import FIXED_BUDGET_MODE, JobConfig
 from kforge.pipeline.storage import BatchTrajectories, Outcome, learning_curves
 
@@ -48,37 +48,37 @@ def level_keys(split_seed: int, level_indices: np.ndarray, purpose: KeyPurpose) 
     return jax.vmap(lambda index: level_key(split_seed, index, purpose))(jnp.asarray(level_indices, jnp.uint32))
 
 
-def batch_level_indices(job: JobConfig, shard: int, batch: int) -> np.ndarray:
+def batch_level_indices(job: JobConfig | ResolvedJob, shard: int, batch: int) -> np.ndarray:
     """Split-level indices of a level batch; the last shard may run past num_levels (those slots are padding)."""
     start = shard * job.work.levels_per_shard + batch * job.work.levels_per_batch
     return np.arange(start, start + job.work.levels_per_batch)
 
 
-def num_shards(job: JobConfig) -> int:
+def num_shards(job: JobConfig | ResolvedJob) -> int:
     return -(-job.split.num_levels // job.work.levels_per_shard)
 
 
-def batches_per_shard(job: JobConfig) -> int:
+def batches_per_shard(job: JobConfig | ResolvedJob) -> int:
     return job.work.levels_per_shard // job.work.levels_per_batch
 
 
-def sample_batch(job: JobConfig, level_indices: np.ndarray) -> Level:
+def sample_batch(job: ResolvedJob, level_indices: np.ndarray) -> Level:
     """The batch's levels, regenerated from their indices."""
     keys = level_keys(job.split.seed, level_indices, KeyPurpose.SAMPLE)
     return _compiling_sample_program(job, keys).result()(keys)
 
 
-def _batch_shapes(job: JobConfig, level_indices: np.ndarray) -> Level:
+def _batch_shapes(job: ResolvedJob, level_indices: np.ndarray) -> Level:
     """The shapes and types of `sample_batch`'s levels (nothing compiled or run)."""
-    _, static = environment(job)
+    static = job.static
     keys = level_keys(job.split.seed, level_indices, KeyPurpose.SAMPLE)
     return jax.eval_shape(functools.partial(sample_levels, static=static), keys)
 
 
-def _compiling_sample_program(job: JobConfig, keys: jax.Array) -> Future:
+def _compiling_sample_program(job: ResolvedJob, keys: jax.Array) -> Future:
     """The future of `env.sample_levels` for the job's batches of this many levels: traced here and compiled in the
     background, once per process (so a level batch's first step compiles beside the training stages)."""
-    _, static = environment(job)
+    static = job.static
     program = (static, keys.shape[0])
     compiling = _sample_programs.get(program)
     if compiling is None or (compiling.done() and compiling.exception() is not None):
@@ -90,23 +90,23 @@ def _compiling_sample_program(job: JobConfig, keys: jax.Array) -> Future:
 _sample_programs: dict[tuple, Future] = {}
 
 
-def sample_and_filter(job: JobConfig, indices: np.ndarray):
+def sample_and_filter(job: ResolvedJob, indices: np.ndarray):
     """(levels, the filter's verdicts, (L,) bool dropped by the filter) of a level batch."""
     levels = sample_batch(job, indices)
     return (levels, *filter_batch(job, levels))
 
 
-def filter_batch(job: JobConfig, levels: Level):
+def filter_batch(job: ResolvedJob, levels: Level):
     """(the filter's verdicts, (L,) bool dropped by the filter) of a level batch's levels."""
-    filtered = jax.device_get(_compiling_filter_program(job, levels).result()(levels, environment(job)[0]))
+    filtered = jax.device_get(_compiling_filter_program(job, levels).result()(levels, job.env_params))
     dropped = ~filtered.keep if job.filter.enabled else np.zeros_like(filtered.keep)
     return filtered, dropped
 
 
-def _compiling_filter_program(job: JobConfig, levels: Level) -> Future:
+def _compiling_filter_program(job: ResolvedJob, levels: Level) -> Future:
     """The future of `env.filter_levels` as one program for the job's level batches of this size: traced here
     (`levels` may be abstract) and compiled in the background, once per process."""
-    env_params, static = environment(job)
+    env_params, static = job.env_params, job.static
     program = (static, job.filter.noop_steps, jax.tree.structure(levels), jax.tree.leaves(levels)[0].shape[0])
     compiling = _filter_programs.get(program)
     if compiling is None or (compiling.done() and compiling.exception() is not None):
@@ -120,7 +120,7 @@ _filter_programs: dict[tuple, Future] = {}
 
 
 def run_level_batch(
-    job: JobConfig, shard: int, batch: int, on_progress: ProgressListener | None = None
+    job: ResolvedJob, shard: int, batch: int, on_progress: ProgressListener | None = None
 ) -> BatchTrajectories:
     """Sample, filter, train and roll out one level batch; a pure function of (config, shard, batch).
 
@@ -130,9 +130,9 @@ def run_level_batch(
     train (from another thread; `estimated_progress`), and all of them once trained.
     """
     clock = PhaseClock()
-    params = environment(job)[0]
+    params = job.env_params
     indices = batch_level_indices(job, shard, batch)
-    config = ppo_config(job)
+    config = job.ppo
     train_keys = level_keys(job.split.seed, indices, KeyPurpose.TRAIN)
     _compiling_sample_program(job, level_keys(job.split.seed, indices, KeyPurpose.SAMPLE))
     compiling_train = _compiling_train_program(job, indices, train_keys)
@@ -171,7 +171,7 @@ class Experts(NamedTuple):
 
 
 def batch_result(
-    job: JobConfig,
+    job: ResolvedJob,
     indices: np.ndarray,
     levels: Level,
     filtered,
@@ -181,7 +181,7 @@ def batch_result(
     budget_mode: str,
 ) -> BatchTrajectories:
     """Roll out every expert of the batch for its window, and each level's outcome: the batch's data."""
-    config = ppo_config(job)
+    config = job.ppo
     window = jax.device_get(_windows(job, experts.params, levels, indices))
     clock.lap("collect")
     finite = _finite_per_level(experts.params) & _finite_per_level(window)
@@ -208,14 +208,14 @@ def batch_result(
     )
 
 
-def _compiling_train_program(job: JobConfig, indices: np.ndarray, keys: jax.Array) -> Future:
+def _compiling_train_program(job: ResolvedJob, indices: np.ndarray, keys: jax.Array) -> Future:
     """The future of `train_levels` for the job's level batches of this size, spread over the local devices:
     compiled (or loaded from the persistent compilation cache) once per config and level count in a process.
     It is traced here, before the batch is sampled (tracing is Python: it holds the GIL), and compiled in the
     background while the calling thread traces the filter and collection programs and samples and filters the batch
     (XLA compiles without holding the GIL)."""
-    env_params, static = environment(job)
-    config = ppo_config(job)
+    env_params, static = job.env_params, job.static
+    config = job.ppo
     program = (config, static, len(keys))
     compiling = _train_programs.get(program)
     if compiling is None or (compiling.done() and compiling.exception() is not None):
@@ -265,18 +265,18 @@ _compile_threads: list[threading.Thread] = []
 _compile_threads_lock = threading.Lock()
 
 
-def _compiled_collect_program(job: JobConfig, levels: Level, keys: jax.Array) -> jax.stages.Compiled:
+def _compiled_collect_program(job: ResolvedJob, levels: Level, keys: jax.Array) -> jax.stages.Compiled:
     """`_collect_program` for this job and level count, compiled (or loaded from the persistent compilation cache)
     once per process (`_compiling_collect_program`)."""
     return _compiling_collect_program(job, levels, keys).result()
 
 
-def _compiling_collect_program(job: JobConfig, levels: Level, keys: jax.Array) -> Future:
+def _compiling_collect_program(job: ResolvedJob, levels: Level, keys: jax.Array) -> Future:
     """The future of `_compiled_collect_program`: traced here (`levels` may be abstract: the experts' parameters have
     the shapes of fresh ones, so nothing needs to be trained first) and compiled in the background, so that it
     compiles beside the training stages and while the experts train."""
-    env_params, static = environment(job)
-    config = ppo_config(job)
+    env_params, static = job.env_params, job.static
+    config = job.ppo
     program = (config, static, len(keys), job.collect.window_steps, job.collect.greedy)
     compiling = _collect_programs.get(program)
     if compiling is None or (compiling.done() and compiling.exception() is not None):
@@ -289,14 +289,14 @@ def _compiling_collect_program(job: JobConfig, levels: Level, keys: jax.Array) -
 _collect_programs: dict[tuple, Future] = {}
 
 
-def windows_successful(job: JobConfig, params, levels: Level, indices: np.ndarray) -> np.ndarray:
+def windows_successful(job: ResolvedJob, params, levels: Level, indices: np.ndarray) -> np.ndarray:
     """(L,) bool: whether each level's window, rolled out with `params` as `batch_result` rolls out a level batch
     of L levels (the same program and keys), would count as successful."""
     return np.asarray(jax.device_get(_windows(job, params, levels, indices).successful))
 
 
-def _windows(job: JobConfig, params, levels: Level, indices: np.ndarray):
-    env_params = environment(job)[0]
+def _windows(job: ResolvedJob, params, levels: Level, indices: np.ndarray):
+    env_params = job.env_params
     keys = level_keys(job.split.seed, indices, KeyPurpose.COLLECT)
     return _compiled_collect_program(job, levels, keys)(params, levels, keys, env_params)
 

@@ -10,6 +10,7 @@ from kforge.engine import use_deterministic_ops
 from kforge.pipeline.generation.adaptive import streamed_level_batches
 from kforge.pipeline.generation.compile_cache import enable_compile_cache
 from kforge.pipeline.generation.level_batch import run_level_batch
+from kforge.pipeline.generation.resolved import resolve
 from kforge.pipeline.generation.schema import FIXED_BUDGET_MODE, JobConfig
 from kforge.pipeline.storage import (
     PROVENANCE,
@@ -30,6 +31,7 @@ class Worker:
             use_deterministic_ops()  # before the worker's first computation: the same data on a GPU, run after run
         enable_compile_cache(job.compile_cache.dir)
         self._job = job
+        self._resolved = resolve(job)  # once, after the settings JAX reads at its start
         self._name = name
 
     def run_shard(self, coordinator, shard: int) -> list[dict]:
@@ -70,11 +72,11 @@ class Worker:
         claim = functools.partial(_call, coordinator.claim_batch, shard, self._name)
         if self._job.experts.budget_mode != FIXED_BUDGET_MODE:
             report = functools.partial(_notify, coordinator.report_training, shard)
-            yield from streamed_level_batches(self._job, shard, claim, on_progress=report)
+            yield from streamed_level_batches(self._resolved, shard, claim, on_progress=report)
             return
         while (batch := claim()) is not None:
             report = functools.partial(_notify, coordinator.report_training, shard, batch)
-            yield batch, run_level_batch(self._job, shard, batch, on_progress=report)
+            yield batch, run_level_batch(self._resolved, shard, batch, on_progress=report)
 
 
 def _call(method, *args):

@@ -29,7 +29,7 @@ from kforge.env import (
     reset,
     under_scheme,
 )
-from kforge.pipeline.generation import EnvSection, JobConfig, environment, sample_batch
+from kforge.pipeline.generation import EnvSection, JobConfig, resolve, sample_batch
 from kforge.pipeline.learning.data import kept_levels
 from kforge.pipeline.reading import TrajectoryDatasetManager
 from kforge.pipeline.storage import DatasetError, iter_records, open_dataset
@@ -119,12 +119,13 @@ def unseen_starts(job: JobConfig, count: int = UNSEEN_LEVELS) -> StartSet:
         raise DatasetError(
             f"split.num_levels={job.split.num_levels} reaches the unseen levels (ids from {UNSEEN_FIRST_LEVEL} on)"
         )
-    env_params, static = environment(job)
+    resolved = resolve(job)
+    env_params, static = resolved.env_params, resolved.static
     kept_ids, kept_levels_ = [], []
     first = UNSEEN_FIRST_LEVEL
     while len(kept_ids) < count:
         ids = np.arange(first, first + UNSEEN_SAMPLE_CHUNK, dtype=np.int64)
-        levels = sample_batch(job, ids)
+        levels = sample_batch(resolved, ids)
         keep = np.asarray(filter_levels(levels, env_params, static, noop_steps=job.filter.noop_steps).keep)
         if not job.filter.enabled:
             keep[:] = True

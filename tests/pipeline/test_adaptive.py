@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from pipeline_test_helpers import run_in_process, tiny_job
 
-from kforge.pipeline.generation import ConfigError, ppo_config
+from kforge.pipeline.generation import ConfigError, resolve
 from kforge.pipeline.generation.adaptive import StopRule, Verdict, streamed_level_batches
 from kforge.pipeline.generation.definition import data_definition, data_fingerprint
 from kforge.pipeline.reading.stats import collect_stats, write_card
@@ -46,7 +46,7 @@ def test_a_level_stops_when_solved_reliably_gives_up_without_success_or_trains_i
 
 def test_the_stop_rule_counts_evaluations_from_the_configs_env_steps(tmp_path):
     job = tiny_job(tmp_path, *ADAPTIVE_JOB, "experts.give_up_env_steps=300", "experts.solved_evaluations=3")
-    rule = StopRule.of(job, ppo_config(job))
+    rule = StopRule.of(resolve(job))
     assert (rule.solved_evaluations, rule.give_up_evaluations, rule.num_evaluations) == (3, 2, 4)  # 300 / 256 up
 
 
@@ -72,7 +72,7 @@ def test_the_fixed_mode_keeps_the_data_fingerprint_of_jobs_made_before_budget_mo
 
 def test_the_streamed_rule_trains_every_level_its_whole_budget(tmp_path):
     job = tiny_job(tmp_path, *ADAPTIVE_JOB, "experts.budget_mode=streamed")
-    rule = StopRule.of(job, ppo_config(job))
+    rule = StopRule.of(resolve(job))
     assert rule.num_evaluations == 4
     for first_three in ([1.0, 1.0, 1.0], [0.0, 0.0, 0.0]):  # adaptive would have stopped both
         assert rule.verdict(first_three, False) is None
@@ -85,7 +85,7 @@ def test_the_streamed_rule_trains_every_level_its_whole_budget(tmp_path):
 
 def batches_in_order(job, order):
     claims = iter(order)
-    return dict(streamed_level_batches(job, 0, lambda: next(claims, None)))
+    return dict(streamed_level_batches(resolve(job), 0, lambda: next(claims, None)))
 
 
 @pytest.mark.slow

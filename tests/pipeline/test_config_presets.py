@@ -14,7 +14,7 @@ from omegaconf import OmegaConf
 from kforge.agents import PPOConfig, PPOHyperparameters
 from kforge.configs import PPO_SPECIALIST
 from kforge.pipeline.cli.run import main as run_main
-from kforge.pipeline.generation import ConfigError, JobConfig, load_config, ppo_config, to_yaml
+from kforge.pipeline.generation import ConfigError, JobConfig, load_config, ppo_config, resolve, to_yaml
 from kforge.pipeline.generation.config_yaml import specialist_yaml
 from kforge.pipeline.generation.schema import PPO_KEYS_SET_BY_THE_JOB, PPOSection
 
@@ -223,3 +223,16 @@ def test_a_split_is_named_like_the_release_or_given_as_a_file(tmp_path):
     assert by_name == by_file and by_name.split.name == "10M/m"
     with pytest.raises(ConfigError, match=r"config '3M/s': no such file, and not a split name \(splits: 10M/m, "):
         load_config("3M/s")
+
+
+def test_a_job_resolves_once_into_settings_equal_and_hashed_by_its_config():
+    job = load_config("10M/m", ["env.dense_reward_scale=0.5"], scale="tiny")
+    resolved = resolve(job)
+    assert resolved == resolve(load_config("10M/m", ["env.dense_reward_scale=0.5"], scale="tiny"))
+    assert hash(resolved) == hash(resolve(load_config("10M/m", ["env.dense_reward_scale=0.5"], scale="tiny")))
+    assert resolved != resolve(load_config("10M/m", ["env.dense_reward_scale=0.5", "split.seed=9"], scale="tiny"))
+    assert resolved.ppo.env_steps_per_level == 65_536 and resolved.ppo.num_envs == 8
+    assert resolved.env_params.dense_reward_scale == 0.5
+    assert (resolved.split, resolved.work, resolved.collect) == (job.split, job.work, job.collect)
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        resolved.ppo = None

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from pipeline_test_helpers import TINY_JOB
 
-from kforge.pipeline.generation import load_config
+from kforge.pipeline.generation import load_config, resolve
 from kforge.pipeline.generation.level_batch import run_level_batch
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
@@ -19,13 +19,13 @@ DEVICES = 2
 RUN_ON_DEVICES = """
 import json, sys
 import jax, numpy as np
-from kforge.pipeline.generation import load_config
+from kforge.pipeline.generation import load_config, resolve
 from kforge.pipeline.generation.devices import level_devices
 from kforge.pipeline.generation.level_batch import run_level_batch
 
 overrides, out = json.loads(sys.argv[1]), sys.argv[2]
 job = load_config(None, overrides)
-result = run_level_batch(job, 0, 0)
+result = run_level_batch(resolve(job), 0, 0)
 np.savez(out, devices=len(jax.local_devices()), spread=level_devices(job.work.levels_per_batch),
          action=result.action, success_rate=result.curves.success_rate, mean_return=result.curves.mean_return,
          expert_success_rate=result.expert_success_rate, position=np.asarray(result.states.sim.bodies.position))
@@ -52,7 +52,7 @@ def test_two_devices_train_the_same_experts_as_one(tmp_path):
     )
     spread = np.load(out)
     assert int(spread["devices"]) == DEVICES and int(spread["spread"]) == DEVICES
-    alone = _figures(run_level_batch(load_config(None, overrides), 0, 0))
+    alone = _figures(run_level_batch(resolve(load_config(None, overrides)), 0, 0))
     np.testing.assert_array_equal(spread["action"], alone["action"])
     for name in ("success_rate", "mean_return", "expert_success_rate", "position"):
         np.testing.assert_allclose(spread[name], alone[name], rtol=1e-4, atol=1e-5, err_msg=name)

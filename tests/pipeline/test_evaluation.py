@@ -54,7 +54,7 @@ def test_unseen_levels_are_a_fixed_range_past_every_dataset_that_the_filter_keep
     """The unseen set starts at the documented level 2^31 whatever the dataset's size, holds only the levels the
     split's filter keeps there, in order, and is the same levels every time."""
     from kforge.env import filter_levels, reset
-    from kforge.pipeline.generation import environment, sample_batch
+    from kforge.pipeline.generation import resolve, sample_batch
     from kforge.pipeline.learning.evaluation_sets import UNSEEN_FIRST_LEVEL, UNSEEN_SAMPLE_CHUNK, unseen_starts
 
     assert UNSEEN_FIRST_LEVEL == 2**31
@@ -62,11 +62,12 @@ def test_unseen_levels_are_a_fixed_range_past_every_dataset_that_the_filter_keep
     starts = unseen_starts(job, count=5)
     ids = starts.level_ids
     candidates = np.arange(2**31, 2**31 + UNSEEN_SAMPLE_CHUNK)
-    params, static = environment(job)
-    keep = np.asarray(filter_levels(sample_batch(job, candidates), params, static, job.filter.noop_steps).keep)
+    resolved = resolve(job)
+    levels = sample_batch(resolved, candidates)
+    keep = np.asarray(filter_levels(levels, resolved.env_params, resolved.static, job.filter.noop_steps).keep)
     assert 0 < keep.sum() < len(keep)  # the filter drops some of the range: the set is not the range's first five
     assert candidates[keep][:5].tolist() == ids
-    expected = jax.vmap(reset)(sample_batch(job, np.asarray(ids)))
+    expected = jax.vmap(reset)(sample_batch(resolved, np.asarray(ids)))
     np.testing.assert_array_equal(starts.states.sim.bodies.position, expected.sim.bodies.position)
     again = unseen_starts(tiny_job(tmp_path / "grown", "split.num_levels=40"), count=5)  # a larger dataset
     assert again.level_ids == ids

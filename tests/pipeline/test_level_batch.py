@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 from pipeline_test_helpers import tiny_job
 
-from kforge.pipeline.generation import ppo_config
+from kforge.pipeline.generation import resolve
 from kforge.pipeline.generation.level_batch import (
     batch_level_indices,
     batches_per_shard,
@@ -19,7 +19,7 @@ from kforge.pipeline.storage.writer import MAX_CURVE_POINTS, learning_curves
 
 @pytest.fixture(scope="module")
 def job():
-    return tiny_job("unused")
+    return resolve(tiny_job("unused"))
 
 
 def test_work_is_cut_into_fixed_shards_and_batches(job):
@@ -51,7 +51,7 @@ def test_level_batch_is_deterministic_and_outcomes_are_consistent(job):
         assert (outcome == KEPT) == (window_ok and not outcome.startswith(FILTERED_PREFIX))
     assert first.action.shape == (2, 24, 6) and first.expert_success_rate.shape == (2,)
     # The experts are the selected ones: trained to an evaluation point, rated by its episodes.
-    config = ppo_config(job)
+    config = job.ppo
     assert set(first.expert_env_steps) <= {update * config.steps_per_update for update in config.selection_updates}
     np.testing.assert_array_equal(np.mod(first.expert_success_rate * config.select_episodes, 1), 0)
     np.testing.assert_array_equal(first.curves.success_rate, first.curves.success_rate.astype(np.float32))

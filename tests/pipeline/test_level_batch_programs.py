@@ -7,7 +7,7 @@ import pytest
 from pipeline_test_helpers import tiny_job
 
 from kforge.agents import collect_windows, initial_params
-from kforge.pipeline.generation import environment, ppo_config
+from kforge.pipeline.generation import resolve
 from kforge.pipeline.generation.level_batch import (
     KeyPurpose,
     batch_level_indices,
@@ -20,12 +20,11 @@ from kforge.pipeline.generation.level_batch import _windows as level_batch_windo
 
 @pytest.fixture(scope="module")
 def job():
-    return tiny_job("unused")
+    return resolve(tiny_job("unused"))
 
 
 def test_the_collection_program_compiled_ahead_rolls_out_what_collect_windows_does(job):
-    env_params, static = environment(job)
-    config = ppo_config(job)
+    env_params, static, config = job.env_params, job.static, job.ppo
     indices = batch_level_indices(job, 0, 0)
     levels = sample_batch(job, indices)
     params = jax.vmap(lambda key: initial_params(key, config, static))(

@@ -14,7 +14,7 @@ from PIL import Image
 
 from kforge.env import StaticEnvParams, load_level, sample_levels
 from kforge.pipeline.cli.levels import main
-from kforge.pipeline.generation import load_config
+from kforge.pipeline.generation import load_config, resolve
 from kforge.pipeline.generation.level_batch import KeyPurpose, level_keys, sample_batch
 
 SPLIT_CONFIG = Path(__file__).resolve().parents[2] / "configs" / "splits" / "1M" / "s.yaml"
@@ -62,7 +62,7 @@ def test_sampled_levels_survive_import_unchanged(sampled_dir, tmp_path, capsys):
 
 def test_export_writes_the_level_a_run_of_the_split_trains(sampled_dir, tmp_path):
     main(["export", str(SPLIT_CONFIG), str(EXPORTED_ID), "--scale", "tiny", "--out", str(tmp_path), "--no-progress"])
-    job = load_config(SPLIT_CONFIG, scale="tiny")
+    job = resolve(load_config(SPLIT_CONFIG, scale="tiny"))
     batch_start = EXPORTED_ID - EXPORTED_ID % TINY_LEVELS_PER_BATCH
     trained = sample_batch(job, np.arange(batch_start, batch_start + TINY_LEVELS_PER_BATCH))
     exported = tmp_path / f"level-{EXPORTED_ID:07d}.json"

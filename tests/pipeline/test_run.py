@@ -50,6 +50,7 @@ from kforge.pipeline.generation import load_config, to_yaml
 from kforge.pipeline.generation.definition import data_fingerprint
 from kforge.pipeline.generation.growth import ResumeRefused
 from kforge.pipeline.generation.level_batch import run_level_batch
+from kforge.pipeline.generation.resolved import resolve
 from kforge.pipeline.generation.run import DatasetDamaged, prepare_output, run_job
 from kforge.pipeline.storage.manifest import committed_batches, iter_records, record_key
 from kforge.pipeline.storage.shard_store import MANIFEST_DIR, open_dataset
@@ -77,7 +78,7 @@ def test_crash_between_data_and_commit_is_cleaned_and_redone(uninterrupted, tmp_
     run_in_process(job, max_batches=2)  # shard 0 complete
     dataset = open_dataset(tmp_path)
     # A worker wrote shard 1's first batch's data files and died before the coordinator wrote the record.
-    stage_level_batch(dataset, 1, 0, run_level_batch(job, 1, 0))
+    stage_level_batch(dataset, 1, 0, run_level_batch(resolve(job), 1, 0))
     assert committed_batches(tmp_path, 1) == []
     run_in_process(job)
     assert_same_dataset(uninterrupted, tmp_path)
