@@ -77,7 +77,7 @@ def _batch_shapes(job: ResolvedJob, level_indices: np.ndarray) -> Level:
 
 def _compiling_sample_program(job: ResolvedJob, keys: jax.Array) -> Future:
     """The future of `env.sample_levels` for the job's batches of this many levels: traced here and compiled in the
-    background, once per process (so a level batch's first step compiles beside the training stages)."""
+    background, once per process (so a level batch's first step compiles beside the training program)."""
     static = job.static
     program = (static, keys.shape[0])
     compiling = _sample_programs.get(program)
@@ -274,7 +274,7 @@ def _compiled_collect_program(job: ResolvedJob, levels: Level, keys: jax.Array) 
 def _compiling_collect_program(job: ResolvedJob, levels: Level, keys: jax.Array) -> Future:
     """The future of `_compiled_collect_program`: traced here (`levels` may be abstract: the experts' parameters have
     the shapes of fresh ones, so nothing needs to be trained first) and compiled in the background, so that it
-    compiles beside the training stages and while the experts train."""
+    compiles beside the training program and while the experts train."""
     env_params, static = job.env_params, job.static
     config = job.ppo
     program = (config, static, len(keys), job.collect.window_steps, job.collect.greedy)
