@@ -333,13 +333,15 @@ def committed_count(root: Path) -> int:
     return sum(map(len, all_committed(root).values())) if (root / "manifest").is_dir() else 0
 
 
-def kill_at_points(config_file: Path, kill_points: dict) -> None:
+def kill_at_points(config_file: Path, kill_points: dict, stale_after_s: float = 0.0) -> None:
     """Run the job once per kill point (name -> predicate on the dataset), SIGKILLing its session as soon as the
-    point is reached; each point must not hold before its run and must hold after it."""
+    point is reached; each point must not hold before its run and must hold after it. After each kill, wait
+    `stale_after_s` (the job's lease stale limit) so that the next run may take the killed job's lease over."""
     for where, reached in kill_points.items():
         assert not reached(), f"already past the kill point '{where}' before the run"
         run_job_process(config_file, until=reached)
         assert reached(), where
+        time.sleep(stale_after_s)
 
 
 def dataset_contents(root):

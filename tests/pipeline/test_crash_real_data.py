@@ -19,6 +19,8 @@ from pipeline_test_helpers import (
 from kforge.pipeline.generation import to_yaml
 from kforge.pipeline.storage.verify import verify_dataset
 
+STALE_AFTER_S = 5.0  # [s] the job's lease stale limit (heartbeats every 0.25 s)
+
 
 @pytest.mark.slow
 def test_a_job_keeping_trajectories_killed_after_each_commit_and_resumed_equals_its_uninterrupted_run(
@@ -26,12 +28,15 @@ def test_a_job_keeping_trajectories_killed_after_each_commit_and_resumed_equals_
 ):
     output = tmp_path / "dataset"
     config_file = tmp_path / "job.yaml"
-    job = keeping_job(output, keeping_cache, "ray.num_workers=0", "lease.stale_after_s=1", "lease.heartbeat_s=0.25")
+    # Without Ray the heartbeat thread shares the process with the work: a stale limit of seconds, not one.
+    job = keeping_job(
+        output, keeping_cache, "ray.num_workers=0", f"lease.stale_after_s={STALE_AFTER_S}", "lease.heartbeat_s=0.25"
+    )
     config_file.write_text(to_yaml(job))
     kill_points = {
         f"{count} level batches committed": lambda count=count: committed_count(output) >= count for count in (1, 2, 3)
     }
-    kill_at_points(config_file, kill_points)
+    kill_at_points(config_file, kill_points, STALE_AFTER_S)
     assert committed_count(output) < KEEPING_BATCHES  # the last kill came before the end
     run_job_process(config_file)
     assert_keeps_in_every_batch(output)
