@@ -18,6 +18,7 @@ _SOURCES = {
     "kforge.agents.config": "PPOConfig",
     "kforge.agents.evaluate": "evaluate network_actor run_episode",
     "kforge.agents.imitation": "ImitationTerms imitation_terms",
+    "kforge.agents.policy": "sample",
     "kforge.agents.ppo": "Batch initial_params learn make_optimizer train_levels",
     "kforge.agents.segments": "check_segmented put_slot start_level train_segments",
 }
@@ -43,6 +44,7 @@ __all__ = [
     "network_actor",
     "put_slot",
     "run_episode",
+    "sample",
     "start_level",
     "train_levels",
     "train_segments",

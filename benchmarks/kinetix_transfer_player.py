@@ -31,8 +31,8 @@ from kforge.agents import (
     Architecture,
     NetworkConfig,
     make_bc_network,
-    policy,  # the BC policy's sampling of its logits, as in kforge's evaluation
 )
+from kforge.agents import sample as sample_action  # the BC policy's sampling of its logits, as in kforge's evaluation
 from kforge.env import MULTI_DISCRETE_SIZES, EntityObservation, bundled_level_path
 
 PARAMS_FILE = "params.msgpack"
@@ -142,7 +142,7 @@ def _compiled_play(env, env_params, static, network, episodes: int):
 
         def bc():
             logits = network.apply(params, from_kinetix_observation(obs))
-            return policy.sample(key, logits[0] if isinstance(logits, tuple) else logits, mask)
+            return sample_action(key, logits[0] if isinstance(logits, tuple) else logits, mask)
 
         def noop():
             return jnp.zeros(len(MULTI_DISCRETE_SIZES), jnp.int32)
