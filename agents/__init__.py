@@ -16,7 +16,7 @@ _SOURCES = {
     "kforge.agents.bc_networks": "Architecture NetworkConfig make_bc_network",
     "kforge.agents.collect": "collect_windows",
     "kforge.agents.config": "PPOConfig",
-    "kforge.agents.evaluate": "evaluate network_actor run_episode",
+    "kforge.agents.episodes": "evaluate network_actor run_episode",
     "kforge.agents.imitation": "ImitationTerms imitation_terms",
     "kforge.agents.policy": "sample",
     "kforge.agents.ppo": "Batch initial_params learn make_optimizer train_levels",

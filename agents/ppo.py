@@ -33,7 +33,7 @@ import optax
 from kforge.agents import policy
 from kforge.agents.batching import ACTION_TYPE, check_level_keys, num_levels
 from kforge.agents.config import PPOConfig
-from kforge.agents.evaluate import level_episodes
+from kforge.agents.episodes import level_episodes
 from kforge.agents.networks import make_network
 from kforge.env import (
     EnvParams,

@@ -11,6 +11,7 @@ import pytest
 from pipeline_test_helpers import tiny_job
 
 import kforge.pipeline.generation.estimated_progress as estimated
+from kforge.pipeline.generation import resolve
 from kforge.pipeline.generation.estimated_progress import estimated_progress
 from kforge.pipeline.generation.level_batch import (
     KeyPurpose,
@@ -88,5 +89,5 @@ def test_the_fixed_budget_training_program_has_no_host_callback():
     keys = level_keys(job.split.seed, indices, KeyPurpose.TRAIN)
     control = jax.jit(lambda x: (jax.debug.callback(print, x), x)[1]).lower(jnp.zeros(2)).compile()
     assert any("callback" in target for target in _custom_call_targets(control))  # what a host callback looks like
-    compiled = _compiling_train_program(job, indices, keys).result()
+    compiled = _compiling_train_program(resolve(job), indices, keys).result()
     assert not any("callback" in target for target in _custom_call_targets(compiled))

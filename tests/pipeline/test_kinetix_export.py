@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 from pipeline_test_helpers import NUM_STEPS
 
-import kforge.pipeline.kinetix.export
+import kforge.pipeline.kinetix.export as kinetix_export
 from kforge.env import initial_state
 from kforge.pipeline.cli import main as kforge
 from kforge.pipeline.kinetix.export import export_kinetix
@@ -267,7 +267,7 @@ def test_shuffle_is_seeded_and_spreads_levels_over_shards(exported, dataset_dir,
     for path in exported.group.rglob("*"):
         if path.is_file():
             assert path.read_bytes() == (again.group / path.relative_to(exported.group)).read_bytes(), path
-    monkeypatch.setattr(kforge.pipeline.kinetix.export, "TRAJECTORIES_PER_CHUNK", 2)
+    monkeypatch.setattr(kinetix_export, "TRAJECTORIES_PER_CHUNK", 2)
     other = export_kinetix(
         dataset_dir, tmp_path / "other", seed=1, trajectories_per_shard=PER_SHARD, show_progress=False
     )

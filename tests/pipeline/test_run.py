@@ -128,7 +128,7 @@ class NoRay:  # as on a machine where Ray is not installed
             raise ModuleNotFoundError("No module named 'ray'")
 sys.meta_path.insert(0, NoRay())
 sys.argv = ["kforge", *sys.argv[1:]]
-runpy.run_module("pipeline", run_name="__main__")
+runpy.run_module("kforge", run_name="__main__")
 """
 """`python -c` code that runs `python -m kforge` with every import of Ray failing."""
 
@@ -156,7 +156,7 @@ def test_a_dataset_made_with_other_physics_is_refused(tmp_path, monkeypatch):
     prepare_output(tiny_job(tmp_path))
     stiffer = dataclasses.replace(SimParams(), joint_hertz=SimParams().joint_hertz + 15.0)
     other_code = lambda **kwargs: EnvParams(sim=stiffer, **kwargs)  # noqa: E731
-    monkeypatch.setattr("env.EnvParams", other_code)
+    monkeypatch.setattr("kforge.env.EnvParams", other_code)
     with pytest.raises(ResumeRefused, match=r"physics\.joint_hertz \("):
         prepare_output(tiny_job(tmp_path))
 
