@@ -218,7 +218,7 @@ def main(argv=None) -> None:
     rows = []
     for count in counts:
         rule = budget(count, args.epochs, args.batch_size)
-        settings = {"dataset": str(args.dataset), "levels": count, "epochs": args.epochs} | rule
+        settings = {"dataset": Path(args.dataset).name, "levels": count, "epochs": args.epochs} | rule
         training = stage(args.work_dir, f"train-{count}", settings, lambda c=count: train_stage(args, c, log), log)
         evaluation_settings = settings | {"episodes": args.episodes, "unseen_levels": args.unseen_levels}
         evaluation = stage(
@@ -230,9 +230,10 @@ def main(argv=None) -> None:
         )
         rows.append({"levels": count, "budget": rule, "training": training, "evaluation": evaluation})
         log(table(rows))
-    report = provenance() | {
+    command = ["DATASET" if argument == str(args.dataset) else argument for argument in sys.argv]
+    report = provenance(command) | {  # the dataset named by its folder: no machine path in the report
         "machine": describe_machine(),
-        "dataset": {"path": str(args.dataset), "kept_levels": held},
+        "dataset": {"path": Path(args.dataset).name, "kept_levels": held},
         "budget_rule": {
             "epochs": args.epochs,
             "batch_size": args.batch_size,
