@@ -12,7 +12,7 @@ READING_HINT = """How to read it:
   - with Kinetix: in a virtualenv of its own, pip install kinetix-env==3.0.2 (it brings zarr 2.18; the zarr 3 that
     kforge installs cannot open these zarr v2 structured records), then
     kinetix.data.data_utils.TrajectoryDatasetManager("{group}", batch_size=..., seed=0).load_next_batch()
-  - with kforge: from pipeline.kinetix import load_kinetix_levels; load_kinetix_levels("{group}") gives each
+  - with kforge: from kforge.pipeline.kinetix import load_kinetix_levels; load_kinetix_levels("{group}") gives each
     trajectory's level and initial state
 See docs/kinetix-export.md."""
 """Printed after an export (and in docs/kinetix-export.md): how the Kinetix-format shards are read."""

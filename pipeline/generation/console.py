@@ -179,7 +179,7 @@ def closing_summary(summary: dict, output_dir: str | os.PathLike) -> str:
     lines += [
         f"  kforge verify {root}",
         f"  kforge stats {root}",
-        f'  python -c "from pipeline.reading import TrajectoryDatasetManager as M; '
+        f'  python -c "from kforge import TrajectoryDatasetManager as M; '
         f"print(M('{root}', batch_size=2, seed=0).load_next_batch().action.shape)\"",
         f"  kforge bc train {root}    # behaviour cloning on it, then kforge evaluate on the run it prints",
     ]

@@ -67,7 +67,7 @@ def argument_errors(tmp: Path) -> list[list[str]]:
 def test_argument_errors_exit_2_before_any_heavy_import(tmp_path):
     cases = argument_errors(tmp_path)
     probe = (
-        "import json, sys\nfrom pipeline.cli import main\n"
+        "import json, sys\nfrom kforge.pipeline.cli import main\n"
         f"for argv in {cases!r}:\n"
         "    try:\n        main(argv)\n        code = 0\n    except SystemExit as stop:\n        code = stop.code\n"
         f"    heavy = sorted(name for name in {HEAVY_MODULES!r} if name in sys.modules)\n"

@@ -145,7 +145,7 @@ def test_the_closing_summary_says_what_was_made_where_and_what_to_run_next(tmp_p
         f"  kforge run {tmp_path / 'config.yaml'}    # continue",
         f"  kforge verify {tmp_path}",
         f"  kforge stats {tmp_path}",
-        f"  python -c \"from pipeline.reading import TrajectoryDatasetManager as M; print(M('{tmp_path}', "
+        f"  python -c \"from kforge import TrajectoryDatasetManager as M; print(M('{tmp_path}', "
         'batch_size=2, seed=0).load_next_batch().action.shape)"',
         f"  kforge bc train {tmp_path}    # behaviour cloning on it, then kforge evaluate on the run it prints",
     ]
