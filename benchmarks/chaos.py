@@ -22,7 +22,7 @@ the test suite's job that keeps trajectories (tests/pipeline/conftest.py `KEEPIN
 once into a compilation cache shared by the rounds. "Bytes differ" compares every commit record, provenance left
 out: the records hold the sha256 of every stored object and of its decoded content, so equal records mean equal
 data. The JSON report is rewritten after every round; run the same command again to continue an interrupted series
-(rounds already in --out are kept, the uninterrupted runs' records too).
+(rounds already in --out are kept, the uninterrupted runs' records too; each round records the commit it ran at).
 """
 
 from __future__ import annotations
@@ -427,7 +427,11 @@ def main() -> None:
             target = location(store, f"round-{index:03d}-{run_id}")
             os.environ.update(env_of[store])
             started = time.perf_counter()
-            outcome = {"round": index, **run_round(plan, target, work, env_of[store], cache)}
+            outcome = {
+                "round": index,
+                "commit": provenance()["commit"],
+                **run_round(plan, target, work, env_of[store], cache),
+            }
             try:
                 found, verifies = records(target), all(report.ok for report in verify_dataset(target))
             except Exception as error:  # noqa: BLE001 (a round that left no readable dataset is reported, not fatal)
