@@ -10,6 +10,7 @@ import signal
 import threading
 import time
 import warnings
+from typing import NamedTuple
 
 from kforge.engine import use_deterministic_ops
 from kforge.env import ActionType
@@ -21,7 +22,7 @@ from kforge.pipeline.generation.growth import reconcile_dataset
 from kforge.pipeline.generation.level_batch import batches_per_shard, num_shards
 from kforge.pipeline.generation.resolved import environment
 from kforge.pipeline.generation.schema import JobConfig
-from kforge.pipeline.generation.tracking import start_tracking
+from kforge.pipeline.generation.tracking import Tracker, start_tracking
 from kforge.pipeline.generation.worker import Worker
 from kforge.pipeline.storage import (
     CONFIG_FILE,
@@ -117,12 +118,11 @@ def _run_leased(job: JobConfig, lease: Lease, max_batches: int | None, show_prog
     if (line := resume_line(found, total, len(withdrawn))) is not None:
         report(line)
     if found == total:  # nothing to do: no Ray, no tracked run, no log file
-        return _run_summary(job, found, total, 0.0, [], collections.Counter(), None)
+        return _run_summary(job, (found, total), 0.0, WorkerFailures(), None)
     log_file = start_log_file(job.output_dir, verbose)
     previous_handler = signal.signal(signal.SIGTERM, _terminate_as_interrupt) if _main_thread() else None
     started = time.perf_counter()
-    failures = []
-    attempts = collections.Counter()
+    failures = WorkerFailures()
     tracker = None
     try:
         tracker = start_tracking(job)
@@ -138,9 +138,9 @@ def _run_leased(job: JobConfig, lease: Lease, max_batches: int | None, show_prog
         bar = ProgressBar(found, total, enabled=show_progress)
         try:
             if job.ray.num_workers == IN_PROCESS:
-                _work_in_process(job, _Observed(Coordinator(*shards), lease, tracker, bar), failures, attempts)
+                _work_in_process(job, _Observed(Coordinator(*shards), lease, tracker, bar), failures)
             else:
-                _work_on_ray(job, shards, lease, tracker, bar, failures, attempts, verbose, previous_handler)
+                _work_on_ray(job, shards, _Driver(lease, tracker, bar, failures), verbose, previous_handler)
         finally:
             bar.close()
     except KeyboardInterrupt:
@@ -155,17 +155,60 @@ def _run_leased(job: JobConfig, lease: Lease, max_batches: int | None, show_prog
     finally:
         if previous_handler is not None:
             signal.signal(signal.SIGTERM, previous_handler)
-    summary = _run_summary(job, found, total, time.perf_counter() - started, failures, attempts, log_file)
+    summary = _run_summary(job, (found, total), time.perf_counter() - started, failures, log_file)
     tracker.finish(summary)
     return summary
 
 
-def _work_on_ray(job, shards: tuple, lease, tracker, bar, failures, attempts, verbose, sigterm_handler) -> None:
+class WorkerFailures:
+    """The failed attempts of workers at shards in one run, each with its cause in one line (`failure_cause`)."""
+
+    def __init__(self):
+        self.records: list[dict] = []  # {"shard", "worker", "error": the cause}, in the order they failed
+        self.attempts: collections.Counter = collections.Counter()  # shard -> failed attempts
+
+    def add(self, shard: int, worker: str, cause: str) -> bool:
+        """Record a failed attempt; returns whether the shard is now abandoned (`MAX_SHARD_ATTEMPTS`)."""
+        self.attempts[shard] += 1
+        self.records.append({"shard": shard, "worker": worker, "error": cause})
+        return self.attempts[shard] >= MAX_SHARD_ATTEMPTS
+
+    def abandoned(self) -> list[int]:
+        """The shards abandoned for this run, in order."""
+        return sorted(shard for shard, count in self.attempts.items() if count >= MAX_SHARD_ATTEMPTS)
+
+    def by_cause(self) -> list[str]:
+        """The failures counted by cause ("2 ActorDiedError: The actor died unexpectedly ..."), the most frequent
+        first (ties in the order they first happened)."""
+        causes = collections.Counter(record["error"] for record in self.records)
+        return [f"{count} {cause}" for cause, count in causes.most_common()]
+
+
+def failure_cause(error: BaseException) -> str:
+    """Why a worker's attempt failed, in one line: the exception's type and the first line of its message; for an
+    exception raised in the worker's own code (Ray's `RayTaskError` wraps it as its `cause`), that exception's."""
+    cause = getattr(error, "cause", None)
+    shown = cause if isinstance(cause, BaseException) else error
+    message = str(shown).strip().splitlines()
+    return f"{type(shown).__name__}: {message[0]}" if message else type(shown).__name__
+
+
+class _Driver(NamedTuple):
+    """What the driver keeps up while Ray workers run: the dataset's lease, the tracked run, the progress bar, and
+    the workers' failures."""
+
+    lease: Lease
+    tracker: Tracker
+    bar: ProgressBar
+    failures: WorkerFailures
+
+
+def _work_on_ray(job, shards: tuple, driver: _Driver, verbose: bool, sigterm_handler) -> None:
     """Run the coordinator (`Coordinator(*shards)`) as an actor and `ray.num_workers` worker actors until no shard
-    is left: a failed shard is recorded in `failures` and handed out again, up to `MAX_SHARD_ATTEMPTS` times; a dead
-    or unreachable worker is killed (`ray.kill`: one unreachable but alive must not write beside its successor) and
-    replaced. Ray restarts a dead coordinator, which rebuilds its state from the commit records. The actors are
-    killed when the run ends, also when the caller started Ray (an interrupt leaves no worker writing)."""
+    is left: a failed shard is recorded in `driver.failures` and handed out again, up to `MAX_SHARD_ATTEMPTS` times;
+    a dead or unreachable worker is killed (`ray.kill`: one unreachable but alive must not write beside its
+    successor) and replaced. Ray restarts a dead coordinator, which rebuilds its state from the commit records. The
+    actors are killed when the run ends, also when the caller started Ray (an interrupt leaves no worker writing)."""
     import ray
 
     for name, value in RAY_QUIET_ENV.items():
@@ -175,68 +218,103 @@ def _work_on_ray(job, shards: tuple, lease, tracker, bar, failures, attempts, ve
         _init_ray(job, verbose)
         if sigterm_handler is not None:  # Ray's own SIGTERM handler (a crash report) replaced ours
             signal.signal(signal.SIGTERM, _terminate_as_interrupt)
-    actors = []
+    actors = _RayActors(job)
     try:
-        coordinator_class = ray.remote(Coordinator).options(
-            name=COORDINATOR_ACTOR.format(job_id=lease.holder.job_id),
-            num_cpus=0,
-            max_restarts=COORDINATOR_RESTARTS,
-            max_task_retries=COORDINATOR_RESTARTS,
-        )
-        actor = coordinator_class.remote(*shards)
-        actors.append(actor)
-        worker_class = ray.remote(Worker).options(num_cpus=job.ray.cpus_per_worker, num_gpus=job.ray.gpus_per_worker)
-        in_flight = {}
-
-        def start_worker(name):
-            worker = worker_class.remote(job, name)
-            actors.append(worker)
-            return worker
-
-        def assign(worker, name):
-            shard = ray.get(actor.next_shard.remote(name))
-            if shard is not None:
-                in_flight[worker.run_shard.remote(actor, shard)] = (worker, name, shard)
-            else:  # no work left for it: its CPUs go to a replacement still waiting for a node with room
-                ray.kill(worker, no_restart=True)
-
+        coordinator = actors.start_coordinator(shards, driver.lease.holder.job_id)
         for i in range(job.ray.num_workers):
-            assign(start_worker(f"worker-{i}"), f"worker-{i}")
-        while in_flight:
-            lease.check()
-            ready, _ = ray.wait(list(in_flight), timeout=PROGRESS_POLL_SECONDS)
+            actors.assign(actors.start_worker(f"worker-{i}"), f"worker-{i}")
+        while actors.in_flight:
+            driver.lease.check()
+            ready, _ = ray.wait(list(actors.in_flight), timeout=PROGRESS_POLL_SECONDS)
             for ref in ready:
-                worker, name, shard = in_flight.pop(ref)
-                error = None
-                try:
-                    ray.get(ref)
-                except ray.exceptions.RayError as raised:
-                    error = raised
-                    cause = getattr(error, "cause", None)
-                    if isinstance(cause, LeaseLost):
-                        lease.fence()  # raises if another job took the lease; else the worker saw an old heartbeat
-                    if not isinstance(cause, LeaseLost | ShardNotHeld):  # not the shard's fault: not an attempt
-                        attempts[shard] += 1
-                        failures.append({"shard": shard, "worker": name, "error": str(error).splitlines()[0]})
-                        if attempts[shard] >= MAX_SHARD_ATTEMPTS:
-                            ray.get(actor.abandon.remote(shard))  # a poison shard: left for a later run
-                ray.get(actor.release.remote(shard, name))
-                if isinstance(error, ray.exceptions.RayActorError):  # dead, or unreachable and maybe alive
-                    ray.kill(worker, no_restart=True)
-                    name = f"{name.partition('-restart')[0]}-restart{len(actors)}"
-                    worker = start_worker(name)
-                assign(worker, name)
-            tracker.log_commits(ray.get(actor.take_commits.remote()))
-            bar.show(ray.get(actor.progress.remote())[0], ray.get(actor.in_flight.remote()))
+                actors.finished(ref, driver)
+            driver.tracker.log_commits(ray.get(coordinator.take_commits.remote()))
+            driver.bar.show(ray.get(coordinator.progress.remote())[0], ray.get(coordinator.in_flight.remote()))
     finally:
         if started_ray:
             ray.shutdown()
         else:
-            for started in actors:
-                ray.kill(started, no_restart=True)
+            actors.kill_all()
 
 
-def _work_in_process(job: JobConfig, coordinator: _Observed, failures: list, attempts: collections.Counter) -> None:
+class _RayActors:
+    """A run's coordinator actor and worker actors on Ray, and the shard task each busy worker runs."""
+
+    def __init__(self, job: JobConfig):
+        import ray
+
+        self._ray = ray
+        self._job = job
+        self._worker_class = None
+        self.coordinator = None
+        self.started: list = []  # every actor started, to kill when the run ends
+        self.in_flight: dict = {}  # shard task -> (worker, its name, shard)
+
+    def start_coordinator(self, shards: tuple, job_id: str):
+        """Start the coordinator actor, `Coordinator(*shards)` (named after `job_id`; Ray restarts it if it dies),
+        before any worker."""
+        coordinator_class = self._ray.remote(Coordinator).options(
+            name=COORDINATOR_ACTOR.format(job_id=job_id),
+            num_cpus=0,
+            max_restarts=COORDINATOR_RESTARTS,
+            max_task_retries=COORDINATOR_RESTARTS,
+        )
+        self.coordinator = coordinator_class.remote(*shards)
+        self.started.append(self.coordinator)
+        self._worker_class = self._ray.remote(Worker).options(
+            num_cpus=self._job.ray.cpus_per_worker, num_gpus=self._job.ray.gpus_per_worker
+        )
+        return self.coordinator
+
+    def start_worker(self, name: str):
+        """Start a worker actor called `name`."""
+        worker = self._worker_class.remote(self._job, name)
+        self.started.append(worker)
+        return worker
+
+    def assign(self, worker, name: str) -> None:
+        """Give the worker its next shard, or kill it if none is left (its CPUs go to a replacement still waiting
+        for a node with room)."""
+        shard = self._ray.get(self.coordinator.next_shard.remote(name))
+        if shard is not None:
+            self.in_flight[worker.run_shard.remote(self.coordinator, shard)] = (worker, name, shard)
+        else:
+            self._ray.kill(worker, no_restart=True)
+
+    def finished(self, ref, driver: _Driver) -> None:
+        """Settle a finished shard task: record a failure, release the shard, replace a dead or unreachable worker,
+        and give the worker its next shard."""
+        worker, name, shard = self.in_flight.pop(ref)
+        error = None
+        try:
+            self._ray.get(ref)
+        except self._ray.exceptions.RayError as raised:
+            error = raised
+            self._record_failure(error, shard, name, driver)
+        self._ray.get(self.coordinator.release.remote(shard, name))
+        if isinstance(error, self._ray.exceptions.RayActorError):  # dead, or unreachable and maybe alive
+            self._ray.kill(worker, no_restart=True)
+            name = f"{name.partition('-restart')[0]}-restart{len(self.started)}"
+            worker = self.start_worker(name)
+        self.assign(worker, name)
+
+    def _record_failure(self, error: BaseException, shard: int, name: str, driver: _Driver) -> None:
+        """Count a failed task as an attempt at its shard, abandoning a poison shard for the run, unless the worker
+        lost the lease or the shard (not the shard's fault)."""
+        cause = getattr(error, "cause", None)
+        if isinstance(cause, LeaseLost):
+            driver.lease.fence()  # raises if another job took the lease; else the worker saw an old heartbeat
+        if not isinstance(cause, LeaseLost | ShardNotHeld):
+            if driver.failures.add(shard, name, failure_cause(error)):
+                self._ray.get(self.coordinator.abandon.remote(shard))  # a poison shard: left for a later run
+
+    def kill_all(self) -> None:
+        """Kill every actor this run started."""
+        for started in self.started:
+            self._ray.kill(started, no_restart=True)
+
+
+def _work_in_process(job: JobConfig, coordinator: _Observed, failures: WorkerFailures) -> None:
     """The work of `_work_on_ray` in this process, without Ray: one worker takes shard after shard; a shard whose
     work raises is recorded and handed out again as on Ray (a crash of the process ends the run, as an interrupt)."""
     worker = Worker(job, IN_PROCESS_WORKER)
@@ -246,10 +324,7 @@ def _work_in_process(job: JobConfig, coordinator: _Observed, failures: list, att
         except LeaseLost:
             raise
         except Exception as error:  # contained as a failed Ray task would be
-            attempts[shard] += 1
-            message = f"{type(error).__name__}: {error}".splitlines()[0]
-            failures.append({"shard": shard, "worker": IN_PROCESS_WORKER, "error": message})
-            if attempts[shard] >= MAX_SHARD_ATTEMPTS:
+            if failures.add(shard, IN_PROCESS_WORKER, failure_cause(error)):
                 coordinator.abandon(shard)
         coordinator.release(shard, IN_PROCESS_WORKER)
 
@@ -288,15 +363,17 @@ class _Observed:
         self._bar.show(self._coordinator.progress()[0], self._coordinator.in_flight())
 
 
-def _run_summary(job, found, total, seconds, failures, attempts, log_file) -> dict:
-    """`summarize` of the dataset, with what this run did: batches committed, time, worker failures, abandoned
-    shards, and the log file."""
+def _run_summary(job, batches: tuple[int, int], seconds: float, failures: WorkerFailures, log_file) -> dict:
+    """`summarize` of the dataset, with what this run did: batches committed (`batches`: committed before the run,
+    and in all), time, worker failures (each, and counted by cause), abandoned shards, and the log file."""
+    found, total = batches
     summary = summarize(job.output_dir)
     summary["total_batches"] = total
     summary["committed_in_run"] = summary["committed_batches"] - found
     summary["seconds"] = seconds
-    summary["worker_failures"] = failures
-    summary["abandoned_shards"] = sorted(shard for shard, count in attempts.items() if count >= MAX_SHARD_ATTEMPTS)
+    summary["worker_failures"] = failures.records
+    summary["worker_failure_causes"] = failures.by_cause()
+    summary["abandoned_shards"] = failures.abandoned()
     summary["log_file"] = None if log_file is None else str(log_file)
     return summary
 

@@ -14,6 +14,7 @@ import signal
 import subprocess
 import sys
 import time
+import traceback
 from pathlib import Path
 
 import jax.numpy as jnp
@@ -51,7 +52,13 @@ from kforge.pipeline.generation.definition import data_fingerprint
 from kforge.pipeline.generation.growth import ResumeRefused
 from kforge.pipeline.generation.level_batch import run_level_batch
 from kforge.pipeline.generation.resolved import resolve
-from kforge.pipeline.generation.run import DatasetDamaged, prepare_output, run_job
+from kforge.pipeline.generation.run import (
+    DatasetDamaged,
+    WorkerFailures,
+    failure_cause,
+    prepare_output,
+    run_job,
+)
 from kforge.pipeline.storage.manifest import committed_batches, iter_records, record_key
 from kforge.pipeline.storage.shard_store import MANIFEST_DIR, open_dataset
 from kforge.pipeline.storage.verify import verify_dataset
@@ -95,11 +102,30 @@ def test_a_failing_shard_of_a_job_without_ray_is_retried_abandoned_and_finished_
     monkeypatch.setattr(kforge.pipeline.generation.worker, "run_level_batch", failing_on_shard_1)
     summary = run_in_process(tiny_job(tmp_path))
     assert summary["worker_failures"] == [{"shard": 1, "worker": "local", "error": "FloatingPointError: injected"}] * 3
+    assert summary["worker_failure_causes"] == ["3 FloatingPointError: injected"]
     assert summary["abandoned_shards"] == [1] and summary["committed_in_run"] == 2
     assert (committed_batches(tmp_path, 0), committed_batches(tmp_path, 1)) == ([0, 1], [])
     monkeypatch.undo()
     run_in_process(tiny_job(tmp_path))
     assert_same_dataset(uninterrupted, tmp_path)
+
+
+def test_a_failure_on_ray_is_named_by_its_cause_and_failures_are_counted_by_cause():
+    import ray.exceptions
+
+    try:
+        raise FloatingPointError("injected\nsecond line")
+    except FloatingPointError as raised:  # as Ray reports an exception of the worker's code: wrapped, the cause kept
+        in_task = ray.exceptions.RayTaskError("run_shard", traceback.format_exc(), raised).as_instanceof_cause()
+    out_of_memory = ray.exceptions.OutOfMemoryError("Task was killed due to the node running low on memory.\nMore")
+    failures = WorkerFailures()
+    for shard, error in enumerate([ray.exceptions.ActorDiedError(), out_of_memory, ray.exceptions.ActorDiedError()]):
+        failures.add(shard, "worker-0", failure_cause(error))
+    assert failure_cause(in_task) == "FloatingPointError: injected"
+    assert failures.by_cause() == [
+        "2 ActorDiedError: The actor died unexpectedly before finishing this task.",
+        "1 OutOfMemoryError: Task was killed due to the node running low on memory.",
+    ]
 
 
 def test_a_level_whose_data_makes_training_nan_fails_alone_and_is_recorded(uninterrupted, tmp_path, monkeypatch):
