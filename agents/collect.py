@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 from typing import NamedTuple
 
@@ -50,36 +51,48 @@ def collect_windows(
     check_level_keys(keys, num_levels(levels))
     if num_steps < 1:
         raise ValueError(f"num_steps must be >= 1, got {num_steps}")
-    return _collect(params, levels, keys, config, env_params, static, num_steps, greedy)
+    return _collect(params, levels, keys, WindowPlan(config, static, num_steps, greedy), env_params)
 
 
-@functools.partial(jax.jit, static_argnames=("config", "static", "num_steps", "greedy"))
-def _collect(params, levels, keys, config, env_params, static, num_steps: int, greedy: bool) -> Window:
-    network = make_network(config)
+@dataclasses.dataclass(frozen=True)
+class WindowPlan:
+    """How the expert plays a level's window: its network (`config`), the env's static size, the env steps, and
+    whether it takes its most probable action per slot (`greedy`) or samples."""
 
-    def level_window(level_params, level: Level, key):
-        mask = action_mask(level)
+    config: PPOConfig
+    static: StaticEnvParams
+    num_steps: int
+    greedy: bool
 
-        def body(state: EnvState, step_key):
-            logits, _ = network.apply(level_params, observe(state, static, config.observation_type))
-            action = policy.mode(logits, mask) if greedy else policy.sample(step_key, logits, mask)
-            following, result = step(state, action, level, env_params, static, ACTION_TYPE)
-            return following, (state, action, result.done, result.success, result.reward)
 
-        _, (states, actions, done, success, rewards) = jax.lax.scan(
-            body, reset(level), jax.random.split(key, num_steps)
-        )
-        ended, succeeded = jnp.sum(done, dtype=jnp.int32), jnp.sum(success, dtype=jnp.int32)
-        return Window(
-            states=states,
-            actions=actions,
-            action_mask=mask,
-            done=done,
-            success=success,
-            rewards=rewards,
-            episodes_ended=ended,
-            successes=succeeded,
-            successful=(ended > 0) & (succeeded == ended),
-        )
+@functools.partial(jax.jit, static_argnames=("plan",))
+def _collect(params, levels, keys, plan: WindowPlan, env_params) -> Window:
+    return jax.vmap(functools.partial(_level_window, plan=plan, env_params=env_params))(params, levels, keys)
 
-    return jax.vmap(level_window)(params, levels, keys)
+
+def _level_window(level_params, level: Level, key: jax.Array, plan: WindowPlan, env_params: EnvParams) -> Window:
+    """One level's window: `plan.num_steps` env steps with auto-reset from the level's start."""
+    network = make_network(plan.config)
+    mask = action_mask(level)
+
+    def body(state: EnvState, step_key):
+        logits, _ = network.apply(level_params, observe(state, plan.static, plan.config.observation_type))
+        action = policy.mode(logits, mask) if plan.greedy else policy.sample(step_key, logits, mask)
+        following, result = step(state, action, level, env_params, plan.static, ACTION_TYPE)
+        return following, (state, action, result.done, result.success, result.reward)
+
+    _, (states, actions, done, success, rewards) = jax.lax.scan(
+        body, reset(level), jax.random.split(key, plan.num_steps)
+    )
+    ended, succeeded = jnp.sum(done, dtype=jnp.int32), jnp.sum(success, dtype=jnp.int32)
+    return Window(
+        states=states,
+        actions=actions,
+        action_mask=mask,
+        done=done,
+        success=success,
+        rewards=rewards,
+        episodes_ended=ended,
+        successes=succeeded,
+        successful=(ended > 0) & (succeeded == ended),
+    )

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 from collections.abc import Callable
 from typing import NamedTuple
@@ -82,12 +83,21 @@ def network_actor(network, params, observation_type, static: StaticEnvParams, gr
     return act
 
 
-def _run_episode(
-    params, start: EnvState, mask: jnp.ndarray, key: jax.Array, config: PPOConfig, env_params, static, greedy: bool
-) -> Episode:
+@dataclasses.dataclass(frozen=True)
+class EpisodePlan:
+    """How the PPO policy plays a level's evaluation episodes: its network (`config`), the env's static size, the
+    episodes per level, and whether it takes its most probable action per slot (`greedy`) or samples."""
+
+    config: PPOConfig
+    static: StaticEnvParams
+    num_episodes: int
+    greedy: bool = False
+
+
+def _run_episode(params, start: EnvState, mask: jnp.ndarray, key: jax.Array, plan: EpisodePlan, env_params) -> Episode:
     """One episode of the PPO policy with `params` from `start`."""
-    act = network_actor(make_network(config), params, config.observation_type, static, greedy)
-    return run_episode(act, start, mask, key, env_params, static)
+    act = network_actor(make_network(plan.config), params, plan.config.observation_type, plan.static, plan.greedy)
+    return run_episode(act, start, mask, key, env_params, plan.static)
 
 
 def evaluate(
@@ -112,45 +122,26 @@ def evaluate(
         raise ValueError(f"num_episodes must be >= 1, got {num_episodes}")
     if start_states is None:
         start_states = jax.vmap(reset)(levels)
-    return _evaluate(params, levels, start_states, keys, config, env_params, static, num_episodes, greedy)
+    plan = EpisodePlan(config, static, num_episodes, greedy)
+    return _evaluate(params, levels, start_states, keys, plan, env_params)
 
 
 def level_episodes(
-    params,
-    level: Level,
-    start: EnvState,
-    key: jax.Array,
-    config: PPOConfig,
-    env_params: EnvParams,
-    static: StaticEnvParams,
-    num_episodes: int,
-    greedy: bool = False,
+    params, level: Level, start: EnvState, key: jax.Array, plan: EpisodePlan, env_params: EnvParams
 ) -> Episode:
-    """`num_episodes` episodes of one level (no level axis) from `start`: an `Episode` with leaves (num_episodes,).
+    """`plan.num_episodes` episodes of one level (no level axis) from `start`: an `Episode` with leaves
+    (num_episodes,).
 
     Pure and traceable, so training evaluates its checkpoints with it inside the training program.
     """
-    run = functools.partial(
-        _run_episode,
-        params,
-        start,
-        action_mask(level),
-        config=config,
-        env_params=env_params,
-        static=static,
-        greedy=greedy,
-    )
-    return jax.vmap(run)(jax.random.split(key, num_episodes))
+    run = functools.partial(_run_episode, params, start, action_mask(level), plan=plan, env_params=env_params)
+    return jax.vmap(run)(jax.random.split(key, plan.num_episodes))
 
 
-@functools.partial(jax.jit, static_argnames=("config", "static", "num_episodes", "greedy"))
-def _evaluate(
-    params, levels, start_states, keys, config, env_params, static, num_episodes: int, greedy: bool
-) -> EvalOutput:
+@functools.partial(jax.jit, static_argnames=("plan",))
+def _evaluate(params, levels, start_states, keys, plan: EpisodePlan, env_params) -> EvalOutput:
     episodes = jax.vmap(
-        lambda level_params, level, start, key: level_episodes(
-            level_params, level, start, key, config, env_params, static, num_episodes, greedy
-        )
+        lambda level_params, level, start, key: level_episodes(level_params, level, start, key, plan, env_params)
     )(params, levels, start_states, keys)
     return EvalOutput(
         success_rate=jnp.mean(episodes.success.astype(jnp.float32), axis=1),

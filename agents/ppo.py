@@ -33,7 +33,7 @@ import optax
 from kforge.agents import policy
 from kforge.agents.batching import ACTION_TYPE, check_level_keys, num_levels
 from kforge.agents.config import PPOConfig
-from kforge.agents.episodes import level_episodes
+from kforge.agents.episodes import EpisodePlan, level_episodes
 from kforge.agents.networks import make_network
 from kforge.env import (
     EnvParams,
@@ -344,19 +344,42 @@ def _segment_program(level: Level, config: PPOConfig, env_params: EnvParams, sta
 
 def _update_program(level: Level, config: PPOConfig, env_params: EnvParams, static: StaticEnvParams) -> Callable:
     """`updates(carry, num_updates)` on `level`: `num_updates` PPO updates; returns (carry, per-update metrics)."""
-    network = make_network(config)
-    mask = action_mask(level)
-    start = reset(level)
-    start_obs = observe(start, static, config.observation_type)
+    return _LevelUpdates(level, config, env_params, static)
 
-    def act_and_step(carry: _TrainCarry, step_key):
-        logits, _ = network.apply(carry.params, carry.obs)
-        action = policy.sample(step_key, logits, mask)
-        log_prob = policy.log_prob(logits, action, mask)
-        following, reached, result = jax.vmap(env_step, in_axes=(0, 0, None, None, None))(
-            carry.env_state, action, level, env_params, static
+
+class _LevelUpdates:
+    """PPO updates on one level: a rollout of every env (auto-reset at the level's start), its advantages, and the
+    learner's epochs over it; called as `updates(carry, num_updates)`."""
+
+    def __init__(self, level: Level, config: PPOConfig, env_params: EnvParams, static: StaticEnvParams):
+        self.level, self.config, self.env_params, self.static = level, config, env_params, static
+        self.network = make_network(config)
+        self.mask = action_mask(level)
+        self.start_obs = observe(reset(level), static, config.observation_type)
+
+    def __call__(self, carry: _TrainCarry, num_updates: int) -> tuple[_TrainCarry, UpdateMetrics]:
+        return jax.lax.scan(self.update, carry, None, length=num_updates)
+
+    def update(self, carry: _TrainCarry, _) -> tuple[_TrainCarry, UpdateMetrics]:
+        """One PPO update: a rollout of `config.num_steps` steps, then the learner on its samples."""
+        key, rollout_key, epochs_key = jax.random.split(carry.key, 3)
+        carry, rollout = jax.lax.scan(
+            self.act_and_step, carry._replace(key=key), jax.random.split(rollout_key, self.config.num_steps)
         )
-        next_obs = jax.vmap(observe, in_axes=(0, None, None))(reached, static, config.observation_type)
+        batch = self.batch(carry.params, rollout)
+        params, opt_state, terms = learn(carry.params, carry.opt_state, batch, epochs_key, self.mask, self.config)
+        return carry._replace(params=params, opt_state=opt_state), _update_metrics(rollout, terms)
+
+    def act_and_step(self, carry: _TrainCarry, step_key) -> tuple[_TrainCarry, Transition]:
+        """Every env acts on the policy with `carry.params` and steps, resetting when its episode ends."""
+        static, observation_type = self.static, self.config.observation_type
+        logits, _ = self.network.apply(carry.params, carry.obs)
+        action = policy.sample(step_key, logits, self.mask)
+        log_prob = policy.log_prob(logits, action, self.mask)
+        following, reached, result = jax.vmap(env_step, in_axes=(0, 0, None, None, None))(
+            carry.env_state, action, self.level, self.env_params, static
+        )
+        next_obs = jax.vmap(observe, in_axes=(0, None, None))(reached, static, observation_type)
         episode_return = carry.episode_return + result.reward
         transition = Transition(
             obs=carry.obs,
@@ -372,38 +395,33 @@ def _update_program(level: Level, config: PPOConfig, env_params: EnvParams, stat
         )
         carry = carry._replace(
             env_state=following,
-            obs=jnp.where(result.done[:, None], start_obs, next_obs),
+            obs=jnp.where(result.done[:, None], self.start_obs, next_obs),
             episode_return=jnp.where(result.done, 0.0, episode_return),
         )
         return carry, transition
 
-    def update(carry: _TrainCarry, _):
-        key, rollout_key, epochs_key = jax.random.split(carry.key, 3)
-        carry, rollout = jax.lax.scan(
-            act_and_step, carry._replace(key=key), jax.random.split(rollout_key, config.num_steps)
-        )
-        _, values = network.apply(carry.params, rollout.obs)
-        _, next_values = network.apply(carry.params, rollout.next_obs)
+    def batch(self, params, rollout: Transition) -> Batch:
+        """The rollout's samples, flattened over (steps, envs), with their values, advantages and targets."""
+        config = self.config
+        _, values = self.network.apply(params, rollout.obs)
+        _, next_values = self.network.apply(params, rollout.next_obs)
         terminals = rollout.done & ~rollout.truncated if config.bootstrap_truncation else rollout.done
         advantages, targets = gae(
             rollout.reward, values, next_values, terminals, rollout.done, config.gamma, config.gae_lambda
         )
         flat = functools.partial(jax.tree.map, lambda x: x.reshape((config.steps_per_update,) + x.shape[2:]))
-        batch = flat(Batch(rollout.obs, rollout.action, rollout.log_prob, values, advantages, targets))
-        params, opt_state, terms = learn(carry.params, carry.opt_state, batch, epochs_key, mask, config)
-        metrics = UpdateMetrics(
-            episodes=jnp.sum(rollout.done).astype(jnp.int32),
-            mean_return=_mean_where(rollout.episode_return, rollout.done),
-            success_rate=_mean_where(rollout.success.astype(jnp.float32), rollout.done),
-            mean_length=_mean_where(rollout.episode_length.astype(jnp.float32), rollout.done),
-            loss=jax.tree.map(jnp.mean, terms),
-        )
-        return carry._replace(params=params, opt_state=opt_state), metrics
+        return flat(Batch(rollout.obs, rollout.action, rollout.log_prob, values, advantages, targets))
 
-    def updates(carry: _TrainCarry, num_updates: int):
-        return jax.lax.scan(update, carry, None, length=num_updates)
 
-    return updates
+def _update_metrics(rollout: Transition, terms: LossTerms) -> UpdateMetrics:
+    """What an update saw (the episodes that ended in its rollout) and its loss terms, averaged."""
+    return UpdateMetrics(
+        episodes=jnp.sum(rollout.done).astype(jnp.int32),
+        mean_return=_mean_where(rollout.episode_return, rollout.done),
+        success_rate=_mean_where(rollout.success.astype(jnp.float32), rollout.done),
+        mean_length=_mean_where(rollout.episode_length.astype(jnp.float32), rollout.done),
+        loss=jax.tree.map(jnp.mean, terms),
+    )
 
 
 def _evaluation_program(level: Level, config: PPOConfig, env_params: EnvParams, static: StaticEnvParams) -> Callable:
@@ -411,19 +429,11 @@ def _evaluation_program(level: Level, config: PPOConfig, env_params: EnvParams, 
     policy, kept as best unless a better one was; returns (best, (success rate, mean return) of the evaluation).
     The episodes' key depends on the updates done, so a policy gets the same episodes whatever the period."""
     start = reset(level)
+    plan = EpisodePlan(config, static, config.select_episodes, config.select_greedy)
 
     def evaluate_and_keep(params, best: _Best, index, updates_done, selection_key):
-        episodes = level_episodes(
-            params,
-            level,
-            start,
-            jax.random.fold_in(selection_key, updates_done),
-            config,
-            env_params,
-            static,
-            config.select_episodes,
-            config.select_greedy,
-        )
+        key = jax.random.fold_in(selection_key, updates_done)
+        episodes = level_episodes(params, level, start, key, plan, env_params)
         success_rate = jnp.mean(episodes.success.astype(jnp.float32))
         better = success_rate >= best.success_rate
         best = jax.tree.map(lambda new, old: jnp.where(better, new, old), _Best(params, success_rate, index), best)
