@@ -14,6 +14,8 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+from collections.abc import Callable
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -296,17 +298,24 @@ def warm_start_contacts(velocity: Motion, rows: ContactRows, impulses: ContactIm
     return tuple(received(v, da, db) for v, da, db in zip(velocity, change_a, change_b, strict=True))
 
 
-def _sweep(
-    velocity: Motion, rows: ContactRows, impulse, layout: PairLayout, solve_colour, sweep: Sweep, per_colour=None
-):
-    """Visit the colours in order (Gauss-Seidel across colours), all pairs of a colour at once, by `sweep`.
+class _ColourSolve(NamedTuple):
+    """How `_sweep` solves one colour's rows: `solve(rows, impulse, vel_a, vel_b, bodies_of, extra)` returns their
+    new impulses from the colour's rows, its impulses (W, *batch), the velocities of its bodies a and b, a function
+    `bodies_of(motion)` giving the motions of its bodies a and b, and its slice `extra` of `per_colour` (a pytree
+    with a leading colour axis, or None)."""
 
-    `impulse` holds the (C, W, *batch) impulses of the rows to solve, rows 0, 1, ... of every pair.
-    `solve_colour(rows, impulse, vel_a, vel_b, bodies_of, extra)` returns their new values for one colour from its
-    rows, its impulses (W, *batch), the velocities of its bodies a and b, a function `bodies_of(motion)` giving the
-    motions of its bodies a and b, and its slice `extra` of `per_colour` (a pytree with a leading colour axis, or
-    None). Returns the velocities and the new impulses.
+    solve: Callable
+    per_colour: Any = None
+
+
+def _sweep(velocity: Motion, rows: ContactRows, impulse, layout: PairLayout, colour_solve: _ColourSolve, sweep: Sweep):
+    """Visit the colours in order (Gauss-Seidel across colours), all pairs of a colour at once, by `sweep`, solving
+    each by `colour_solve`.
+
+    `impulse` holds the (C, W, *batch) impulses of the rows to solve, rows 0, 1, ... of every pair. Returns the
+    velocities and the new impulses.
     """
+    solve_colour, per_colour = colour_solve
     # Per colour, the W bodies a then the W bodies b: one gather and one scatter per velocity component.
     bodies = jnp.asarray(np.concatenate([layout.colour_body_a, layout.colour_body_b], axis=1))
     width = layout.colour_body_a.shape[1]
@@ -473,7 +482,7 @@ def solve_contacts(
         normal = _normal_impulses(rows, impulse, (vel_a, vel_b), separations, settings)
         return tuple(normal + _friction_impulses(rows, impulse, (vel_a, vel_b), normal))
 
-    velocity, impulse = _sweep(velocity, rows, impulses.impulse, layout, solve_colour, settings.sweep)
+    velocity, impulse = _sweep(velocity, rows, impulses.impulse, layout, _ColourSolve(solve_colour), settings.sweep)
     max_normal = tuple(jnp.maximum(m, i) for m, i in zip(impulses.max_normal, impulse[:NUM_POINTS], strict=True))
     return velocity, ContactImpulses(impulse, max_normal)
 
@@ -510,5 +519,6 @@ def apply_restitution(
         return tuple(normal)
 
     normal_impulses = impulses.impulse[:NUM_POINTS]
-    velocity, normal = _sweep(velocity, rows, normal_impulses, layout, solve_colour, sweep, impulses.max_normal)
+    colour_solve = _ColourSolve(solve_colour, impulses.max_normal)
+    velocity, normal = _sweep(velocity, rows, normal_impulses, layout, colour_solve, sweep)
     return velocity, impulses.replace(impulse=normal + impulses.impulse[NUM_POINTS:])
