@@ -21,6 +21,25 @@ def main(argv: Sequence[str] | None = None, prog: str | None = None) -> None:
     each level's start and from stored mid-trajectory states), on unseen levels of the dataset's split, and on
     Kinetix's hand-designed levels of its size, beside the no-op and uniform random policies; prints a table and
     writes the JSON report."""
+    args, sets = _parse_args(argv, prog)
+    from kforge.pipeline.learning import run_config_file
+
+    try:
+        run_config_file(args.policy)
+    except FileNotFoundError as error:
+        raise fail(error) from None
+    result = _evaluate(args, sets)
+
+    from kforge.pipeline.learning import report_table
+
+    out = Path(args.out) if args.out else Path(args.policy) / REPORT_FILE
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(result, indent=1))
+    print(json.dumps(result, indent=1) if args.json else f"{report_table(result)}\nreport: {out}")
+
+
+def _parse_args(argv: Sequence[str] | None, prog: str | None) -> tuple[argparse.Namespace, tuple[str, ...]]:
+    """(the arguments, the level sets to play), checked."""
     parser = argparse.ArgumentParser(prog=prog, description=main.__doc__)
     parser.add_argument("policy", help="a BC run directory (kforge bc train's output_dir)")
     parser.add_argument(
@@ -44,27 +63,27 @@ def main(argv: Sequence[str] | None = None, prog: str | None = None) -> None:
     if args.max_levels is not None and args.max_levels < 1:
         parser.error(f"--max-levels must be >= 1, got {args.max_levels}")
 
-    from kforge.pipeline.learning import LEVEL_SETS, run_config_file
+    from kforge.pipeline.learning import LEVEL_SETS
 
     unknown = [name for name in sets if name not in LEVEL_SETS]
     if unknown or not sets:
         parser.error(
             f"--on: unknown level set {unknown[0] if unknown else args.on!r}; choose among {', '.join(LEVEL_SETS)}"
         )
-    try:
-        run_config_file(args.policy)
-    except FileNotFoundError as error:
-        raise fail(error) from None
+    return args, sets
 
+
+def _evaluate(args: argparse.Namespace, sets: tuple[str, ...]) -> dict:
+    """The evaluation report of the policy's checkpoint on `sets`, progress on stderr."""
     from kforge.engine import use_deterministic_ops
-    from kforge.pipeline.learning import evaluate_policy, load_policy, report_table
+    from kforge.pipeline.learning import evaluate_policy, load_policy
     from kforge.pipeline.storage import DatasetError
 
     use_deterministic_ops()  # before the first computation: repeatable on GPUs too
 
     try:
         policy = load_policy(args.policy, args.step)
-        result = evaluate_policy(
+        return evaluate_policy(
             policy,
             sets,
             episodes=args.episodes,
@@ -78,7 +97,3 @@ def main(argv: Sequence[str] | None = None, prog: str | None = None) -> None:
         if args.debug:
             raise
         raise fail(error) from error
-    out = Path(args.out) if args.out else Path(args.policy) / REPORT_FILE
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(result, indent=1))
-    print(json.dumps(result, indent=1) if args.json else f"{report_table(result)}\nreport: {out}")

@@ -22,6 +22,7 @@ import enum
 import functools
 import json
 from pathlib import Path
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -30,7 +31,16 @@ from omegaconf import OmegaConf
 
 from kforge.agents import Architecture, NetworkConfig, make_bc_network, network_actor, run_episode
 from kforge.engine import PhysicsScheme, physics_scheme
-from kforge.env import ActionType, EnvParams, StaticEnvParams, list_levels, noop_action, random_action, under_scheme
+from kforge.env import (
+    ActionType,
+    EnvParams,
+    EnvState,
+    StaticEnvParams,
+    list_levels,
+    noop_action,
+    random_action,
+    under_scheme,
+)
 from kforge.pipeline.generation import JobConfig, environment, merge_layers, to_schema_object
 from kforge.pipeline.learning.checkpoints import checkpoint_steps, restore_checkpoint
 from kforge.pipeline.learning.config import LEVEL_SETS, BCConfig, network_config, run_config_file
@@ -98,23 +108,54 @@ def load_policy(run_dir: str | Path, step: int | None = None) -> TrainedPolicy:
     return TrainedPolicy(run_dir, config, network_config(config), state.params, step, static)
 
 
-@functools.partial(jax.jit, static_argnames=("network", "static", "num_episodes", "greedy"))
-def _play(
-    params, states, masks, env_params, keys, policy_index, network: NetworkConfig | None, static, num_episodes, greedy
-):
+@dataclasses.dataclass(frozen=True)
+class Episodes:
+    """How each start of a set is played: `count` first episodes, with keys from `seed`, greedy or sampled actions."""
+
+    count: int
+    seed: int
+    greedy: bool = False
+
+
+class _Chunk(NamedTuple):
+    """Start states played together in one compiled program (leading axis S)."""
+
+    states: EnvState
+    masks: jnp.ndarray  # (S, 6) bool
+    env_params: EnvParams  # leaves (S, ...)
+    keys: jnp.ndarray  # (S,) each start's episode key
+
+
+@dataclasses.dataclass(frozen=True)
+class _Program:
+    """What a compiled evaluation program is specialised on: the BC network (None for the baselines only), the
+    static env params, the episodes per start and greedy or sampled actions."""
+
+    network: NetworkConfig | None
+    static: StaticEnvParams
+    num_episodes: int
+    greedy: bool
+
+
+def _noop_actor(state, mask, key):
+    return noop_action(ACTION_TYPE)
+
+
+def _uniform_actor(state, mask, key):
+    return jnp.where(mask, random_action(key, ACTION_TYPE), 0)
+
+
+@functools.partial(jax.jit, static_argnames=("program",))
+def _play(params, chunk: _Chunk, policy_index, program: _Program):
     """(success, failure) (S, K) bool of K first episodes from each start state, for the policy at `policy_index` of
     (no-op, random, the BC network): one compiled program serves all three."""
-
-    def noop(state, mask, key):
-        return noop_action(ACTION_TYPE)
-
-    def uniform(state, mask, key):
-        return jnp.where(mask, random_action(key, ACTION_TYPE), 0)
-
-    actors = [noop, uniform]
+    network, static = program.network, program.static
+    actors = [_noop_actor, _uniform_actor]
     if network is not None:
         actors.append(
-            network_actor(make_bc_network(network), params, network.architecture.observation_type, static, greedy)
+            network_actor(
+                make_bc_network(network), params, network.architecture.observation_type, static, program.greedy
+            )
         )
 
     def act(state, mask, key):
@@ -122,11 +163,11 @@ def _play(
 
     def level(start, mask, env_params, key):
         episodes = jax.vmap(lambda k: run_episode(act, start, mask, k, env_params, static))(
-            jax.random.split(key, num_episodes)
+            jax.random.split(key, program.num_episodes)
         )
         return episodes.success, episodes.failure
 
-    return jax.vmap(level)(states, masks, env_params, keys)
+    return jax.vmap(level)(chunk.states, chunk.masks, chunk.env_params, chunk.keys)
 
 
 BASELINE_INDEX = {Baseline.NOOP: 0, Baseline.RANDOM: 1}
@@ -137,33 +178,27 @@ def play(
     player: Baseline | None,
     starts: StartSet,
     static: StaticEnvParams,
-    num_episodes: int,
-    seed: int,
-    greedy: bool,
+    episodes: Episodes,
     policy: TrainedPolicy | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """(success, failure) (S, K) of a baseline, or of `policy` when `player` is None, from every start; start i's
     episode keys derive from (seed, i) only, so every player plays the same keys."""
     count = len(starts.level_ids)
-    keys = jax.vmap(lambda i: jax.random.fold_in(jax.random.key(seed), i))(jnp.arange(count))
+    keys = jax.vmap(lambda i: jax.random.fold_in(jax.random.key(episodes.seed), i))(jnp.arange(count))
     index = POLICY_INDEX if player is None else BASELINE_INDEX[player]
+    program = _Program(None if policy is None else policy.network, static, episodes.count, episodes.greedy)
     width = min(EVAL_CHUNK_LEVELS, 1 << (count - 1).bit_length())  # one program shape per set (padded chunks)
     successes, failures = [], []
     for begin in range(0, count, width):
         rows = np.arange(begin, begin + width)
         chunk = np.where(rows < count, rows, begin)  # padding repeats the chunk's first start
-        success, failure = _play(
-            None if policy is None else policy.params,
+        played = _Chunk(
             jax.tree.map(lambda x, rows=chunk: x[rows], starts.states),
             starts.masks[chunk],
             jax.tree.map(lambda x, rows=chunk: x[rows], starts.params),
             keys[chunk],
-            jnp.int32(index),
-            None if policy is None else policy.network,
-            static,
-            num_episodes,
-            greedy,
         )
+        success, failure = _play(None if policy is None else policy.params, played, jnp.int32(index), program)
         real = rows < count
         successes.append(np.asarray(success)[real])
         failures.append(np.asarray(failure)[real])
@@ -213,7 +248,8 @@ def play_set(
     """Outcomes of the BC policy (unless `policy` is None) and both baselines on the same starts with the same keys."""
     players = (("bc", None),) if policy is not None else ()
     players += (("noop", Baseline.NOOP), ("random", Baseline.RANDOM))
-    return {name: play(player, starts, static, episodes, seed, greedy, policy) for name, player in players}
+    plan = Episodes(episodes, seed, greedy)
+    return {name: play(player, starts, static, plan, policy) for name, player in players}
 
 
 def _concatenate(parts: list[Outcomes]) -> Outcomes:
@@ -290,6 +326,7 @@ def evaluate_policy(
     job = dataset_job(dataset)
     scheme_name, env_params = play_physics(job, policy.static)
     scheme = physics_scheme(scheme_name)
+    plan = Episodes(episodes, seed, greedy)
     result = {
         "policy": str(policy.run_dir),
         "physics": scheme_name,
@@ -305,40 +342,50 @@ def evaluate_policy(
         if report is not None:
             report(f"evaluating on {name} levels")
         if name in ("train", "validation"):
-            ids = split_ids[name][:max_levels]
-            if not ids:
-                result["sets"][name] = {"levels": 0}
-                continue
-            starts, stored, expert = dataset_starts(dataset, ids, env_params, seed)
-            from_start = play_set(policy, starts, policy.static, episodes, seed, greedy)
-            from_stored = play_set(policy, stored, policy.static, episodes, seed + 1, greedy)
-            result["sets"][name] = {
-                "levels": len(ids),
-                "stored_starts": len(stored.level_ids),
-                "from_start": rates(from_start) | {"expert_recorded": {"success": float(np.nanmean(expert))}},
-                "from_stored_states": rates(from_stored),
-                "per_level": {str(i): float(s) for i, s in zip(ids, from_start["bc"][0].mean(axis=1), strict=True)},
-            }
+            result["sets"][name] = _dataset_set_entry(policy, split_ids[name][:max_levels], env_params, plan)
         elif name == "unseen":
-            if job is None:
-                raise DatasetError(
-                    f"{dataset}: no {CONFIG_FILE} (not made by kforge run), so its split's unseen levels are unknown"
-                )
-            starts = unseen_starts(job, unseen_levels if max_levels is None else min(unseen_levels, max_levels))
-            check_unseen_disjoint(starts, dataset, dataset_level_ids(dataset))
-            outcomes = play_set(policy, starts, policy.static, episodes, seed, greedy)
-            result["sets"][name] = {
-                "levels": len(starts.level_ids),
-                "first_level_id": UNSEEN_FIRST_LEVEL,
-                "from_start": rates(outcomes),
-                "per_level": {
-                    str(i): float(s) for i, s in zip(starts.level_ids, outcomes["bc"][0].mean(axis=1), strict=True)
-                },
-            }
+            count = unseen_levels if max_levels is None else min(unseen_levels, max_levels)
+            result["sets"][name] = _unseen_set_entry(policy, job, count, plan)
         else:
             files = {size: list_levels(size)[:max_levels] for size in readable_sizes(policy, scheme)}
             result["sets"][name] = play_level_files(policy, files, scheme, episodes, seed, greedy)
     return result
+
+
+def _dataset_set_entry(policy: TrainedPolicy, ids: list, env_params: EnvParams, plan: Episodes) -> dict:
+    """The set entry of dataset levels `ids`: rates from their starts (beside the experts' recorded success) and
+    from stored mid-trajectory states, and each level's success rate of the BC policy."""
+    if not ids:
+        return {"levels": 0}
+    dataset = policy.config.dataset
+    starts, stored, expert = dataset_starts(dataset, ids, env_params, plan.seed)
+    from_start = play_set(policy, starts, policy.static, plan.count, plan.seed, plan.greedy)
+    from_stored = play_set(policy, stored, policy.static, plan.count, plan.seed + 1, plan.greedy)
+    return {
+        "levels": len(ids),
+        "stored_starts": len(stored.level_ids),
+        "from_start": rates(from_start) | {"expert_recorded": {"success": float(np.nanmean(expert))}},
+        "from_stored_states": rates(from_stored),
+        "per_level": {str(i): float(s) for i, s in zip(ids, from_start["bc"][0].mean(axis=1), strict=True)},
+    }
+
+
+def _unseen_set_entry(policy: TrainedPolicy, job: JobConfig | None, count: int, plan: Episodes) -> dict:
+    """The set entry of `count` unseen levels of the dataset's split, checked disjoint from the dataset's levels."""
+    dataset = policy.config.dataset
+    if job is None:
+        raise DatasetError(
+            f"{dataset}: no {CONFIG_FILE} (not made by kforge run), so its split's unseen levels are unknown"
+        )
+    starts = unseen_starts(job, count)
+    check_unseen_disjoint(starts, dataset, dataset_level_ids(dataset))
+    outcomes = play_set(policy, starts, policy.static, plan.count, plan.seed, plan.greedy)
+    return {
+        "levels": len(starts.level_ids),
+        "first_level_id": UNSEEN_FIRST_LEVEL,
+        "from_start": rates(outcomes),
+        "per_level": {str(i): float(s) for i, s in zip(starts.level_ids, outcomes["bc"][0].mean(axis=1), strict=True)},
+    }
 
 
 def report_table(result: dict) -> str:

@@ -23,7 +23,7 @@ from kforge.pipeline.generation import ConfigError
 from kforge.pipeline.learning import load_bc_config, load_policy, train_bc
 from kforge.pipeline.learning.checkpoints import checkpoint_steps
 from kforge.pipeline.learning.config import BCConfig
-from kforge.pipeline.learning.evaluation import Baseline, play
+from kforge.pipeline.learning.evaluation import Baseline, Episodes, play
 from kforge.pipeline.learning.evaluation_sets import StartSet, hand_starts
 from kforge.pipeline.storage import DatasetError
 
@@ -133,7 +133,7 @@ def test_evaluation_counts_the_outcomes_the_levels_force(levels):
         [0, 1, 2],
     )
     for baseline in Baseline:
-        success, failure = play(baseline, starts, STATIC, num_episodes=2, seed=0, greedy=False)
+        success, failure = play(baseline, starts, STATIC, Episodes(count=2, seed=0))
         np.testing.assert_array_equal(success, [[True, True], [True, True], [False, False]])
         np.testing.assert_array_equal(failure, [[False, False], [False, False], [True, True]])
 
