@@ -54,6 +54,11 @@ class ActionEnvStateMask(NamedTuple):
     trajectory_index: np.ndarray  # (B,) global slot of each trajectory in the dataset
 
 
+def _wanted(level, wanted: set[int] | None) -> bool:
+    """A level's trajectory is read: kept, and of a selected level (all levels without a selection)."""
+    return level.kept and (wanted is None or level.level_id in wanted)
+
+
 class TrajectoryDatasetManager:
     """Endless deterministic batches of (B, T, ...) trajectories from a dataset directory.
 
@@ -105,13 +110,7 @@ class TrajectoryDatasetManager:
         wanted = None if level_ids is None else {int(level) for level in level_ids}
         records = list(iter_records(self.dataset.store))
         self.slots = np.array(
-            sorted(
-                level.slot
-                for record in records
-                for level in record.levels
-                if level.kept and (wanted is None or level.level_id in wanted)
-            ),
-            np.int64,
+            sorted(level.slot for record in records for level in record.levels if _wanted(level, wanted)), np.int64
         )
         self._check_objects([record for record in records if self._holds_wanted(record, wanted)])
         self._whole = self._whole_objects(records, whole_object_bytes)
@@ -155,7 +154,7 @@ class TrajectoryDatasetManager:
 
     @staticmethod
     def _holds_wanted(record: BatchRecord, wanted: set[int] | None) -> bool:
-        return any(level.kept and (wanted is None or level.level_id in wanted) for level in record.levels)
+        return any(_wanted(level, wanted) for level in record.levels)
 
     def _check_objects(self, records: list[BatchRecord]) -> None:
         """Fail closed: `DatasetError` naming the level batch and the array if a read field's object that a record

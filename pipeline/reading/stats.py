@@ -199,60 +199,86 @@ def stored_bytes(store: Store, prefix: str, known: Mapping[str, int | None]) -> 
     return sum(size if (size := known.get(key)) is not None else store.size(key) for key in store.list(prefix))
 
 
+class _RecordTally:
+    """The figures of a dataset's commit records, added record by record."""
+
+    def __init__(self, root: str, curve_stride: int):
+        self.root = root
+        self.curve_stride = curve_stride
+        self.outcomes = collections.Counter()
+        self.rates: list[float] = []
+        self.curves: list[list[float]] = []
+        self.curve_steps: list | None = None
+        self.workers: set = set()
+        self.budget_modes = collections.Counter()
+        self.trained_steps: list = []
+        self.lengths = {outcome: collections.Counter() for outcome in WINDOW_OUTCOMES}
+        self.seconds = collections.Counter()
+        self.timed = 0
+        self.shards: dict[int, collections.Counter] = collections.defaultdict(collections.Counter)
+
+    def add(self, shard: int, batch: int, record) -> None:
+        """Count a batch's commit record."""
+        shard_counts = self.shards[shard]
+        shard_counts["batches"] += 1
+        self.budget_modes[record.budget_mode] += 1
+        for level in record.levels:
+            if level.outcome != Outcome.PADDING:
+                self._add_level(level, shard_counts)
+        steps = None if record.curve_env_steps is None else list(record.curve_env_steps)
+        if steps is not None:
+            if self.curve_steps is not None and steps != self.curve_steps:
+                raise DatasetError(
+                    f"{self.root}: shard {shard} batch {batch} has other learning-curve steps than the rest"
+                )
+            self.curve_steps = steps
+        provenance = record.provenance
+        if provenance and "total" in provenance.get("seconds", {}):
+            self.timed += 1
+            self.seconds.update(provenance["seconds"])
+            shard_counts.update({f"seconds/{phase}": value for phase, value in provenance["seconds"].items()})
+            self.workers.add(provenance.get("worker", "?"))
+
+    def _add_level(self, level, shard_counts: collections.Counter) -> None:
+        outcome = level.outcome
+        self.outcomes[outcome] += 1
+        shard_counts["sampled"] += 1
+        shard_counts[outcome] += 1
+        trained = outcome.is_trained
+        shard_counts["trained"] += trained
+        shard_counts["solved"] += trained and _float(level.expert_success_rate) > SOLVED_ABOVE
+        if outcome.has_window:
+            self.lengths[outcome].update(level.episode_lengths)
+        if trained:
+            self.rates.append(_float(level.expert_success_rate))
+            if level.trained_env_steps is not None:
+                self.trained_steps.append(level.trained_env_steps)
+            if level.curve_success_rate is not None and level.level_id % self.curve_stride == 0:
+                self.curves.append([_float(value) for value in level.curve_success_rate])
+
+
+def _dataset_config(dataset) -> dict:
+    """The generation config stored with the dataset, or the data config of its attributes."""
+    config_text = dataset.store.read(CONFIG_FILE)
+    if config_text is not None:
+        return OmegaConf.to_container(OmegaConf.create(config_text.decode()))
+    return dict(dataset.spec.attributes.get("data_config", {}))
+
+
 def collect_stats(root: str | os.PathLike, show_progress: bool = True) -> DatasetStats:
     """Read a dataset's records, attributes and file sizes; `DatasetError` if `root` is not a dataset."""
     dataset = open_dataset(root)
     store, root = dataset.store, dataset.root
     attributes = dataset.spec.attributes
-    config_text = store.read(CONFIG_FILE)
-    if config_text is not None:
-        config = OmegaConf.to_container(OmegaConf.create(config_text.decode()))
-    else:
-        config = dict(attributes.get("data_config", {}))
+    config = _dataset_config(dataset)
     batches = [(shard, batch) for shard, found in all_committed(store).items() for batch in found]
-    outcomes, rates, curves, curve_steps, workers = collections.Counter(), [], [], None, set()
-    budget_modes, trained_steps = collections.Counter(), []
-    lengths = {outcome: collections.Counter() for outcome in WINDOW_OUTCOMES}
-    curve_stride = -(-dataset.geometry.num_slots // MAX_CURVE_LEVELS)
-    seconds, timed = collections.Counter(), 0
-    shards: dict[int, collections.Counter] = collections.defaultdict(collections.Counter)
+    tally = _RecordTally(root, -(-dataset.geometry.num_slots // MAX_CURVE_LEVELS))
     progress = show_progress and len(batches) >= PROGRESS_MIN_RECORDS
     sizes: dict[str, int | None] = {}
     for shard, batch in tqdm(batches, desc="commit records", unit="record", disable=not progress):
         record, sizes[record_key(shard, batch)] = read_record_sized(store, shard, batch)
         sizes.update(record.object_sizes)
-        shard_counts = shards[shard]
-        shard_counts["batches"] += 1
-        budget_modes[record.budget_mode] += 1
-        for level in record.levels:
-            outcome = level.outcome
-            if outcome == Outcome.PADDING:
-                continue
-            outcomes[outcome] += 1
-            shard_counts["sampled"] += 1
-            shard_counts[outcome] += 1
-            trained = outcome.is_trained
-            shard_counts["trained"] += trained
-            shard_counts["solved"] += trained and _float(level.expert_success_rate) > SOLVED_ABOVE
-            if outcome.has_window:
-                lengths[outcome].update(level.episode_lengths)
-            if trained:
-                rates.append(_float(level.expert_success_rate))
-                if level.trained_env_steps is not None:
-                    trained_steps.append(level.trained_env_steps)
-                if level.curve_success_rate is not None and level.level_id % curve_stride == 0:
-                    curves.append([_float(value) for value in level.curve_success_rate])
-        steps = None if record.curve_env_steps is None else list(record.curve_env_steps)
-        if steps is not None:
-            if curve_steps is not None and steps != curve_steps:
-                raise DatasetError(f"{root}: shard {shard} batch {batch} has other learning-curve steps than the rest")
-            curve_steps = steps
-        provenance = record.provenance
-        if provenance and "total" in provenance.get("seconds", {}):
-            timed += 1
-            seconds.update(provenance["seconds"])
-            shard_counts.update({f"seconds/{phase}": value for phase, value in provenance["seconds"].items()})
-            workers.add(provenance.get("worker", "?"))
+        tally.add(shard, batch, record)
     return DatasetStats(
         root=root,
         split=dataset.spec.split,
@@ -262,20 +288,20 @@ def collect_stats(root: str | os.PathLike, show_progress: bool = True) -> Datase
         batches_committed=len(batches),
         levels_per_batch=dataset.geometry.levels_per_batch,
         window_steps=dataset.layout.num_steps,
-        outcomes=outcomes,
-        success_rates=np.asarray(rates, np.float32),
-        episode_lengths=lengths,
-        curve_env_steps=curve_steps,
-        curves=np.asarray(curves, np.float32).reshape(len(curves), len(curve_steps or ())),
-        curve_stride=curve_stride,
-        budget_modes=budget_modes,
-        trained_env_steps=np.asarray(trained_steps, np.int64),
-        seconds=dict(seconds),
-        timed_batches=timed,
-        workers=sorted(workers),
+        outcomes=tally.outcomes,
+        success_rates=np.asarray(tally.rates, np.float32),
+        episode_lengths=tally.lengths,
+        curve_env_steps=tally.curve_steps,
+        curves=np.asarray(tally.curves, np.float32).reshape(len(tally.curves), len(tally.curve_steps or ())),
+        curve_stride=tally.curve_stride,
+        budget_modes=tally.budget_modes,
+        trained_env_steps=np.asarray(tally.trained_steps, np.int64),
+        seconds=dict(tally.seconds),
+        timed_batches=tally.timed,
+        workers=sorted(tally.workers),
         data_bytes=stored_bytes(store, f"{DATA_DIR}/", sizes),
         manifest_bytes=stored_bytes(store, f"{MANIFEST_DIR}/", sizes),
-        shards=dict(shards),
+        shards=dict(tally.shards),
     )
 
 
