@@ -21,6 +21,25 @@ def _terminate_as_interrupt(signum, frame):
 def main(argv: Sequence[str] | None = None, prog: str | None = None) -> None:
     """Behaviour cloning on a kforge dataset (`train`): a policy trained on the stored expert actions, validated
     on held-out levels, checkpointed; Ctrl-C or SIGTERM checkpoints and stops, re-running resumes."""
+    args = _parse_train_args(argv, prog)
+    require_dataset(args.dataset)
+
+    from kforge.pipeline.generation import to_yaml
+    from kforge.pipeline.learning import load_bc_config
+
+    config = load_config_or_exit(lambda: load_bc_config(args.dataset, args.overrides, args.config), args.debug)
+    if args.print_config:
+        print(to_yaml(config), end="")
+        return
+    summary = _train(config, args, argv)
+    if args.json:
+        print(json.dumps(dataclasses.asdict(summary), indent=1))
+        return
+    print(_closing_lines(summary))
+
+
+def _parse_train_args(argv: Sequence[str] | None, prog: str | None) -> argparse.Namespace:
+    """The `train` action's arguments (the common options may come before the action or after it)."""
     parser = argparse.ArgumentParser(prog=prog, description=main.__doc__)
     parser.add_argument("action", choices=["train"], help="train: train (or resume) a BC policy on a dataset")
     parser.add_argument("arguments", nargs=argparse.REMAINDER, help="the action's arguments (ACTION --help)")
@@ -46,17 +65,13 @@ def main(argv: Sequence[str] | None = None, prog: str | None = None) -> None:
     )
     if args.stop_after is not None and args.stop_after < 1:
         train.error(f"--stop-after must be >= 1, got {args.stop_after}")
-    require_dataset(args.dataset)
+    return args
 
-    from kforge.pipeline.generation import ConfigError, to_yaml
-    from kforge.pipeline.learning import load_bc_config
 
-    config = load_config_or_exit(lambda: load_bc_config(args.dataset, args.overrides, args.config), args.debug)
-    if args.print_config:
-        print(to_yaml(config), end="")
-        return
-
+def _train(config, args: argparse.Namespace, argv: Sequence[str] | None):
+    """Train (or resume) the run, SIGTERM taken as Ctrl-C; its summary. An interruption exits saying how to resume."""
     from kforge.engine import use_deterministic_ops
+    from kforge.pipeline.generation import ConfigError
     from kforge.pipeline.learning import TrainingInterrupted, train_bc
     from kforge.pipeline.storage import DatasetError
 
@@ -64,7 +79,7 @@ def main(argv: Sequence[str] | None = None, prog: str | None = None) -> None:
 
     previous = signal.signal(signal.SIGTERM, _terminate_as_interrupt)
     try:
-        summary = train_bc(
+        return train_bc(
             config,
             show_progress=not args.no_progress,
             report=lambda line: print(line, file=sys.stderr),
@@ -81,15 +96,16 @@ def main(argv: Sequence[str] | None = None, prog: str | None = None) -> None:
         raise fail(error) from error
     finally:
         signal.signal(signal.SIGTERM, previous)
-    if args.json:
-        print(json.dumps(dataclasses.asdict(summary), indent=1))
-        return
+
+
+def _closing_lines(summary) -> str:
+    """The run's closing figures and the command that evaluates it."""
     validation = (
         "no validation levels"
         if summary.validation_loss is None
         else f"validation loss {summary.validation_loss:.3f}, accuracy {summary.validation_accuracy:.3f}"
     )
-    print(
+    return (
         f"{summary.run_dir}: step {summary.steps}, {summary.train_levels} training and {summary.validation_levels} "
         f"validation levels; training loss {summary.train_loss:.3f}, accuracy {summary.train_accuracy:.3f}; "
         f"{validation}; {summary.transitions_per_s:,.0f} transitions/s, waiting for data "

@@ -366,6 +366,32 @@ def train_bc(
     """Train (or resume) the BC run of `config`; returns its summary. `stop_after_steps` ends this invocation after
     that many steps, checkpointed, as an interruption would (tests and time-boxed jobs). wandb's files go to
     <run>/logs, its terminal output only if `verbose`."""
+    levels, train_ids, validation_ids = _chosen_levels(config)
+    config = _settled_batch_size(config, sum(len(levels[level]) for level in train_ids), report)
+    layout = open_dataset(config.dataset).layout
+    learner = Learner(config, layout.static, layout.num_steps)
+    run_dir = _prepare_run_dir(config)  # after every check that can refuse the run: a refused run leaves nothing
+    (run_dir / LEVELS_FILE).write_text(json.dumps({"train": train_ids, "validation": validation_ids}))
+    state = _restored_state(learner, run_dir, config.train.seed)
+    start = int(state.step)
+    _truncate_metrics(run_dir, start)
+    if start:
+        report(f"resuming {run_dir} from its checkpoint at step {start} of {config.train.num_steps}")
+    run = _Run(
+        config,
+        learner,
+        run_dir,
+        validation_slots=sorted(slot for level in validation_ids for slot in levels[level]),
+        loader=_training_loader(config, train_ids, start),
+        tracking=_start_wandb(config, run_dir, verbose),
+    )
+    loop = _TrainingLoop(run, state, stop_after_steps, show_progress)
+    loop.train()
+    return _finish(run, loop, (train_ids, validation_ids))
+
+
+def _chosen_levels(config: BCConfig) -> tuple[dict, list, list]:
+    """(the dataset's kept levels -> their trajectory slots, training level ids, validation level ids)."""
     levels = kept_levels(config.dataset)
     if not levels:
         raise DatasetError(f"{config.dataset}: no committed, kept trajectories to learn from")
@@ -375,7 +401,12 @@ def train_bc(
             f"{config.dataset}: train.levels={config.train.levels}, but the dataset holds {len(chosen)} kept levels"
         )
     train_ids, validation_ids = validation_split(chosen, config.validation.fraction, config.train.seed)
-    train_trajectories = sum(len(levels[level]) for level in train_ids)
+    return levels, train_ids, validation_ids
+
+
+def _settled_batch_size(config: BCConfig, train_trajectories: int, report) -> BCConfig:
+    """`config` with the batch size the run trains with: the one asked for or, when none is, the one a resumed run
+    chose, resolved for the training trajectories and the local devices (`fit_batch_size`)."""
     requested_batch_size = config.train.batch_size
     trained = _trained_config(Path(config.output_dir))
     if requested_batch_size is None and trained is not None:  # a resumed run keeps the batch size it chose
@@ -388,21 +419,22 @@ def train_bc(
             f"train.batch_size={config.train.batch_size} (not {DEFAULT_BATCH_SIZE}): {config.dataset} holds "
             f"{train_trajectories} training trajectories"
         )
-    layout = open_dataset(config.dataset).layout
-    learner = Learner(config, layout.static, layout.num_steps)
-    run_dir = _prepare_run_dir(config)  # after every check that can refuse the run: a refused run leaves nothing
-    (run_dir / LEVELS_FILE).write_text(json.dumps({"train": train_ids, "validation": validation_ids}))
-    state = learner.init(config.train.seed)
+    return config
+
+
+def _restored_state(learner: Learner, run_dir: Path, seed: int) -> LearnerState:
+    """The learner state at the run's latest checkpoint, or a fresh one from `seed`."""
+    state = learner.init(seed)
     steps = checkpoint_steps(run_dir)
     if steps:
         state = jax.device_put(restore_checkpoint(run_dir, steps[-1], state), learner.replicated)
-    start = int(state.step)
-    _truncate_metrics(run_dir, start)
-    if start:
-        report(f"resuming {run_dir} from its checkpoint at step {start} of {config.train.num_steps}")
+    return state
+
+
+def _training_loader(config: BCConfig, train_ids: list, start: int) -> TrajectoryDatasetManager:
+    """The loader of the training levels' batches, from the batch of step `start` on."""
     train = config.train
-    validation_slots = sorted(slot for level in validation_ids for slot in levels[level])
-    loader = TrajectoryDatasetManager(
+    return TrajectoryDatasetManager(
         config.dataset,
         batch_size=train.batch_size,
         seed=train.seed,
@@ -411,102 +443,136 @@ def train_bc(
         start_batch=start,
         cache_bytes=int(train.cache_gb * BYTES_PER_GIB),
     )
-    tracking = _start_wandb(config, run_dir, verbose)
-    lines = _read_metrics(run_dir)
-    rule = (config.validation.patience, config.validation.min_improvement)
-    stopped_early = loss_curve(lines, *rule)["plateau_step"] is not None  # a re-run of a run that has finished
-    end = train.num_steps if stop_after_steps is None else min(train.num_steps, start + stop_after_steps)
-    end = start if stopped_early else end
-    bar = tqdm(
-        total=train.num_steps,
-        initial=start,
-        disable=not show_progress,
-        unit="step",
-        dynamic_ncols=True,
-        bar_format=BAR_FORMAT,
-        desc="compiling",
-    )
-    since = None  # (time, step) once the first call, the one that compiles, is done
-    wait = 0.0
-    began = time.perf_counter()
-    pending: list[dict] = []
-    last = lines[-1] if lines else {"train": None, "validation": None}
-    latest = {"train": last["train"], "validation": last["validation"], "step_loss": None}
-    step = start
-    saved = start
-    per_call = learner.steps_per_dispatch
-    try:
-        with loader:
-            while step < end:
-                count = min(per_call - step % per_call, end - step)  # never past a validation or checkpoint step
-                asked = time.perf_counter()
-                batches = [loader.load_next_batch() for _ in range(count)]
-                wait += time.perf_counter() - asked
-                if pending:  # wait for the previous call; its loss shows on the bar
-                    latest["step_loss"] = float(pending[-1]["loss"])
-                    now = time.perf_counter()
-                    since = since or (now, step)
-                    bar.desc = "steps"
-                    bar.set_postfix_str(
-                        _postfix(latest, seconds_left(since, now, step, train.num_steps)), refresh=False
-                    )
-                state, metrics = learner.steps(state, batches)
-                pending.extend(metrics)
-                step += count
-                bar.update(count)
-                if step % config.validation.every_steps == 0 or step == train.num_steps:
-                    latest["train"] = _mean_metrics(pending)
-                    pending = []
-                    if validation_slots:
-                        scores = [
-                            learner.score(state.params, batch, weight)
-                            for batch, weight in _validation_batches(
-                                loader, validation_slots, config.validation.batch_size
-                            )
-                        ]
-                        latest["validation"] = _combine(scores)
-                    line = {"step": step, "train": latest["train"], "validation": latest["validation"]}
-                    with open(run_dir / METRICS_FILE, "a") as metrics_file:
-                        metrics_file.write(json.dumps(line) + "\n")
-                    lines.append(line)
-                    curve = loss_curve(lines, *rule)
-                    write_curve(run_dir, curve)
-                    if curve["plateau_step"] is not None:
-                        end = step
-                    if tracking is not None:
-                        tracking.log(_flat_metrics(line), step=step)
-                    bar.set_postfix_str(
-                        _postfix(latest, seconds_left(since, time.perf_counter(), step, train.num_steps))
-                    )
-                if step % config.checkpoint.every_steps == 0 or step == end:
-                    save_checkpoint(run_dir, step, jax.device_get(state), config.checkpoint.keep)
-                    saved = step
-    except KeyboardInterrupt:
-        if saved != step:
-            save_checkpoint(run_dir, step, jax.device_get(state), config.checkpoint.keep)
-        bar.close()
-        if tracking is not None:
-            tracking.finish(exit_code=1)
-        raise TrainingInterrupted(str(run_dir), step, train.num_steps) from None
-    finally:
-        bar.close()
-    seconds = time.perf_counter() - began
-    if pending:
-        latest["train"] = _mean_metrics(pending)
-    curve = loss_curve(lines, *rule)
-    write_curve(run_dir, curve)
-    summary = _summary(config, run_dir, start, step, (train_ids, validation_ids), latest, (seconds, wait), learner)
-    summary = dataclasses.replace(
-        summary,
-        cached=loader.cached,
-        stopped=_stop_reason(curve, step, train.num_steps),
-        best_step=curve["best_step"],
-        best_validation_loss=curve["best_validation_loss"],
-    )
-    (run_dir / SUMMARY_FILE).write_text(json.dumps(dataclasses.asdict(summary), indent=1))
-    if tracking is not None:
-        tracking.summary.update({"loader_wait_share": summary.loader_wait_share})
-        tracking.finish()
+
+
+def _loss_curve(lines: list[dict], config: BCConfig) -> dict:
+    """The validation loss curve of the metric lines under the run's plateau rule."""
+    return loss_curve(lines, config.validation.patience, config.validation.min_improvement)
+
+
+@dataclasses.dataclass
+class _Run:
+    """What a BC run's training loop works with."""
+
+    config: BCConfig
+    learner: Learner
+    run_dir: Path
+    validation_slots: list[int]
+    loader: TrajectoryDatasetManager
+    tracking: Any  # the wandb run, None when tracking is disabled
+
+
+class _TrainingLoop:
+    """One invocation's gradient steps, from the run's latest checkpoint to `train.num_steps`, the plateau or
+    `stop_after_steps`: validated, logged, checkpointed and shown on the progress bar on the way."""
+
+    def __init__(self, run: _Run, state: LearnerState, stop_after_steps: int | None, show_progress: bool):
+        self.run = run
+        self.state = state
+        self.start = self.step = self.saved = int(state.step)
+        self.lines = _read_metrics(run.run_dir)
+        num_steps = run.config.train.num_steps
+        stopped_early = _loss_curve(self.lines, run.config)["plateau_step"] is not None  # a re-run of a finished run
+        end = num_steps if stop_after_steps is None else min(num_steps, self.start + stop_after_steps)
+        self.end = self.start if stopped_early else end
+        self.bar = tqdm(
+            total=num_steps,
+            initial=self.start,
+            disable=not show_progress,
+            unit="step",
+            dynamic_ncols=True,
+            bar_format=BAR_FORMAT,
+            desc="compiling",
+        )
+        self.since = None  # (time, step) once the first call, the one that compiles, is done
+        self.wait = 0.0  # [s] spent waiting for the loader's batches
+        self.seconds = 0.0  # [s] wall time of the steps, once trained
+        self.began = time.perf_counter()
+        self.pending: list[dict] = []  # metrics of the steps since the last validation, on the device until read
+        last = self.lines[-1] if self.lines else {"train": None, "validation": None}
+        self.latest = {"train": last["train"], "validation": last["validation"], "step_loss": None}
+
+    def train(self) -> None:
+        """Take the steps; an interruption checkpoints the last completed step and raises `TrainingInterrupted`."""
+        config = self.run.config
+        try:
+            with self.run.loader:
+                while self.step < self.end:
+                    self._take_steps()
+                    if self.step % config.validation.every_steps == 0 or self.step == config.train.num_steps:
+                        self._validate()
+                    if self.step % config.checkpoint.every_steps == 0 or self.step == self.end:
+                        self._checkpoint()
+        except KeyboardInterrupt:
+            if self.saved != self.step:
+                self._checkpoint()
+            self.bar.close()
+            if self.run.tracking is not None:
+                self.run.tracking.finish(exit_code=1)
+            raise TrainingInterrupted(str(self.run.run_dir), self.step, config.train.num_steps) from None
+        finally:
+            self.bar.close()
+        self.seconds = time.perf_counter() - self.began
+        if self.pending:
+            self.latest["train"] = _mean_metrics(self.pending)
+
+    def _take_steps(self) -> None:
+        """One call of the compiled steps, never past a validation or checkpoint step."""
+        per_call = self.run.learner.steps_per_dispatch
+        count = min(per_call - self.step % per_call, self.end - self.step)
+        asked = time.perf_counter()
+        batches = [self.run.loader.load_next_batch() for _ in range(count)]
+        self.wait += time.perf_counter() - asked
+        if self.pending:  # wait for the previous call; its loss shows on the bar
+            self.latest["step_loss"] = float(self.pending[-1]["loss"])
+            now = time.perf_counter()
+            self.since = self.since or (now, self.step)
+            self.bar.desc = "steps"
+            self.bar.set_postfix_str(_postfix(self.latest, self._seconds_left(now)), refresh=False)
+        self.state, metrics = self.run.learner.steps(self.state, batches)
+        self.pending.extend(metrics)
+        self.step += count
+        self.bar.update(count)
+
+    def _validate(self) -> None:
+        """Score the validation levels, append the metric line, rewrite the curve and end the run at its plateau."""
+        run, config = self.run, self.run.config
+        self.latest["train"] = _mean_metrics(self.pending)
+        self.pending = []
+        if run.validation_slots:
+            batches = _validation_batches(run.loader, run.validation_slots, config.validation.batch_size)
+            self.latest["validation"] = _combine(
+                [run.learner.score(self.state.params, batch, weight) for batch, weight in batches]
+            )
+        line = {"step": self.step, "train": self.latest["train"], "validation": self.latest["validation"]}
+        with open(run.run_dir / METRICS_FILE, "a") as metrics_file:
+            metrics_file.write(json.dumps(line) + "\n")
+        self.lines.append(line)
+        curve = _loss_curve(self.lines, config)
+        write_curve(run.run_dir, curve)
+        if curve["plateau_step"] is not None:
+            self.end = self.step
+        if run.tracking is not None:
+            run.tracking.log(_flat_metrics(line), step=self.step)
+        self.bar.set_postfix_str(_postfix(self.latest, self._seconds_left(time.perf_counter())))
+
+    def _checkpoint(self) -> None:
+        save_checkpoint(self.run.run_dir, self.step, jax.device_get(self.state), self.run.config.checkpoint.keep)
+        self.saved = self.step
+
+    def _seconds_left(self, now: float) -> float | None:
+        return seconds_left(self.since, now, self.step, self.run.config.train.num_steps)
+
+
+def _finish(run: _Run, loop: _TrainingLoop, level_ids: tuple[list, list]) -> TrainSummary:
+    """Write the final curve and <run>/summary.json, close the wandb run; the summary."""
+    curve = _loss_curve(loop.lines, run.config)
+    write_curve(run.run_dir, curve)
+    summary = _summary(run, loop, level_ids, curve)
+    (run.run_dir / SUMMARY_FILE).write_text(json.dumps(dataclasses.asdict(summary), indent=1))
+    if run.tracking is not None:
+        run.tracking.summary.update({"loader_wait_share": summary.loader_wait_share})
+        run.tracking.finish()
     return summary
 
 
@@ -534,16 +600,17 @@ def _postfix(latest: dict, left: float | None) -> str:
     return ", ".join(parts)
 
 
-def _summary(config, run_dir, start, step, level_ids, latest, times, learner) -> TrainSummary:
-    (train_ids, validation_ids), (seconds, wait) = level_ids, times
-    validation = latest["validation"]
-    train = latest["train"] or {"loss": float("nan"), "accuracy": float("nan")}
-    transitions = (step - start) * config.train.batch_size * learner.window_steps
+def _summary(run: _Run, loop: _TrainingLoop, level_ids: tuple[list, list], curve: dict) -> TrainSummary:
+    """The closing figures of the run after `loop`."""
+    (train_ids, validation_ids), seconds, wait = level_ids, loop.seconds, loop.wait
+    validation = loop.latest["validation"]
+    train = loop.latest["train"] or {"loss": float("nan"), "accuracy": float("nan")}
+    transitions = (loop.step - loop.start) * run.config.train.batch_size * run.learner.window_steps
     return TrainSummary(
-        run_dir=str(run_dir),
-        steps=step,
-        resumed_from=start,
-        devices=learner.num_devices,
+        run_dir=str(run.run_dir),
+        steps=loop.step,
+        resumed_from=loop.start,
+        devices=run.learner.num_devices,
         train_levels=len(train_ids),
         validation_levels=len(validation_ids),
         train_loss=train["loss"],
@@ -553,7 +620,10 @@ def _summary(config, run_dir, start, step, level_ids, latest, times, learner) ->
         validation_slot_accuracy=None if validation is None else validation["slot_accuracy"],
         seconds=seconds,
         loader_wait_seconds=wait,
-        cached=False,
+        cached=run.loader.cached,
         loader_wait_share=wait / seconds if seconds > 0 else 0.0,
         transitions_per_s=transitions / seconds if seconds > 0 else 0.0,
+        stopped=_stop_reason(curve, loop.step, run.config.train.num_steps),
+        best_step=curve["best_step"],
+        best_validation_loss=curve["best_validation_loss"],
     )
