@@ -75,6 +75,22 @@ def _parser(prog: str | None) -> tuple[argparse.ArgumentParser, dict[str, argpar
     )
     listing.add_argument("--size", choices=ENV_SIZES, help="only levels of this size")
 
+    _add_sample(commands)
+    _add_preview(commands)
+    importer = commands.add_parser(
+        "import", help="check a Kinetix level JSON and write it normalised", description=_IMPORT_DESCRIPTION
+    )
+    importer.add_argument("level", type=Path, help="Kinetix level JSON file")
+    importer.add_argument("--out", type=Path, help="normalised file (default outputs/levels/imported/<name>)")
+
+    _add_export(commands)
+    for subcommand in commands.choices.values():
+        add_common_options(subcommand)
+    return parser, commands.choices
+
+
+def _add_sample(commands) -> None:
+    """The `sample` subcommand's parser."""
     sample = commands.add_parser("sample", help="sample levels of a size from a seed", description=_SAMPLE_DESCRIPTION)
     sample.add_argument("--size", choices=ENV_SIZES, required=True, help="env size")
     sample.add_argument("--seed", type=int, required=True, help="split seed (configs/splits/*: split.seed)")
@@ -85,6 +101,9 @@ def _parser(prog: str | None) -> tuple[argparse.ArgumentParser, dict[str, argpar
     )
     sample.add_argument("--no-progress", action="store_true", help="no progress bar")
 
+
+def _add_preview(commands) -> None:
+    """The `preview` subcommand's parser."""
     preview = commands.add_parser(
         "preview", help="render a level to PNG (start) or GIF (episode)", description=_PREVIEW_DESCRIPTION
     )
@@ -109,12 +128,9 @@ def _parser(prog: str | None) -> tuple[argparse.ArgumentParser, dict[str, argpar
         help=f"GIF: physics scheme, as a job's env.physics (default {PLAY_PHYSICS_SCHEME}: Kinetix's play)",
     )
 
-    importer = commands.add_parser(
-        "import", help="check a Kinetix level JSON and write it normalised", description=_IMPORT_DESCRIPTION
-    )
-    importer.add_argument("level", type=Path, help="Kinetix level JSON file")
-    importer.add_argument("--out", type=Path, help="normalised file (default outputs/levels/imported/<name>)")
 
+def _add_export(commands) -> None:
+    """The `export` subcommand's parser."""
     export = commands.add_parser("export", help="write levels of a split config by id", description=_EXPORT_DESCRIPTION)
     export.add_argument(
         "config",
@@ -130,9 +146,6 @@ def _parser(prog: str | None) -> tuple[argparse.ArgumentParser, dict[str, argpar
     export.add_argument("--override", action="append", metavar="KEY=VALUE", help="deprecated: give KEY=VALUE alone")
     export.add_argument("--out", type=Path, help="folder for level-<id>.json (default outputs/levels/<split>)")
     export.add_argument("--no-progress", action="store_true", help="no progress bar")
-    for subcommand in commands.choices.values():
-        add_common_options(subcommand)
-    return parser, commands.choices
 
 
 def _check(args: argparse.Namespace, chosen: argparse.ArgumentParser) -> None:

@@ -28,16 +28,7 @@ def main(argv: Sequence[str] | None = None, prog: str | None = None) -> None:
     args = add_common_options(parser).parse_args(argv)
     require_dataset(args.dir)
 
-    from kforge.pipeline.storage import (
-        CONFIG_FILE,
-        DatasetError,
-        format_report,
-        join,
-        open_dataset,
-        shard_name,
-        verify_dataset,
-        withdraw_bad_batches,
-    )
+    from kforge.pipeline.storage import CONFIG_FILE, DatasetError, format_report, join, open_dataset, verify_dataset
 
     rerun = f"kforge run {join(args.dir, CONFIG_FILE)}"
     try:
@@ -47,21 +38,9 @@ def main(argv: Sequence[str] | None = None, prog: str | None = None) -> None:
         raise fail(error) from error
     print(format_report(reports))
     if args.repair:
-        withdrawn = withdraw_bad_batches(args.dir, reports)
-        for withdrawal in withdrawn:
-            print(f"withdrew the commit of {withdrawal.describe()}")
-        if withdrawn:
-            print(f"repaired: {len(withdrawn)} level batches to regenerate; next: {rerun}")
-        else:
-            print("nothing to repair")
+        _repair(args.dir, reports, rerun)
         return
-    bad = [shard_name(report.shard) for report in reports if not report.ok]
-    if bad:
-        print(f"verify failed: bad shards {', '.join(bad)}", file=sys.stderr)
-        if any(report.bad_batches for report in reports):
-            print(
-                f"to regenerate the bad level batches: kforge verify --repair {args.dir}, then {rerun}", file=sys.stderr
-            )
+    bad = _report_bad_shards(args.dir, reports, rerun)
     uncommitted = sum(batches_per_shard - len(report.committed) for report in reports)
     if uncommitted and not args.allow_incomplete:
         print(
@@ -71,3 +50,30 @@ def main(argv: Sequence[str] | None = None, prog: str | None = None) -> None:
         )
     if bad:
         raise SystemExit(EXIT_DATA)
+
+
+def _repair(dataset: str, reports: list, rerun: str) -> None:
+    """Withdraw the commits of the bad level batches, saying which and what to run next."""
+    from kforge.pipeline.storage import withdraw_bad_batches
+
+    withdrawn = withdraw_bad_batches(dataset, reports)
+    for withdrawal in withdrawn:
+        print(f"withdrew the commit of {withdrawal.describe()}")
+    if withdrawn:
+        print(f"repaired: {len(withdrawn)} level batches to regenerate; next: {rerun}")
+    else:
+        print("nothing to repair")
+
+
+def _report_bad_shards(dataset: str, reports: list, rerun: str) -> list[str]:
+    """The bad shards' names, said on stderr with how to regenerate their bad level batches."""
+    from kforge.pipeline.storage import shard_name
+
+    bad = [shard_name(report.shard) for report in reports if not report.ok]
+    if bad:
+        print(f"verify failed: bad shards {', '.join(bad)}", file=sys.stderr)
+        if any(report.bad_batches for report in reports):
+            print(
+                f"to regenerate the bad level batches: kforge verify --repair {dataset}, then {rerun}", file=sys.stderr
+            )
+    return bad

@@ -156,7 +156,7 @@ def export_kinetix(
     """
     dataset = open_dataset(dataset_dir)
     require_intact(dataset_dir)
-    layout, split = dataset.layout, dataset.spec.split
+    split = dataset.spec.split
     kept = kept_trajectories(dataset_dir)
     if not kept:
         raise DatasetError(f"{dataset_dir}: no committed trajectories to export")
@@ -164,47 +164,70 @@ def export_kinetix(
     if group.exists() and (not group.is_dir() or any(group.iterdir())):
         raise ExportTargetExists(f"{group}: output already exists and is not empty; remove it or choose another output")
     plan = shard_plan(len(kept), trajectories_per_shard, seed)
-    reader = TrajectoryDatasetManager(dataset_dir, batch_size=1)
-    dtype = record_dtype(layout)
-    compressor = numcodecs.Zstd(level=ZSTD_LEVEL)
+    source = _ShardSource(
+        TrajectoryDatasetManager(dataset_dir, batch_size=1),
+        dataset.layout,
+        record_dtype(dataset.layout),
+        numcodecs.Zstd(level=ZSTD_LEVEL),
+    )
     group.parent.mkdir(parents=True, exist_ok=True)
     staging = group.parent / f".{group.name}.partial-{uuid.uuid4().hex}"
-    attributes = {
-        "format": "Kinetix-Offline trajectories (kinetix-env 3.0.2 TrajectoryDatasetManager)",
-        "source": str(dataset_dir) if is_remote(dataset_dir) else str(Path(dataset_dir).resolve()),
-        "split": split,
-        "data_fingerprint": dataset.spec.attributes.get("data_fingerprint"),
-        "seed": seed,
-        "num_trajectories": len(kept),
-        "num_steps": layout.num_steps,
-        "action_type": layout.action_type.value,
-        "static_env_params": static_to_json(layout.static),
-    }
     shard_sizes = {}
     try:
-        create_group(staging, {EXPORT_ATTRIBUTE: attributes})
+        create_group(staging, {EXPORT_ATTRIBUTE: _export_attributes(dataset, dataset_dir, seed, len(kept))})
         with tqdm(total=len(kept), unit="traj", desc=f"export {split}", disable=not show_progress) as bar:
             for index, rows in enumerate(plan):
                 name = SHARD_NAME.format(index)
                 chosen = [kept[row] for row in rows]
-                ids = {"level_id": [t.level_id for t in chosen], "level_seed": [t.level_seed for t in chosen]}
-                array = RecordArray.create(
-                    staging / name,
-                    (len(chosen), layout.num_steps, 1),
-                    TRAJECTORIES_PER_CHUNK,
-                    dtype,
-                    compressor,
-                    {EXPORT_ATTRIBUTE: ids},
-                )
-                for chunk, start in enumerate(range(0, len(chosen), TRAJECTORIES_PER_CHUNK)):
-                    part = chosen[start : start + TRAJECTORIES_PER_CHUNK]
-                    batch = reader.load_slots(np.array([t.slot for t in part], np.int64))
-                    states, static = batch.env_state, layout.static
-                    records = kinetix_records(dtype, batch.action, batch.action_mask, batch.done, states, static)
-                    array.write_chunk(chunk, records)
-                    bar.update(len(part))
+                _write_shard(staging / name, chosen, source, bar)
                 shard_sizes[name] = len(chosen)
         os.rename(staging, group)
     finally:
         shutil.rmtree(staging, ignore_errors=True)
-    return ExportSummary(group, len(kept), shard_sizes, dtype.itemsize)
+    return ExportSummary(group, len(kept), shard_sizes, source.dtype.itemsize)
+
+
+def _export_attributes(dataset, dataset_dir: str | os.PathLike, seed: int, num_trajectories: int) -> dict:
+    """What the split's group attributes say of the export: its format, source dataset, seed and layout."""
+    layout = dataset.layout
+    return {
+        "format": "Kinetix-Offline trajectories (kinetix-env 3.0.2 TrajectoryDatasetManager)",
+        "source": str(dataset_dir) if is_remote(dataset_dir) else str(Path(dataset_dir).resolve()),
+        "split": dataset.spec.split,
+        "data_fingerprint": dataset.spec.attributes.get("data_fingerprint"),
+        "seed": seed,
+        "num_trajectories": num_trajectories,
+        "num_steps": layout.num_steps,
+        "action_type": layout.action_type.value,
+        "static_env_params": static_to_json(layout.static),
+    }
+
+
+@dataclasses.dataclass(frozen=True)
+class _ShardSource:
+    """Where an export's shards read their trajectories, and how they encode them."""
+
+    reader: TrajectoryDatasetManager  # the source dataset's loader
+    layout: Layout
+    dtype: np.dtype  # the Kinetix record (`record_dtype`)
+    compressor: numcodecs.abc.Codec
+
+
+def _write_shard(path: Path, chosen: list[KeptTrajectory], source: _ShardSource, bar: tqdm) -> None:
+    """Write the `chosen` trajectories, in order, as the shard array at `path`, chunk by chunk."""
+    layout, dtype = source.layout, source.dtype
+    ids = {"level_id": [t.level_id for t in chosen], "level_seed": [t.level_seed for t in chosen]}
+    array = RecordArray.create(
+        path,
+        (len(chosen), layout.num_steps, 1),
+        TRAJECTORIES_PER_CHUNK,
+        dtype,
+        source.compressor,
+        {EXPORT_ATTRIBUTE: ids},
+    )
+    for chunk, start in enumerate(range(0, len(chosen), TRAJECTORIES_PER_CHUNK)):
+        part = chosen[start : start + TRAJECTORIES_PER_CHUNK]
+        batch = source.reader.load_slots(np.array([t.slot for t in part], np.int64))
+        records = kinetix_records(dtype, batch.action, batch.action_mask, batch.done, batch.env_state, layout.static)
+        array.write_chunk(chunk, records)
+        bar.update(len(part))
