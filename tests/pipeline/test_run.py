@@ -245,6 +245,8 @@ def test_a_worker_killed_while_staging_is_replaced_and_nothing_is_lost_or_duplic
     assert process.returncode == 0, err.decode()[-3000:]
     summary = json_summary(out)
     assert len(summary["worker_failures"]) == 1 and summary["abandoned_shards"] == []
+    cause = summary["worker_failures"][0]["error"]
+    assert cause.startswith("ActorDiedError: ") and summary["worker_failure_causes"] == [f"1 {cause}"], cause
     assert [path for path in (output / STAGING_DIR).rglob("*") if path.is_file()] == []  # every marker committed
     assert_keeps_in_every_batch(output)
     assert all(report.ok for report in verify_dataset(output))
