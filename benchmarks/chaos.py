@@ -14,7 +14,8 @@ Each round draws, from a generator seeded with (--seed, round), what to hit, how
 - how: `sigkill`, `sigterm`, or `stop`: SIGSTOP for longer than the job's lease stale limit, then SIGCONT (for the
   driver, a second job takes the lease over and finishes the dataset meanwhile, and the stopped job must end with
   `LeaseLost` once continued: lease expiry);
-- when: after 0 to all-but-one committed level batches (0: while the job compiles its programs).
+- when: after 0 to all-but-one committed level batches (0: while the job compiles its programs), and for the driver
+  once it holds the dataset's lease.
 
 Then the job is run again to the end (a resume; it reports a complete dataset when the job finished by itself).
 Stores: `local` (a folder below --work) and `s3` (moto's S3 server started on 127.0.0.1 by this script). The job is
@@ -85,6 +86,8 @@ S3_ENV = {
     "AWS_EC2_METADATA_DISABLED": "true",
 }
 BUCKET = "kforge-chaos"
+LEASE_OBJECT = "lease.json"
+"""The lease object at a dataset's root while a job holds it (docs/operating.md)."""
 
 
 def committed(location: str) -> int:
@@ -93,6 +96,13 @@ def committed(location: str) -> int:
         if open_store(location).exists("data/zarr.json"):
             return sum(len(batches) for batches in all_committed(location).values())
     return 0
+
+
+def _holds_lease(location: str) -> bool:
+    """Whether a job holds the lease of the dataset at `location` (its lease object exists)."""
+    with contextlib.suppress(Exception):  # the store may not answer yet
+        return open_store(location).exists(LEASE_OBJECT)
+    return False
 
 
 def records(location: str) -> dict[str, str]:
@@ -258,8 +268,8 @@ def run_round(plan: dict, location: str, work: Path, env: dict, cache: Path) -> 
             reached = job.wait_for(
                 lambda: committed(location) >= after and _actor_processes(cluster.second.pid, "worker")
             )
-        else:
-            reached = job.wait_for(lambda: committed(location) >= after)
+        else:  # once the job holds the lease (a job stopped or ended before it took it has nothing to lose)
+            reached = job.wait_for(lambda: committed(location) >= after and _holds_lease(location))
         if not reached:
             notes.append("the job ended before the fault")  # not a failure: the round tests the resume only
         elif target == "driver":

@@ -161,8 +161,9 @@ def fail(error: BaseException, code: int | None = None) -> SystemExit:
 
 
 def _interrupt(signum, frame) -> None:
-    """SIGINT handler of the kforge process: KeyboardInterrupt where the main flow runs; inside a garbage-collector
-    callback (JAX has one), where Python would print and drop it, the signal is delivered again shortly after."""
+    """SIGINT and SIGTERM handler of the kforge process: KeyboardInterrupt where the main flow runs; inside a
+    garbage-collector callback (JAX has one), where Python would print and drop it, the signal is delivered again
+    shortly after."""
     callbacks = {getattr(callback, "__code__", None) for callback in gc.callbacks}
     while frame is not None:
         if frame.f_code in callbacks:
@@ -199,8 +200,14 @@ def main(argv: Sequence[str] | None = None) -> None:
     own_process = argv is None
     if own_process and signal.getsignal(signal.SIGINT) is signal.default_int_handler:
         signal.signal(signal.SIGINT, _interrupt)
+    if own_process and signal.getsignal(signal.SIGTERM) is signal.SIG_DFL:
+        signal.signal(signal.SIGTERM, _interrupt)  # from the start: a SIGTERM while JAX imports ends as Ctrl-C does
     try:
-        _run(argv)
+        try:
+            _run(argv)
+        except KeyboardInterrupt:  # before a subcommand runs (while arguments are parsed)
+            print("interrupted", file=sys.stderr)
+            raise SystemExit(EXIT_INTERRUPTED) from None
     except SystemExit as stop:
         if own_process and stop.code == EXIT_INTERRUPTED:
             _end_interrupted_process()

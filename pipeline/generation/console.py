@@ -169,6 +169,7 @@ def closing_summary(summary: dict, output_dir: str | os.PathLike) -> str:
         + f", {outcomes.get(KEPT, 0)} kept, {outcomes.get(UNSOLVED, 0)} unsolved, {outcomes.get(FAILED, 0)} failed",
         f"this run: {count(summary['committed_in_run'], 'level batch', 'level batches')} committed in "
         f"{tqdm.format_interval(summary['seconds'])}, {count(len(summary['worker_failures']), 'worker failure')}"
+        + (f" ({'; '.join(summary['worker_failure_causes'])})" if summary.get("worker_failure_causes") else "")
         + (f"; shards left for a later run: {summary['abandoned_shards']}" if summary["abandoned_shards"] else ""),
     ]
     if summary.get("log_file"):

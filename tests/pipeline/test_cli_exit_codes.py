@@ -104,3 +104,39 @@ def test_a_url_that_holds_no_dataset_exits_2_in_every_subcommand(tmp_path, capsy
         server.stop()
     assert set(codes.values()) == {EXIT_USAGE}, codes
     assert not (tmp_path / "card").exists() and not (tmp_path / "export").exists() and not (tmp_path / "bc").exists()
+
+
+SIGTERM_BIT = 1 << (signal.SIGTERM - 1)
+"""SIGTERM's bit in the signal masks of /proc/PID/status."""
+POLL_SECONDS = 0.001
+
+
+def _caught_signals(pid: int) -> int:
+    status = Path(f"/proc/{pid}/status").read_text()
+    return int(next(line.split()[1] for line in status.splitlines() if line.startswith("SigCgt:")), 16)
+
+
+@pytest.mark.skipif(not Path("/proc/self/status").exists(), reason="reads the signal masks of Linux's /proc")
+def test_a_sigterm_before_jax_is_imported_ends_the_run_with_130_and_one_line(tmp_path):
+    """The kforge process catches SIGTERM from its first line of its own code, before JAX is imported (an operator's
+    SIGTERM while a job starts): caught while no jaxlib library is loaded, it ends the run as Ctrl-C does."""
+    process = subprocess.Popen(
+        [sys.executable, "-m", "kforge", "run", "1M/s", "--scale", "tiny", f"output_dir={tmp_path / 'data'}"],
+        cwd=REPO,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        while process.poll() is None and not _caught_signals(process.pid) & SIGTERM_BIT:
+            time.sleep(POLL_SECONDS)
+        assert process.poll() is None, "kforge run ended before it caught SIGTERM"
+        jax_loaded = "jaxlib" in Path(f"/proc/{process.pid}/maps").read_text()
+        process.send_signal(signal.SIGTERM)
+        _, err = process.communicate(timeout=120)
+    finally:
+        process.kill()
+    assert not jax_loaded, "SIGTERM was caught only once JAX was imported"
+    assert process.returncode == EXIT_INTERRUPTED, err
+    lines = err.strip().splitlines()
+    assert "Traceback" not in err and len(lines) >= 1 and "interrupted" in lines[-1], err

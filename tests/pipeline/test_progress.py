@@ -132,14 +132,19 @@ def test_the_closing_summary_says_what_was_made_where_and_what_to_run_next(tmp_p
         "levels": 6,
         "outcomes": {"kept": 2, "unsolved": 1, "failed": 0, "filtered:trivial": 2, "filtered:no_actuator": 1},
         "seconds": 75.0,
-        "worker_failures": [{"shard": 1}],
+        "worker_failures": [{"shard": 1}, {"shard": 2}, {"shard": 2}],
+        "worker_failure_causes": [
+            "2 OutOfMemoryError: Task was killed due to the node running low on memory.",
+            "1 ActorDiedError: The actor died unexpectedly before finishing this task.",
+        ],
         "abandoned_shards": [],
         "log_file": str(tmp_path / "logs" / "run-1.log"),
     }
     assert closing_summary(summary, tmp_path).splitlines() == [
         f"dataset incomplete: 1 of 4 level batches remain: {tmp_path} (2.9 KiB)",
         "levels: 6 sampled, 3 filtered (no_actuator 1, trivial 2), 2 kept, 1 unsolved, 0 failed",
-        "this run: 2 level batches committed in 01:15, 1 worker failure",
+        "this run: 2 level batches committed in 01:15, 3 worker failures (2 OutOfMemoryError: Task was killed due to "
+        "the node running low on memory.; 1 ActorDiedError: The actor died unexpectedly before finishing this task.)",
         f"third-party logs: {tmp_path / 'logs' / 'run-1.log'}",
         "next:",
         f"  kforge run {tmp_path / 'config.yaml'}    # continue",
