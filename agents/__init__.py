@@ -21,15 +21,12 @@ _SOURCES = {
     "kforge.agents.policy": "sample",
     "kforge.agents.ppo": "Batch initial_params learn make_optimizer train_levels",
     "kforge.agents.segments": "check_segmented put_slot start_level train_segments",
-    "kforge.agents.stages": "EVALUATE START stage_functions train_in_stages",
 }
 """Module -> the public names it defines (separated by spaces), each imported when first used."""
 
 _MODULE_OF = {name: module for module, names in _SOURCES.items() for name in names.split()}
 
 __all__ = [
-    "EVALUATE",
-    "START",
     "Architecture",
     "Batch",
     "ImitationTerms",
@@ -48,9 +45,7 @@ __all__ = [
     "put_slot",
     "run_episode",
     "sample",
-    "stage_functions",
     "start_level",
-    "train_in_stages",
     "train_levels",
     "train_segments",
 ]

@@ -14,22 +14,13 @@ DATA_SECTIONS = ("split", "work", "filter", "env", "ppo", "experts", "collect")
 """Config sections that determine the dataset's content; a resumed job must agree on all of them."""
 
 
-FIXED_BUDGET_TRAINING = "stages"
-"""How a fixed budget's experts train: `agents.train_in_stages` (start, runs of updates and evaluations, each
-compiled apart). Part of a fixed-budget dataset's definition, since training compiled otherwise rounds otherwise
-(the one program of earlier code made other bytes)."""
-
-
 def data_definition(job: JobConfig) -> dict:
     """What defines the dataset's content, as JSON values: the config's data sections (`experts` only where a budget
-    mode reads it, the `training` programs where it does not), and the physics the levels play under: the scheme's
-    name, every engine parameter of a step and every solver setting (set by the code, not the config, so that data
-    made by code with other physics is told apart)."""
-    fixed = job.experts.budget_mode == FIXED_BUDGET_MODE
-    sections = [name for name in DATA_SECTIONS if name != "experts" or not fixed]
+    mode reads it), and the physics the levels play under: the scheme's name, every engine parameter of a step and
+    every solver setting (set by the code, not the config, so that data made by code with other physics is told
+    apart)."""
+    sections = [name for name in DATA_SECTIONS if name != "experts" or job.experts.budget_mode != FIXED_BUDGET_MODE]
     data = {section: dataclasses.asdict(getattr(job, section)) for section in sections}
-    if fixed:
-        data["training"] = FIXED_BUDGET_TRAINING
     params, static = environment(job)
     return data | {"physics": physics_definition(job.env.physics, params.sim, static.sim)}
 

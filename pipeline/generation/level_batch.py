@@ -22,7 +22,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from kforge.agents import EVALUATE, START, collect_windows, initial_params, stage_functions, train_in_stages
+from kforge.agents import collect_windows, initial_params, train_levels
 from kforge.env import FilterReason, Level, filter_levels, sample_levels
 from kforge.pipeline.generation.devices import over_local_devices
 from kforge.pipeline.generation.estimated_progress import ProgressListener, estimated_progress
@@ -143,9 +143,9 @@ def run_level_batch(
     filtered, dropped = filter_batch(job, levels)
     clock.lap("sample_and_filter")
 
-    stages = {name: compiling.result() for name, compiling in compiling_train.items()}
-    with estimated_progress(_program_key(job, len(indices)), config.num_updates, on_progress or _ignore_progress):
-        trained = jax.block_until_ready(train_in_stages(stages, levels, train_keys, params, config))
+    train = compiling_train.result()
+    with estimated_progress(train, config.num_updates, on_progress or _ignore_progress):
+        trained = jax.block_until_ready(train(levels, train_keys, params))
     clock.lap("train")
     metrics, selection = jax.device_get((trained.metrics, trained.selection))
     experts = Experts(
@@ -208,40 +208,29 @@ def batch_result(
     )
 
 
-def _compiling_train_program(job: ResolvedJob, indices: np.ndarray, keys: jax.Array) -> dict[str, Future]:
-    """The futures of the training stages (`agents.stage_functions`) for the job's level batches of this size, spread
-    over the local devices: compiled (or loaded from the persistent compilation cache) once per config and level
-    count in a process. Each is traced here, before the batch is sampled (tracing is Python: it holds the GIL), the
-    largest first, and compiled in the background while the calling thread traces the next stage and the
-    collection program, and samples and filters the batch (XLA compiles without holding the GIL: the stages'
-    compilations, the rollout's physics apart from the evaluation's, share the cores)."""
+def _compiling_train_program(job: ResolvedJob, indices: np.ndarray, keys: jax.Array) -> Future:
+    """The future of `train_levels` for the job's level batches of this size, spread over the local devices:
+    compiled (or loaded from the persistent compilation cache) once per config and level count in a process.
+    It is traced here, before the batch is sampled (tracing is Python: it holds the GIL), and compiled in the
+    background while the calling thread traces the filter and collection programs and samples and filters the batch
+    (XLA compiles without holding the GIL)."""
     env_params, static = job.env_params, job.static
     config = job.ppo
-    program = _program_key(job, len(keys))
+    program = (config, static, len(keys))
     compiling = _train_programs.get(program)
-    if compiling is None or any(future.done() and future.exception() is not None for future in compiling.values()):
-        stages = stage_functions(config, static)
+    if compiling is None or (compiling.done() and compiling.exception() is not None):
+
+        def train(levels, keys, env_params):
+            return train_levels(levels, keys, config, env_params, static)
+
         levels = _batch_shapes(job, indices)
-        training = jax.eval_shape(stages[START], levels, keys)
-        scalar = jax.ShapeDtypeStruct((), jnp.int32)
-        shared = {START: (), EVALUATE: (env_params, scalar, scalar)}
-        compiling = {}
-        for name in sorted(stages, key=lambda name: (name in (EVALUATE, START), name == START)):
-            level_args = (levels, keys) if name == START else (levels, training)
-            arguments = shared.get(name, (env_params,))
-            spread = over_local_devices(stages[name], len(keys), level_args=2, shared_args=len(arguments))
-            lowered = jax.jit(spread).lower(*level_args, *arguments)
-            compiling[name] = _in_background(lowered.compile)
-        _train_programs[program] = compiling
+        spread = over_local_devices(train, len(keys), level_args=2, shared_args=1)
+        lowered = jax.jit(spread).lower(levels, keys, env_params)
+        compiling = _train_programs[program] = _in_background(lowered.compile)
     return compiling
 
 
-def _program_key(job: ResolvedJob, num_levels: int) -> tuple:
-    """What the training stages of a level batch of `num_levels` levels are compiled for."""
-    return (job.ppo, job.static, num_levels)
-
-
-_train_programs: dict[tuple, dict[str, Future]] = {}
+_train_programs: dict[tuple, Future] = {}
 
 
 COMPILE_THREADS = 2
