@@ -38,6 +38,11 @@ def main(argv: Sequence[str] | None = None, prog: str | None = None) -> None:
     print(json.dumps(result, indent=1) if args.json else f"{report_table(result)}\nreport: {out}")
 
 
+UNSEEN_LEVELS = 512
+"""Unseen levels played by default: the learning layer's `UNSEEN_LEVELS`, named here so that parsing imports nothing
+heavy (tests/pipeline/test_cli_fast.py checks that they agree)."""
+
+
 def _parse_args(argv: Sequence[str] | None, prog: str | None) -> tuple[argparse.Namespace, tuple[str, ...]]:
     """(the arguments, the level sets to play), checked."""
     parser = argparse.ArgumentParser(prog=prog, description=main.__doc__)
@@ -49,7 +54,9 @@ def _parse_args(argv: Sequence[str] | None, prog: str | None) -> tuple[argparse.
     )
     parser.add_argument("--episodes", type=int, default=16, help="episodes per start state (default 16)")
     parser.add_argument("--greedy", action="store_true", help="act with the most probable choice per action slot")
-    parser.add_argument("--unseen-levels", type=int, default=256, help="unseen levels to play (default 256)")
+    parser.add_argument(
+        "--unseen-levels", type=int, default=UNSEEN_LEVELS, help=f"unseen levels to play (default {UNSEEN_LEVELS})"
+    )
     parser.add_argument("--max-levels", type=int, help="play at most this many levels of each set")
     parser.add_argument("--step", type=int, help="the checkpoint to evaluate (default the latest)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the episodes and of the stored starts drawn")

@@ -101,6 +101,14 @@ def test_the_bc_names_checked_without_jax_are_the_networks_and_evaluations():
     assert LEVEL_SETS == ("train", "validation", "unseen", "hand")
 
 
+def test_kforge_evaluate_plays_as_many_unseen_levels_by_default_as_the_library():
+    from kforge.pipeline.cli import evaluate as evaluate_command
+    from kforge.pipeline.learning.evaluation_sets import UNSEEN_LEVELS
+
+    args, _ = evaluate_command._parse_args(["a-run"], "kforge evaluate")
+    assert args.unseen_levels == evaluate_command.UNSEEN_LEVELS == UNSEEN_LEVELS == 512
+
+
 def test_render_and_preview_play_kinetix_unless_told_otherwise():
     from kforge.pipeline.cli import levels, render
 
