@@ -17,7 +17,10 @@ from kforge.pipeline.cli import EXIT_INTERRUPTED, EXIT_USAGE, main
 
 REPO = Path(__file__).resolve().parents[2]
 SIGINT_AFTER_SECONDS = 1.5
-"""[s] Every command below is still importing JAX or compiling by then on any machine."""
+"""[s] Every command below is still importing JAX, compiling or playing by then on any machine."""
+LONG_PLAY = ("--steps", "20000")
+"""Steps for the GIF commands: minutes of frames, so that one whose programs are in the compilation cache is still
+running when interrupted (a 256-step render ended before the signal once on a loaded machine)."""
 
 
 def interruptible(dataset: Path, tmp: Path) -> dict[str, list[str]]:
@@ -26,9 +29,9 @@ def interruptible(dataset: Path, tmp: Path) -> dict[str, list[str]]:
         "stats": ["stats", str(dataset), "--out", str(tmp / "card")],
         "export": ["export", "--format", "kinetix", str(dataset), str(tmp / "export")],
         "levels sample": ["levels", "sample", "--size", "s", "--seed", "0", "--num", "64", "--out", str(tmp / "lv")],
-        "levels preview": ["levels", "preview", "s/h0_weak_thrust", "--out", str(tmp / "h0.gif")],
-        "render": ["render", "s/h0_weak_thrust", "--out", str(tmp / "render.gif")],
-        "demo": ["demo", "--out", str(tmp / "demo.gif")],
+        "levels preview": ["levels", "preview", "s/h0_weak_thrust", "--out", str(tmp / "h0.gif"), *LONG_PLAY],
+        "render": ["render", "s/h0_weak_thrust", "--out", str(tmp / "render.gif"), *LONG_PLAY],
+        "demo": ["demo", "--out", str(tmp / "demo.gif"), *LONG_PLAY],
         "bc train": ["bc", "train", str(dataset), f"output_dir={tmp / 'bc'}", "tracking.wandb=disabled"],
     }
 
