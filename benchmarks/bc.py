@@ -52,6 +52,10 @@ SFL_ANCHORS = {
 """Kinetix's general agent (trained on millions of sampled levels by SFL) on its hand-designed and on randomly
 sampled levels, by size."""
 
+EPOCHS_PER_VALIDATION = 5
+"""Passes over the training trajectories between two validations: the plateau rule (configs/bc.yaml's patience) then
+stops a run after `patience * EPOCHS_PER_VALIDATION` epochs without a better validation loss, whatever the count."""
+
 TRAJECTORIES_PER_BATCH = 32
 """Trajectories per BC batch (Kinetix's offline BC), or all training trajectories when fewer."""
 
@@ -78,12 +82,17 @@ def stage(work_dir: Path, name: str, settings: dict, compute, log) -> dict:
 
 
 def budget(levels: int, epochs: int, batch_size: int) -> dict:
-    """The budget rule: `epochs` passes over the training trajectories (one per level) in batches of at most
-    `batch_size`."""
+    """The budget rule: at most `epochs` passes over the training trajectories (one per level) in batches of at most
+    `batch_size`, validated every `EPOCHS_PER_VALIDATION` passes (so the plateau rule stops every count alike)."""
     validation = min(levels - 1, max(1, math.ceil(VALIDATION_FRACTION * levels))) if levels > 1 else 0
     trajectories = levels - validation
     batch = min(batch_size, trajectories)
-    return {"batch_size": batch, "num_steps": max(1, math.ceil(epochs * trajectories / batch))}
+    steps_per_epoch = trajectories / batch
+    return {
+        "batch_size": batch,
+        "num_steps": max(1, math.ceil(epochs * steps_per_epoch)),
+        "validate_every_steps": max(1, math.ceil(EPOCHS_PER_VALIDATION * steps_per_epoch)),
+    }
 
 
 def train_stage(args, count: int, log) -> dict:
@@ -94,8 +103,8 @@ def train_stage(args, count: int, log) -> dict:
         f"train.levels={count}",
         f"train.num_steps={rule['num_steps']}",
         f"train.batch_size={rule['batch_size']}",
-        f"validation.every_steps={max(1, rule['num_steps'] // 10)}",
-        f"checkpoint.every_steps={max(1, rule['num_steps'] // 10)}",
+        f"validation.every_steps={rule['validate_every_steps']}",
+        f"checkpoint.every_steps={rule['validate_every_steps']}",
         "tracking.wandb=disabled",
     ]
     summary = train_bc(load_bc_config(args.dataset, overrides), show_progress=False, report=log)
