@@ -145,10 +145,12 @@ def _outcomes(levels, params, static, episodes: int, key, log=None) -> np.ndarra
     return np.concatenate(codes).reshape(num_levels, episodes)
 
 
-def run_kinetix(python: Path, arguments: list[str], log, receive=lambda document: None) -> None:
-    """Run Kinetix's side with `arguments`: each JSON document it prints goes to `receive` as it arrives, and each
-    progress line it writes (`kinetix ...`) to `log`."""
-    command = baseline_command(python, KINETIX_BASELINE, *arguments)
+def run_kinetix(
+    python: Path, arguments: list[str], log, receive=lambda document: None, baseline: str = KINETIX_BASELINE
+) -> None:
+    """Run Kinetix's side (`benchmarks/<baseline>.py`) with `arguments`: each JSON document it prints goes to
+    `receive` as it arrives, and each progress line it writes (`kinetix ...`) to `log`."""
+    command = baseline_command(python, baseline, *arguments)
     process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=REPOSITORY)
     errors: list[str] = []
 
@@ -166,6 +168,25 @@ def run_kinetix(python: Path, arguments: list[str], log, receive=lambda document
     reader.join()
     if process.returncode != 0:
         raise RuntimeError(f"Kinetix's side failed:\n{''.join(errors)[-3000:]}")
+
+
+def level_paths(
+    python: Path, sizes: list[str], hand: bool, random_levels: int, seed: int, level_dir: Path, log
+) -> dict[str, str]:
+    """Level name ("hand/s/h1_thrust_over_ball", "random/s/k0-00001") -> level file: the hand-designed levels of
+    `sizes` if `hand`, and the first `random_levels` levels of each size that Kinetix's sampler draws with `seed`,
+    sampled into `level_dir` by Kinetix's side unless an earlier run left them there."""
+    paths = {}
+    for size in sizes if hand else ():
+        for name in list_levels(size):
+            paths[f"hand/{name}"] = str(bundled_level_path(name))
+    for size in sizes if random_levels else ():
+        files = [level_dir / size / f"k{seed}-{index:05d}.json" for index in range(random_levels)]
+        if not all(file.is_file() for file in files):
+            log(f"sampling {random_levels} {size} levels with Kinetix's sampler into {level_dir / size}")
+            run_kinetix(python, ["--sample", f"{size}:{random_levels}:{seed}", "--sample-dir", str(level_dir)], log)
+        paths.update({f"random/{size}/{file.stem}": str(file) for file in files})
+    return paths
 
 
 class KinetixStore:
@@ -340,18 +361,7 @@ def main(argv=None) -> None:
 
     python = kinetix_python(args.kinetix_venv, log)
     level_dir = (args.level_dir or Path(tempfile.mkdtemp(prefix="kforge-fidelity-"))).absolute()  # for Kinetix's side
-    paths = {}
-    if not args.no_hand:
-        for size in args.sizes:
-            for name in list_levels(size):
-                paths[f"hand/{name}"] = str(bundled_level_path(name))
-    for size in args.sizes if args.random_levels else ():
-        files = [level_dir / size / f"k{args.seed}-{index:05d}.json" for index in range(args.random_levels)]
-        if not all(file.is_file() for file in files):  # sampled by an earlier run into the same --level-dir
-            spec = f"{size}:{args.random_levels}:{args.seed}"
-            log(f"sampling {args.random_levels} {size} levels with Kinetix's sampler into {level_dir / size}")
-            run_kinetix(python, ["--sample", spec, "--sample-dir", str(level_dir)], log)
-        paths.update({f"random/{size}/{file.stem}": str(file) for file in files})
+    paths = level_paths(python, args.sizes, not args.no_hand, args.random_levels, args.seed, level_dir, log)
     listing = level_dir / "levels.txt"
     listing.parent.mkdir(parents=True, exist_ok=True)
 
