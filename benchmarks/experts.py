@@ -41,7 +41,9 @@ import functools
 import json
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -52,13 +54,11 @@ from kforge.agents import collect_windows, evaluate, train_levels
 from kforge.configs import split_path
 from kforge.env import FilterReason, Level, StaticEnvParams, bundled_level_path, filter_levels, load_level
 from kforge.pipeline.generation import (
-    JobConfig,
     KeyPurpose,
-    environment,
+    ResolvedJob,
     level_key,
     level_keys,
     load_config,
-    ppo_config,
     resolve,
     sample_batch,
 )
@@ -102,33 +102,31 @@ def hand_range(first: int, count: int | None, available: int, error) -> tuple[in
     return first, count
 
 
-def sample_split_levels(job: JobConfig, first: int, count: int) -> Level:
+def sample_split_levels(job: ResolvedJob, first: int, count: int) -> Level:
     """The split's levels first, ..., first + count - 1, sampled in the pipeline's batches (`work.levels_per_batch`
     levels per call, aligned as in pipeline/generation/level_batch.py, since XLA may round differently for another
     shape)."""
     batch = job.work.levels_per_batch
     aligned = first - first % batch
-    resolved = resolve(job)
-    chunks = [sample_batch(resolved, np.arange(start, start + batch)) for start in range(aligned, first + count, batch)]
+    chunks = [sample_batch(job, np.arange(start, start + batch)) for start in range(aligned, first + count, batch)]
     return jax.tree.map(lambda *x: jnp.concatenate(x)[first - aligned : first - aligned + count], *chunks)
 
 
 class _BatchExperts:
-    """One vmapped batch's experts: rolls out their windows and evaluates them with per-level keys."""
+    """One vmapped batch's experts: rolls out their windows and evaluates them with per-level keys (`job`: the
+    resolved job whose settings they were trained with)."""
 
-    def __init__(self, job: JobConfig, params, levels: Level, seed: int, indices: np.ndarray):
+    def __init__(self, job: ResolvedJob, params, levels: Level, seed: int, indices: np.ndarray):
         self.job, self.params, self.levels, self.seed, self.indices = job, params, levels, seed, indices
-        self.config = ppo_config(job)
-        self.env_params, self.static = environment(job)
 
     def window(self):
         return collect_windows(
             self.params,
             self.levels,
             level_keys(self.seed, self.indices, KeyPurpose.COLLECT),
-            self.config,
-            self.env_params,
-            self.static,
+            self.job.ppo,
+            self.job.env_params,
+            self.job.static,
             num_steps=self.job.collect.window_steps,
             greedy=self.job.collect.greedy,
         )
@@ -140,9 +138,9 @@ class _BatchExperts:
             self.params,
             self.levels,
             keys,
-            self.config,
-            self.env_params,
-            self.static,
+            self.job.ppo,
+            self.job.env_params,
+            self.job.static,
             num_episodes=episodes,
             greedy=self.job.collect.greedy,
         )
@@ -158,20 +156,19 @@ def _timed(function, warm_up: bool) -> tuple[object, float]:
 
 
 def run_experts(
-    job: JobConfig, levels: Level, seed: int, first: int, batch: int, episodes: int, programs: dict, log
+    job: ResolvedJob, levels: Level, seed: int, first: int, batch: int, episodes: int, programs: dict, log
 ) -> dict:
     """Train, roll out and evaluate one expert per level in vmapped batches of `batch` levels (the last padded).
 
-    Level j of `levels` gets the keys of level `first + j` of its set, so a range measured in parts gets the same
-    results as in one run with the same `batch`.
+    The experts use the env, PPO and collection settings of `job`. Level j of `levels` gets the keys of level
+    `first + j` of its set, so a range measured in parts gets the same results as in one run with the same `batch`.
 
     `programs` holds compiled training programs by (PPO config, static params, batch size), shared between calls.
     Returns per-level arrays (window success, episodes ended in the window, evaluation success rate, last update's
     training success rate, env steps of the selected expert) and seconds: compiling the training (0 when reused),
     and training / window / evaluation summed over batches.
     """
-    env_params, static = environment(job)
-    config = ppo_config(job)
+    env_params, static, config = job.env_params, job.static, job.ppo
     count = len(jax.tree.leaves(levels)[0])
     padded = -(-count // batch) * batch
     names = ("successful", "episodes_ended", "eval_success_rate", "train_success_rate", "selected_env_steps")
@@ -235,17 +232,24 @@ def summarise(per_level: dict, keep: np.ndarray, seconds: dict, count: int, padd
     }
 
 
-def measure_set(
-    name: str, ids: list, levels: Level, seed: int, first: int, args, programs: dict, log, random: bool
-) -> dict:
+class Measurement(NamedTuple):
+    """What every level set of one run shares: the command's arguments, the split's job at their settings (resolved
+    once), the compiled training programs and where lines go."""
+
+    args: argparse.Namespace
+    base: ResolvedJob
+    programs: dict  # compiled training programs by (PPO config, static params, batch size)
+    log: Callable[[str], None]
+
+
+def measure_set(name: str, ids: list, levels: Level, seed: int, first: int, measurement: Measurement, random: bool):
     """Every budget on one level set: the filter's verdicts, then per budget the experts' results and summary.
 
     Level j of `levels` is level `first + j` of its set (its keys). `random`: the set is sampled from the level
     distribution, so Kinetix-Offline's solved share is its reference.
     """
-    base = load_config(SPLIT_CONFIG, args.set, args.scale)
-    env_params, static = environment(base)
-    verdicts = jax.device_get(filter_levels(levels, env_params, static, noop_steps=base.filter.noop_steps))
+    args, base, log = measurement.args, measurement.base, measurement.log
+    verdicts = jax.device_get(filter_levels(levels, base.env_params, base.static, noop_steps=base.filter.noop_steps))
     keep = np.asarray(verdicts.keep)
     count = len(ids)
     log(f"{name}: {count} levels, {int(keep.sum())} kept by the trivial-level filter")
@@ -256,11 +260,11 @@ def measure_set(
     }
     reference = f" (Kinetix-Offline ~{KINETIX_OFFLINE_SOLVED_SHARE:.0%})" if random else ""
     for budget in args.budgets:
-        job = load_config(SPLIT_CONFIG, [*args.set, f"split.expert_budget={budget}"], args.scale)
-        config = ppo_config(job)
+        job = resolve(load_config(SPLIT_CONFIG, [*args.set, f"split.expert_budget={budget}"], args.scale))
+        config = job.ppo
         log(f"{name} budget {budget:,}: {config.num_updates} updates of {config.num_envs} x {config.num_steps} steps")
         batch = args.batch or job.work.levels_per_batch
-        run = run_experts(job, levels, seed, first, batch, args.episodes, programs, log)
+        run = run_experts(job, levels, seed, first, batch, args.episodes, measurement.programs, log)
         summary = summarise(run["per_level"], keep, run["seconds"], count, run["padded_levels"])
         log(_summary_line(name, budget, summary, reference))
         report["budgets"][str(budget)] = {
@@ -429,21 +433,21 @@ def main(argv=None) -> None:
         "batch": args.batch,
         "sets": {},
     }
-    job = load_config(SPLIT_CONFIG, args.set, args.scale)
-    report["expert_selection"] = {key: getattr(ppo_config(job), key) for key in SELECTION_SETTINGS}
-    programs = {}  # compiled training programs, shared by the level sets
+    job = resolve(load_config(SPLIT_CONFIG, args.set, args.scale))
+    report["expert_selection"] = {key: getattr(job.ppo, key) for key in SELECTION_SETTINGS}
+    measurement = Measurement(args, job, {}, log)
     if "random" in args.sets:
         ids = list(range(args.first_level, args.first_level + args.levels))
         levels = sample_split_levels(job, args.first_level, args.levels)
         report["sets"]["random"] = measure_set(
-            "random s", ids, levels, job.split.seed, args.first_level, args, programs, log, random=True
+            "random s", ids, levels, job.split.seed, args.first_level, measurement, random=True
         )
     if "hand" in args.sets:
-        names, levels = load_hand_levels(args.hand_levels, environment(job)[1])
+        names, levels = load_hand_levels(args.hand_levels, job.static)
         first, count = hand_range(args.hand_first, args.hand_count, len(names), parser.error)
         names, levels = names[first : first + count], jax.tree.map(lambda x: x[first : first + count], levels)
         report["sets"]["hand"] = measure_set(
-            "hand-designed s", names, levels, HAND_LEVELS_SEED, first, args, programs, log, random=False
+            "hand-designed s", names, levels, HAND_LEVELS_SEED, first, measurement, random=False
         )
     if args.json:
         print(json.dumps(report, indent=2))

@@ -22,7 +22,7 @@ from pathlib import Path
 
 from benchmarks.kinetix_venv import DEFAULT_KINETIX_VENV, kinetix_python
 from benchmarks.ppo import measure_kinetix
-from kforge.pipeline.generation import load_config, ppo_config, run_job
+from kforge.pipeline.generation import load_config, resolve, run_job
 from kforge.pipeline.storage import Outcome, iter_records
 
 RELEASE_SPLIT = "1M/s"
@@ -96,7 +96,7 @@ def measure_kinetix_ppo(args, log) -> dict:
     job = load_config(RELEASE_SPLIT, ["output_dir=unused", *args.set])
     python = kinetix_python(args.kinetix_venv, log)
     options = types.SimpleNamespace(updates=args.kinetix_updates, repeats=1, kinetix_network="kinetix")
-    return measure_kinetix(python, job.split.size, ppo_config(job), options)
+    return measure_kinetix(python, job.split.size, resolve(job).ppo, options)
 
 
 def kinetix_cost(measured: dict, fixed: dict) -> dict:

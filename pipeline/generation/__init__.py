@@ -12,7 +12,7 @@ __getattr__, __all__ = lazy_surface(
     {
         "kforge.pipeline.generation.config_yaml": "to_yaml",
         "kforge.pipeline.generation.loading": "load_config load_yaml merge_layers parse_overrides to_schema_object",
-        "kforge.pipeline.generation.resolved": "environment ppo_config resolve",
+        "kforge.pipeline.generation.resolved": "ResolvedJob resolve",
         "kforge.pipeline.generation.schema": "TRACKING_MODES ConfigError EnvSection JobConfig",
         "kforge.pipeline.generation.sources": "absolute_output_dir",
         "kforge.pipeline.generation.console": "closing_summary seconds_left",

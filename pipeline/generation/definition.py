@@ -7,22 +7,22 @@ import hashlib
 import json
 import math
 
-from kforge.pipeline.generation.resolved import environment
-from kforge.pipeline.generation.schema import FIXED_BUDGET_MODE, JobConfig
+from kforge.pipeline.generation.resolved import ResolvedJob
+from kforge.pipeline.generation.schema import FIXED_BUDGET_MODE
 
 DATA_SECTIONS = ("split", "work", "filter", "env", "ppo", "experts", "collect")
 """Config sections that determine the dataset's content; a resumed job must agree on all of them."""
 
 
-def data_definition(job: JobConfig) -> dict:
+def data_definition(job: ResolvedJob) -> dict:
     """What defines the dataset's content, as JSON values: the config's data sections (`experts` only where a budget
     mode reads it), and the physics the levels play under: the scheme's name, every engine parameter of a step and
     every solver setting (set by the code, not the config, so that data made by code with other physics is told
     apart)."""
-    sections = [name for name in DATA_SECTIONS if name != "experts" or job.experts.budget_mode != FIXED_BUDGET_MODE]
-    data = {section: dataclasses.asdict(getattr(job, section)) for section in sections}
-    params, static = environment(job)
-    return data | {"physics": physics_definition(job.env.physics, params.sim, static.sim)}
+    config = job.config
+    sections = [name for name in DATA_SECTIONS if name != "experts" or config.experts.budget_mode != FIXED_BUDGET_MODE]
+    data = {section: dataclasses.asdict(getattr(config, section)) for section in sections}
+    return data | {"physics": physics_definition(config.env.physics, job.env_params.sim, job.static.sim)}
 
 
 def physics_definition(scheme: str, sim, static_sim) -> dict:
@@ -53,7 +53,7 @@ GROWABLE_KEY = ("split", "num_levels")
 level whatever the count), so the data fingerprint leaves it out."""
 
 
-def data_fingerprint(job: JobConfig) -> str:
+def data_fingerprint(job: ResolvedJob) -> str:
     """Hash of `data_definition` without `split.num_levels`: equal fingerprints mean that level i's data is the same
     in both datasets, whatever their level counts."""
     return definition_fingerprint(data_definition(job))

@@ -20,7 +20,7 @@ from kforge.pipeline.generation.coordinator import Coordinator, ShardNotHeld
 from kforge.pipeline.generation.definition import data_definition, data_fingerprint
 from kforge.pipeline.generation.growth import reconcile_dataset
 from kforge.pipeline.generation.level_batch import batches_per_shard, num_shards
-from kforge.pipeline.generation.resolved import environment
+from kforge.pipeline.generation.resolved import ResolvedJob, resolve
 from kforge.pipeline.generation.schema import JobConfig
 from kforge.pipeline.generation.tracking import Tracker, start_tracking
 from kforge.pipeline.generation.worker import Worker
@@ -58,11 +58,10 @@ RAY_QUIET_ENV = {"RAY_AUTH_MODE": "disabled", "RAY_USAGE_STATS_ENABLED": "0"}
 """Embedded local Ray: no token auth (a private, single-user instance) and no usage reporting."""
 
 
-def dataset_spec(job: JobConfig) -> DatasetSpec:
+def dataset_spec(job: ResolvedJob) -> DatasetSpec:
     """What the dataset directory must hold for this job: layout, geometry, split, and the data-defining config."""
-    _, static = environment(job)
     return DatasetSpec(
-        layout=make_layout(static, ActionType.MULTI_DISCRETE, num_steps=job.collect.window_steps),
+        layout=make_layout(job.static, ActionType.MULTI_DISCRETE, num_steps=job.collect.window_steps),
         geometry=Geometry(num_shards(job), batches_per_shard(job), job.work.levels_per_batch),
         split=job.split.name,
         attributes={
@@ -72,17 +71,18 @@ def dataset_spec(job: JobConfig) -> DatasetSpec:
     )
 
 
-def prepare_output(job: JobConfig) -> list[tuple[int, int]]:
+def prepare_output(job: ResolvedJob) -> list[tuple[int, int]]:
     """Create the dataset, or check that an existing one was made with the same data-defining config and grow it if
     the job has more levels (`reconcile_dataset`); returns the commits growing withdrew.
 
     Call it under the job's lease on the dataset (`Lease.acquire`). config.yaml is written as one object (atomic on
     a filesystem and on object stores)."""
-    store = open_store(job.output_dir)
+    output_dir = job.config.output_dir
+    store = open_store(output_dir)
     spec = dataset_spec(job)
-    withdrawn = reconcile_dataset(job.output_dir, spec) if store.exists("data/zarr.json") else []
+    withdrawn = reconcile_dataset(output_dir, spec) if store.exists("data/zarr.json") else []
     create_dataset(store, spec)
-    store.write(CONFIG_FILE, to_yaml(job).encode())
+    store.write(CONFIG_FILE, to_yaml(job.config).encode())
     return withdrawn
 
 
@@ -99,19 +99,24 @@ def run_job(
     dataset whose commits name missing or damaged files is refused with `DatasetDamaged`. The job holds the
     dataset's lease while it runs (`LeaseHeld` if another job does). Without Ray (`ray.num_workers=0`), XLA's
     deterministic GPU ops (`ray.deterministic_gpu_ops`) apply to this process only if it has not computed with JAX
-    before the call, as under `kforge run`."""
+    before the call, as under `kforge run`. The job is resolved once, here (`resolve`): the driver and every worker
+    take its settings from that."""
     if job.ray.num_workers == IN_PROCESS and job.ray.deterministic_gpu_ops:
         use_deterministic_ops()  # before this process's first computation (XLA reads its flags once)
+    resolved = resolve(job)  # computes nothing with JAX: plain values, which workers receive as they are
     lease = Lease.acquire(job.output_dir, job.lease.stale_after_s, job.lease.heartbeat_s)
     try:
-        return _run_leased(job, lease, max_batches, show_progress, verbose, report)
+        return _run_leased(resolved, lease, max_batches, show_progress, verbose, report)
     finally:
         lease.release()
 
 
-def _run_leased(job: JobConfig, lease: Lease, max_batches: int | None, show_progress: bool, verbose: bool, report):
+def _run_leased(
+    resolved: ResolvedJob, lease: Lease, max_batches: int | None, show_progress: bool, verbose: bool, report
+):
     """`run_job` while holding the dataset's lease."""
-    withdrawn = prepare_output(job)
+    job = resolved.config
+    withdrawn = prepare_output(resolved)
     require_intact(job.output_dir, then="this command again", read_objects=False)  # records and a listing
     total = num_shards(job) * batches_per_shard(job)
     found = _committed_count(job)
@@ -125,7 +130,7 @@ def _run_leased(job: JobConfig, lease: Lease, max_batches: int | None, show_prog
     failures = WorkerFailures()
     tracker = None
     try:
-        tracker = start_tracking(job)
+        tracker = start_tracking(resolved)
         max_lease_age_s = commit_age_limit(job.lease.stale_after_s, job.lease.heartbeat_s)
         shards = (
             job.output_dir,
@@ -138,9 +143,9 @@ def _run_leased(job: JobConfig, lease: Lease, max_batches: int | None, show_prog
         bar = ProgressBar(found, total, enabled=show_progress)
         try:
             if job.ray.num_workers == IN_PROCESS:
-                _work_in_process(job, _Observed(Coordinator(*shards), lease, tracker, bar), failures)
+                _work_in_process(resolved, _Observed(Coordinator(*shards), lease, tracker, bar), failures)
             else:
-                _work_on_ray(job, shards, _Driver(lease, tracker, bar, failures), verbose, previous_handler)
+                _work_on_ray(resolved, shards, _Driver(lease, tracker, bar, failures), verbose, previous_handler)
         finally:
             bar.close()
     except KeyboardInterrupt:
@@ -203,7 +208,7 @@ class _Driver(NamedTuple):
     failures: WorkerFailures
 
 
-def _work_on_ray(job, shards: tuple, driver: _Driver, verbose: bool, sigterm_handler) -> None:
+def _work_on_ray(job: ResolvedJob, shards: tuple, driver: _Driver, verbose: bool, sigterm_handler) -> None:
     """Run the coordinator (`Coordinator(*shards)`) as an actor and `ray.num_workers` worker actors until no shard
     is left: a failed shard is recorded in `driver.failures` and handed out again, up to `MAX_SHARD_ATTEMPTS` times;
     a dead or unreachable worker is killed (`ray.kill`: one unreachable but alive must not write beside its
@@ -215,13 +220,13 @@ def _work_on_ray(job, shards: tuple, driver: _Driver, verbose: bool, sigterm_han
         os.environ.setdefault(name, value)
     started_ray = not ray.is_initialized()
     if started_ray:
-        _init_ray(job, verbose)
+        _init_ray(job.config, verbose)
         if sigterm_handler is not None:  # Ray's own SIGTERM handler (a crash report) replaced ours
             signal.signal(signal.SIGTERM, _terminate_as_interrupt)
     actors = _RayActors(job)
     try:
         coordinator = actors.start_coordinator(shards, driver.lease.holder.job_id)
-        for i in range(job.ray.num_workers):
+        for i in range(job.config.ray.num_workers):
             actors.assign(actors.start_worker(f"worker-{i}"), f"worker-{i}")
         while actors.in_flight:
             driver.lease.check()
@@ -240,7 +245,7 @@ def _work_on_ray(job, shards: tuple, driver: _Driver, verbose: bool, sigterm_han
 class _RayActors:
     """A run's coordinator actor and worker actors on Ray, and the shard task each busy worker runs."""
 
-    def __init__(self, job: JobConfig):
+    def __init__(self, job: ResolvedJob):
         import ray
 
         self._ray = ray
@@ -262,12 +267,12 @@ class _RayActors:
         self.coordinator = coordinator_class.remote(*shards)
         self.started.append(self.coordinator)
         self._worker_class = self._ray.remote(Worker).options(
-            num_cpus=self._job.ray.cpus_per_worker, num_gpus=self._job.ray.gpus_per_worker
+            num_cpus=self._job.config.ray.cpus_per_worker, num_gpus=self._job.config.ray.gpus_per_worker
         )
         return self.coordinator
 
     def start_worker(self, name: str):
-        """Start a worker actor called `name`."""
+        """Start a worker actor called `name`, with the driver's resolved job."""
         worker = self._worker_class.remote(self._job, name)
         self.started.append(worker)
         return worker
@@ -314,7 +319,7 @@ class _RayActors:
             self._ray.kill(started, no_restart=True)
 
 
-def _work_in_process(job: JobConfig, coordinator: _Observed, failures: WorkerFailures) -> None:
+def _work_in_process(job: ResolvedJob, coordinator: _Observed, failures: WorkerFailures) -> None:
     """The work of `_work_on_ray` in this process, without Ray: one worker takes shard after shard; a shard whose
     work raises is recorded and handed out again as on Ray (a crash of the process ends the run, as an interrupt)."""
     worker = Worker(job, IN_PROCESS_WORKER)

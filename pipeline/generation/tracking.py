@@ -22,6 +22,7 @@ from kforge.pipeline.generation.console import log_dir
 from kforge.pipeline.generation.coordinator import Commit
 from kforge.pipeline.generation.definition import data_fingerprint
 from kforge.pipeline.generation.level_batch import batches_per_shard
+from kforge.pipeline.generation.resolved import ResolvedJob
 from kforge.pipeline.generation.schema import TRACKING_MODES, ConfigError, JobConfig
 from kforge.pipeline.storage import FAILED, FILTERED_PREFIX, KEPT, PADDING, PROVENANCE, UNSOLVED, read_record_json
 
@@ -187,8 +188,9 @@ class Tracker:
         wandb.teardown()  # finish() may return before wandb's service process has written the .wandb file
 
 
-def start_tracking(job: JobConfig) -> Tracker:
+def start_tracking(resolved: ResolvedJob) -> Tracker:
     """A tracker for the job: a started wandb run in the job's mode, or a disabled one."""
+    job = resolved.config
     mode = tracking_mode(job)
     if mode == "disabled":
         return Tracker(job)
@@ -203,7 +205,7 @@ def start_tracking(job: JobConfig) -> Tracker:
         name=job.tracking.name,
         dir=str(directory),
         job_type="datagen",
-        config=dataclasses.asdict(job) | {"data_fingerprint": data_fingerprint(job)},
+        config=dataclasses.asdict(job) | {"data_fingerprint": data_fingerprint(resolved)},
         settings=wandb.Settings(console="off", save_code=False, disable_git=True),
     )
     run.define_metric(BATCH_STEP)

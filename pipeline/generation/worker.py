@@ -10,8 +10,8 @@ from kforge.engine import use_deterministic_ops
 from kforge.pipeline.generation.adaptive import streamed_level_batches
 from kforge.pipeline.generation.compile_cache import enable_compile_cache
 from kforge.pipeline.generation.level_batch import run_level_batch
-from kforge.pipeline.generation.resolved import resolve
-from kforge.pipeline.generation.schema import FIXED_BUDGET_MODE, JobConfig
+from kforge.pipeline.generation.resolved import ResolvedJob
+from kforge.pipeline.generation.schema import FIXED_BUDGET_MODE
 from kforge.pipeline.storage import (
     PROVENANCE,
     BatchTrajectories,
@@ -24,14 +24,16 @@ from kforge.pipeline.storage import (
 
 
 class Worker:
-    """Generates level batches for the shards the coordinator leases to it (one writer per shard)."""
+    """Generates level batches for the shards the coordinator leases to it (one writer per shard), with the settings
+    of the job the driver resolved (`resolve`)."""
 
-    def __init__(self, job: JobConfig, name: str):
+    def __init__(self, resolved: ResolvedJob, name: str):
+        job = resolved.config
         if job.ray.deterministic_gpu_ops:
             use_deterministic_ops()  # before the worker's first computation: the same data on a GPU, run after run
         enable_compile_cache(job.compile_cache.dir)
         self._job = job
-        self._resolved = resolve(job)  # once, after the settings JAX reads at its start
+        self._resolved = resolved
         self._name = name
 
     def run_shard(self, coordinator, shard: int) -> list[dict]:

@@ -41,7 +41,7 @@ from kforge.env import (
     random_action,
     under_scheme,
 )
-from kforge.pipeline.generation import JobConfig, environment, merge_layers, to_schema_object
+from kforge.pipeline.generation import JobConfig, merge_layers, resolve, to_schema_object
 from kforge.pipeline.learning.checkpoints import checkpoint_steps, restore_checkpoint
 from kforge.pipeline.learning.config import LEVEL_SETS, BCConfig, network_config, run_config_file
 from kforge.pipeline.learning.evaluation_sets import (
@@ -300,7 +300,7 @@ def play_physics(job: JobConfig | None, static: StaticEnvParams) -> tuple[str, E
     """(scheme name, env params) evaluation plays the dataset's levels under: its job's `env.physics` (Kinetix's play
     unless the job named another), Kinetix's play for data made without a job config."""
     if job is not None:
-        return job.env.physics, environment(job)[0]
+        return job.env.physics, resolve(job).env_params
     default = JOB_PHYSICS_SCHEME
     return default, under_scheme(physics_scheme(default), EnvParams(), static)[0]
 

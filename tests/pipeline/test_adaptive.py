@@ -60,26 +60,29 @@ def test_adaptive_budgets_need_an_evaluation_period_dividing_the_updates(tmp_pat
 
 
 def test_the_fixed_mode_keeps_the_data_fingerprint_of_jobs_made_before_budget_modes(tmp_path):
-    fixed = tiny_job(tmp_path)
+    fixed = resolve(tiny_job(tmp_path))
     assert "experts" not in data_definition(fixed)
-    assert data_fingerprint(tiny_job(tmp_path, "experts.give_up_env_steps=7")) == data_fingerprint(fixed)
-    adaptive = tiny_job(tmp_path, *ADAPTIVE_JOB)
+    assert data_fingerprint(resolve(tiny_job(tmp_path, "experts.give_up_env_steps=7"))) == data_fingerprint(fixed)
+    adaptive = resolve(tiny_job(tmp_path, *ADAPTIVE_JOB))
     assert data_fingerprint(adaptive) != data_fingerprint(
-        tiny_job(tmp_path, *ADAPTIVE_JOB, "experts.budget_mode=fixed")
+        resolve(tiny_job(tmp_path, *ADAPTIVE_JOB, "experts.budget_mode=fixed"))
     )
     assert data_definition(adaptive)["experts"]["budget_mode"] == "adaptive"
 
 
 def test_the_streamed_rule_trains_every_level_its_whole_budget(tmp_path):
-    job = tiny_job(tmp_path, *ADAPTIVE_JOB, "experts.budget_mode=streamed")
-    rule = StopRule.of(resolve(job))
+    job = resolve(tiny_job(tmp_path, *ADAPTIVE_JOB, "experts.budget_mode=streamed"))
+    rule = StopRule.of(job)
     assert rule.num_evaluations == 4
     for first_three in ([1.0, 1.0, 1.0], [0.0, 0.0, 0.0]):  # adaptive would have stopped both
         assert rule.verdict(first_three, False) is None
         assert rule.verdict([*first_three, first_three[-1]], False) is Verdict.BUDGET_SPENT
     streamed = data_definition(job)
     assert streamed["experts"]["budget_mode"] == "streamed"
-    others = {data_fingerprint(tiny_job(tmp_path)), data_fingerprint(tiny_job(tmp_path, *ADAPTIVE_JOB))}
+    others = {
+        data_fingerprint(resolve(tiny_job(tmp_path))),
+        data_fingerprint(resolve(tiny_job(tmp_path, *ADAPTIVE_JOB))),
+    }
     assert data_fingerprint(job) not in others
 
 

@@ -7,7 +7,7 @@ import sys
 import pytest
 from pipeline_test_helpers import tiny_job
 
-from kforge.pipeline.generation import load_config, to_yaml
+from kforge.pipeline.generation import load_config, resolve, to_yaml
 from kforge.pipeline.generation.compile_cache import cache_folder
 from kforge.pipeline.storage import iter_records
 from tests.conftest import COMPILATION_CACHE_VARIABLES
@@ -61,7 +61,7 @@ def test_a_worker_told_to_turns_on_deterministic_gpu_ops_before_it_computes(tmp_
 
     monkeypatch.setenv("XLA_FLAGS", "--xla_force_host_platform_device_count=1")
     job = tiny_job(tmp_path / "out")
-    Worker(dataclasses.replace(job, ray=dataclasses.replace(job.ray, deterministic_gpu_ops=True)), "local")
+    Worker(resolve(dataclasses.replace(job, ray=dataclasses.replace(job.ray, deterministic_gpu_ops=True))), "local")
     assert os.environ["XLA_FLAGS"].split() == [
         "--xla_force_host_platform_device_count=1",
         "--xla_gpu_deterministic_ops=true",
@@ -72,5 +72,5 @@ def test_a_worker_leaves_xla_flags_alone_by_default(tmp_path, monkeypatch):
     from kforge.pipeline.generation.worker import Worker
 
     monkeypatch.setenv("XLA_FLAGS", "--xla_force_host_platform_device_count=1")
-    Worker(tiny_job(tmp_path / "out"), "local")
+    Worker(resolve(tiny_job(tmp_path / "out")), "local")
     assert os.environ["XLA_FLAGS"] == "--xla_force_host_platform_device_count=1"

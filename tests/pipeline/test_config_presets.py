@@ -14,7 +14,7 @@ from omegaconf import OmegaConf
 from kforge.agents import PPOConfig, PPOHyperparameters
 from kforge.configs import PPO_SPECIALIST
 from kforge.pipeline.cli.run import main as run_main
-from kforge.pipeline.generation import ConfigError, JobConfig, load_config, ppo_config, resolve, to_yaml
+from kforge.pipeline.generation import ConfigError, JobConfig, load_config, resolve, to_yaml
 from kforge.pipeline.generation.config_yaml import specialist_yaml
 from kforge.pipeline.generation.schema import PPO_KEYS_SET_BY_THE_JOB, PPOSection
 
@@ -205,7 +205,7 @@ def test_the_ppo_section_is_the_agents_declaration_less_the_keys_the_job_sets():
     assert section == [name for name in declared if name not in ("env_steps_per_level", "select_greedy")]
     assert set(PPO_KEYS_SET_BY_THE_JOB) == {"env_steps_per_level", "select_greedy"}
     job = load_config("1M/s", ["collect.greedy=true"])
-    assert ppo_config(job) == PPOConfig(env_steps_per_level=1_000_000, select_greedy=True)
+    assert resolve(job).ppo == PPOConfig(env_steps_per_level=1_000_000, select_greedy=True)
     assert "  num_minibatches: 4  # int: minibatches per epoch; must divide num_envs * num_steps" in to_yaml(job)
 
 

@@ -8,7 +8,7 @@ import json
 import pytest
 
 from kforge.engine import SimParams, StaticSimParams
-from kforge.pipeline.generation import ConfigError, load_config
+from kforge.pipeline.generation import ConfigError, load_config, resolve
 from kforge.pipeline.generation.definition import (
     data_definition,
     data_fingerprint,
@@ -72,7 +72,7 @@ STREAMED_FINGERPRINTS = {"streamed": "72174c00cbdf02c2", "adaptive": "8d4d8538e7
 
 
 def job_of(tmp_path, *overrides):
-    return load_config(None, [*SPLIT_1M_S, f"output_dir={tmp_path}", *overrides])
+    return resolve(load_config(None, [*SPLIT_1M_S, f"output_dir={tmp_path}", *overrides]))
 
 
 def test_a_job_plays_under_the_kinetix_scheme_and_its_definition_names_it_with_its_parameters(tmp_path):
@@ -141,12 +141,13 @@ def test_every_key_of_the_experts_section_defines_streamed_and_adaptive_data_and
 
 @pytest.mark.parametrize(("split", "scale"), sorted(RELEASE_FINGERPRINTS, key=str))
 def test_the_fingerprint_of_every_release_split_is_unchanged(split, scale):
-    assert data_fingerprint(load_config(split, scale=scale)) == RELEASE_FINGERPRINTS[split, scale]
+    assert data_fingerprint(resolve(load_config(split, scale=scale))) == RELEASE_FINGERPRINTS[split, scale]
 
 
 def test_the_fingerprints_of_the_streamed_and_adaptive_modes_are_unchanged():
     for mode, fingerprint in STREAMED_FINGERPRINTS.items():
-        assert data_fingerprint(load_config("1M/s", [f"experts.budget_mode={mode}"], scale="tiny")) == fingerprint
+        job = load_config("1M/s", [f"experts.budget_mode={mode}"], scale="tiny")
+        assert data_fingerprint(resolve(job)) == fingerprint
 
 
 def test_an_unknown_physics_scheme_is_refused_in_one_line(tmp_path):

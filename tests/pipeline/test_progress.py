@@ -17,6 +17,7 @@ from kforge.pipeline.generation.console import (
 )
 from kforge.pipeline.generation.coordinator import Coordinator
 from kforge.pipeline.generation.level_batch import batches_per_shard, num_shards
+from kforge.pipeline.generation.resolved import resolve
 from kforge.pipeline.generation.run import prepare_output
 from kforge.pipeline.generation.worker import Worker
 from kforge.pipeline.storage import Lease
@@ -101,10 +102,10 @@ class _RecordingCoordinator(Coordinator):
 
 
 def test_a_worker_reports_each_batch_fully_trained_before_it_commits(tmp_path):
-    job = tiny_job(tmp_path / "out")
-    with Lease.acquire(job.output_dir) as lease:  # a worker writes under its job's lease
+    job = resolve(tiny_job(tmp_path / "out"))
+    with Lease.acquire(job.config.output_dir) as lease:  # a worker writes under its job's lease
         prepare_output(job)
-        args = (job.output_dir, num_shards(job), batches_per_shard(job), None, lease.holder.job_id)
+        args = (job.config.output_dir, num_shards(job), batches_per_shard(job), None, lease.holder.job_id)
         coordinator = _RecordingCoordinator(*args)
         shard = coordinator.next_shard("local")
         Worker(job, "local").run_shard(coordinator, shard)

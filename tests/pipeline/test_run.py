@@ -172,26 +172,26 @@ def test_a_job_without_ray_runs_where_ray_cannot_be_imported_and_makes_the_same_
 
 
 def test_a_config_that_changes_the_data_is_refused(tmp_path):
-    prepare_output(tiny_job(tmp_path))
-    prepare_output(tiny_job(tmp_path, "ray.num_workers=3"))  # where it runs does not change the data
+    prepare_output(resolve(tiny_job(tmp_path)))
+    prepare_output(resolve(tiny_job(tmp_path, "ray.num_workers=3")))  # where it runs does not change the data
     with pytest.raises(ResumeRefused, match=r"split\.seed \(0 -> 1\)"):
-        prepare_output(tiny_job(tmp_path, "split.seed=1"))
+        prepare_output(resolve(tiny_job(tmp_path, "split.seed=1")))
 
 
 def test_a_dataset_made_with_other_physics_is_refused(tmp_path, monkeypatch):
-    prepare_output(tiny_job(tmp_path))
+    prepare_output(resolve(tiny_job(tmp_path)))
     stiffer = dataclasses.replace(SimParams(), joint_hertz=SimParams().joint_hertz + 15.0)
     other_code = lambda **kwargs: EnvParams(sim=stiffer, **kwargs)  # noqa: E731
     monkeypatch.setattr("kforge.env.EnvParams", other_code)
     with pytest.raises(ResumeRefused, match=r"physics\.joint_hertz \("):
-        prepare_output(tiny_job(tmp_path))
+        prepare_output(resolve(tiny_job(tmp_path)))
 
 
 def test_a_dataset_resumed_under_another_physics_scheme_is_refused(tmp_path):
-    prepare_output(tiny_job(tmp_path))
-    prepare_output(tiny_job(tmp_path, "env.physics=kinetix"))  # the default, named
+    prepare_output(resolve(tiny_job(tmp_path)))
+    prepare_output(resolve(tiny_job(tmp_path, "env.physics=kinetix")))  # the default, named
     with pytest.raises(ResumeRefused, match=r"physics\.num_substeps \(1 -> 4\)"):
-        prepare_output(tiny_job(tmp_path, "env.physics=kforge"))
+        prepare_output(resolve(tiny_job(tmp_path, "env.physics=kforge")))
 
 
 @pytest.mark.slow  # the tiny job's programs compiled for another solver scheme (minutes)
@@ -201,7 +201,7 @@ def test_a_job_under_the_kforge_physics_scheme_makes_a_dataset_of_its_own_that_v
     attributes = open_dataset(tmp_path).spec.attributes
     physics = attributes["data_config"]["physics"]
     assert (physics["scheme"], physics["num_substeps"], physics["num_iterations"]) == ("kforge", 4, 1)
-    assert attributes["data_fingerprint"] == data_fingerprint(job)
+    assert attributes["data_fingerprint"] == data_fingerprint(resolve(job))
     assert attributes["data_fingerprint"] != open_dataset(uninterrupted).spec.attributes["data_fingerprint"]
     verify_main([str(tmp_path)])  # exits non-zero on any problem
 
@@ -342,29 +342,29 @@ def test_raising_num_levels_grows_the_dataset_to_equal_one_made_at_the_larger_co
     root = tmp_path / "dataset"
     run_in_process(tiny_job(root, "split.num_levels=3"))  # one shard: levels 0-1, then 2 and a padding slot
     assert committed_batches(root, 0) == [0, 1]
-    withdrawn = prepare_output(tiny_job(root))  # 6 levels: the padding slot becomes level 3, shard 1 is added
+    withdrawn = prepare_output(resolve(tiny_job(root)))  # 6 levels: the padding slot becomes level 3, shard 1 is added
     assert withdrawn == [(0, 1)] and committed_batches(root, 0) == [0]
     assert open_dataset(root).geometry.num_shards == 2
     run_in_process(tiny_job(root))
     assert_same_dataset(uninterrupted, root)
     with pytest.raises(ResumeRefused, match=r"holds 6 levels; split\.num_levels=4 would shrink it"):
-        prepare_output(tiny_job(root, "split.num_levels=4"))
+        prepare_output(resolve(tiny_job(root, "split.num_levels=4")))
 
 
 def test_an_interrupted_growth_leaves_a_dataset_that_opens_and_growing_again_finishes_it(tmp_path):
-    prepare_output(tiny_job(tmp_path, "split.num_levels=4"))
+    prepare_output(resolve(tiny_job(tmp_path, "split.num_levels=4")))
     small_group = (tmp_path / "data" / "zarr.json").read_text()
-    prepare_output(tiny_job(tmp_path))
+    prepare_output(resolve(tiny_job(tmp_path)))
     (tmp_path / "data" / "zarr.json").write_text(small_group)  # arrays grown, the group's spec not yet
     dataset = open_dataset(tmp_path)
     assert dataset.geometry.num_shards == 1 and dataset.array("done").shape[0] == 8  # longer arrays open
     assert dataset.read(["done"], range(0, 4))["done"].shape == (4, 24)
-    prepare_output(tiny_job(tmp_path))
+    prepare_output(resolve(tiny_job(tmp_path)))
     assert open_dataset(tmp_path).geometry.num_shards == 2
 
 
 def test_the_config_is_written_atomically(tmp_path):
-    prepare_output(tiny_job(tmp_path))
+    prepare_output(resolve(tiny_job(tmp_path)))
     # No temp file left; manifest/ comes with the first commit.
     assert sorted(path.name for path in tmp_path.iterdir()) == ["config.yaml", "data"]
     assert load_config(tmp_path / "config.yaml").output_dir == str(tmp_path)

@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 from pipeline_test_helpers import tiny_job
 
-from kforge.pipeline.generation import ConfigError
+from kforge.pipeline.generation import ConfigError, resolve
 from kforge.pipeline.generation.coordinator import Commit
 from kforge.pipeline.generation.definition import data_fingerprint
 from kforge.pipeline.generation.tracking import WANDB_MODE_ENV, batch_metrics, start_tracking, tracking_mode
@@ -66,16 +66,15 @@ def test_tracking_is_disabled_in_tests_by_default(tmp_path):
     job = tiny_job(tmp_path)
     assert job.tracking.wandb == "offline"  # the config's default; the test run's WANDB_MODE overrides it
     assert os.environ[WANDB_MODE_ENV] == "disabled" and tracking_mode(job) == "disabled"
-    tracker = start_tracking(job)
+    tracker = start_tracking(resolve(job))
     tracker.log_commits([Commit(BATCH_A, shard_complete=False)])
     tracker.finish({"committed_batches": 1})
     assert list(tmp_path.iterdir()) == []  # no wandb directory
 
 
 def test_tracking_settings_are_checked_and_do_not_change_the_data(tmp_path, monkeypatch):
-    assert data_fingerprint(tiny_job(tmp_path)) == data_fingerprint(
-        tiny_job(tmp_path, "tracking.wandb=disabled", "tracking.project=other", "tracking.dir=/elsewhere")
-    )
+    elsewhere = tiny_job(tmp_path, "tracking.wandb=disabled", "tracking.project=other", "tracking.dir=/elsewhere")
+    assert data_fingerprint(resolve(tiny_job(tmp_path))) == data_fingerprint(resolve(elsewhere))
     with pytest.raises(ConfigError, match=r"tracking\.wandb must be one of offline, online, disabled, got 'cloud'"):
         tiny_job(tmp_path, "tracking.wandb=cloud")
     monkeypatch.setenv(WANDB_MODE_ENV, "dryrun")
@@ -90,7 +89,7 @@ def test_an_offline_run_logs_every_batch_each_completed_shard_and_the_summary(tm
         write_record(tmp_path, batch["shard"], batch["batch"], batch)  # the shard metrics read the manifest
     # Shard 1's first batch was committed by an earlier run: its shard metrics still count it.
     commits = [Commit(BATCH_A, False), Commit(BATCH_B, True), Commit(BATCH_D, True)]
-    tracker = start_tracking(job)
+    tracker = start_tracking(resolve(job))
     tracker.log_commits(commits)
     tracker.finish({"committed_batches": 4, "outcomes": {"kept": 3, "filtered:no_actuator": 1}, "worker_failures": []})
 
