@@ -129,6 +129,11 @@ def play_ours(paths: dict[str, str], inputs: dict[str, dict], physics: str, log)
     return traces
 
 
+def kept_trace(folder: Path, path: str, episodes: int, seed: int) -> Path:
+    """Where `folder` keeps Kinetix's traces of a level file's paired inputs (`paired_inputs`)."""
+    return folder / f"{level_digest(path)}-e{episodes}-s{seed}-p{PERTURBATION_M:g}.kinetix.npz"
+
+
 def kinetix_traces(python: Path, paths: dict, inputs: dict, seed: int, folder: Path, chunk_levels: int, log) -> dict:
     """Per level name: Kinetix's `plain` and `perturbed` traces of its inputs (`paired_inputs` with `seed`;
     benchmarks/kinetix_paired_player.py), those kept in `folder` and the others played now. Raises if Kinetix played
@@ -136,11 +141,9 @@ def kinetix_traces(python: Path, paths: dict, inputs: dict, seed: int, folder: P
     folder.mkdir(parents=True, exist_ok=True)
     jobs, outs = [], {}
     for name, path in paths.items():
-        episodes = len(inputs[name]["actions"])
-        stem = folder / f"{level_digest(path)}-e{episodes}-s{seed}-p{PERTURBATION_M:g}"
-        outs[name] = stem.with_suffix(".kinetix.npz")
+        outs[name] = kept_trace(folder, path, len(inputs[name]["actions"]), seed)
         if not outs[name].exists():
-            inputs_file = stem.with_suffix(".inputs.npz")
+            inputs_file = outs[name].with_name(outs[name].name.replace(".kinetix.", ".inputs."))
             np.savez(inputs_file, actions=inputs[name]["actions"], offsets=inputs[name]["offsets"])
             jobs.append(f"{Path(path).absolute()}\t{inputs_file}\t{outs[name]}")
     log(f"Kinetix's traces of {len(paths) - len(jobs)} of {len(paths)} levels read from {folder}")
