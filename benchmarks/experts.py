@@ -56,7 +56,6 @@ from kforge.env import FilterReason, Level, StaticEnvParams, bundled_level_path,
 from kforge.pipeline.generation import (
     KeyPurpose,
     ResolvedJob,
-    level_key,
     level_keys,
     load_config,
     resolve,
@@ -132,12 +131,10 @@ class _BatchExperts:
         )
 
     def evaluate(self, episodes: int):
-        indices = jnp.asarray(self.indices, jnp.uint32)
-        keys = jax.vmap(lambda index: level_key(self.seed, index, EVALUATE_PURPOSE))(indices)
         return evaluate(
             self.params,
             self.levels,
-            keys,
+            level_keys(self.seed, self.indices, EVALUATE_PURPOSE),
             self.job.ppo,
             self.job.env_params,
             self.job.static,

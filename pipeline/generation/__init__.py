@@ -17,7 +17,7 @@ __getattr__, __all__ = lazy_surface(
         "kforge.pipeline.generation.sources": "absolute_output_dir",
         "kforge.pipeline.generation.console": "closing_summary seconds_left",
         "kforge.pipeline.generation.growth": "ResumeRefused",
-        "kforge.pipeline.generation.level_batch": "KeyPurpose level_key level_keys sample_batch",
+        "kforge.pipeline.generation.level_batch": "KeyPurpose level_keys sample_batch",
         "kforge.pipeline.generation.run": "JobInterrupted run_job",
         "kforge.pipeline.generation.tracking": "tracking_mode",
     },

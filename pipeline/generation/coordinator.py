@@ -12,7 +12,7 @@ from __future__ import annotations
 import dataclasses
 import os
 
-from kforge.pipeline.storage import DatasetError, all_committed, commit_record, read_record, require_lease
+from kforge.pipeline.storage import DatasetError, all_committed, commit_record, require_lease
 
 COMPILING = "compiling"
 """State of a claimed level batch before its first training report, while its worker has committed nothing in this
@@ -143,9 +143,6 @@ class Coordinator:
         manifest stays the truth)."""
         commits, self._unreported = self._unreported, []
         return commits
-
-    def record(self, shard: int, batch: int) -> dict:
-        return read_record(self._root, shard, batch)
 
     def progress(self) -> tuple[int, int]:
         """(committed level batches, all level batches)."""

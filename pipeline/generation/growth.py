@@ -9,7 +9,7 @@ The grown dataset equals one generated at the larger count from the start. Lower
 from __future__ import annotations
 
 from kforge.pipeline.generation.definition import GROWABLE_KEY, definition_fingerprint
-from kforge.pipeline.storage import DatasetSpec, committed_batches, grow_dataset, open_dataset, withdraw_commit
+from kforge.pipeline.storage import DatasetSpec, grow_dataset, open_dataset
 
 
 class ResumeRefused(ValueError):
@@ -42,22 +42,7 @@ def reconcile_dataset(root: str, spec: DatasetSpec) -> list[tuple[int, int]]:
         )
     if stored.to_json() == spec.to_json():
         return []
-    withdrawn = _withdraw_padding_batches(root, stored, old_levels, new_levels)
-    grow_dataset(root, spec)
-    return withdrawn
-
-
-def _withdraw_padding_batches(root: str, stored: DatasetSpec, old_levels: int, new_levels: int):
-    """Withdraw the commits of the stored level batches whose padding slots (level ids >= old_levels) become levels."""
-    geometry = stored.geometry
-    withdrawn = []
-    first = old_levels // geometry.levels_per_batch  # the global batch holding level old_levels
-    last = min(-(-new_levels // geometry.levels_per_batch), geometry.num_batches)
-    for global_batch in range(first, last):
-        shard, batch = divmod(global_batch, geometry.batches_per_shard)
-        if batch in committed_batches(root, shard) and withdraw_commit(root, shard, batch):
-            withdrawn.append((shard, batch))
-    return withdrawn
+    return grow_dataset(root, spec, (old_levels, new_levels))
 
 
 def changed_keys(old: dict, new: dict, prefix: str = "") -> list[str]:

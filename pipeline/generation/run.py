@@ -32,8 +32,8 @@ from kforge.pipeline.storage import (
     Lease,
     LeaseLost,
     Outcome,
+    all_committed,
     commit_age_limit,
-    committed_batches,
     create_dataset,
     iter_records,
     make_layout,
@@ -393,7 +393,7 @@ class JobInterrupted(Exception):
 
 
 def _committed_count(job: JobConfig) -> int:
-    return sum(len(committed_batches(job.output_dir, shard)) for shard in range(num_shards(job)))
+    return sum(len(batches) for batches in all_committed(job.output_dir).values())
 
 
 def _terminate_as_interrupt(signum, frame) -> None:

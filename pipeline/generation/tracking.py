@@ -24,7 +24,7 @@ from kforge.pipeline.generation.definition import data_fingerprint
 from kforge.pipeline.generation.level_batch import batches_per_shard
 from kforge.pipeline.generation.resolved import ResolvedJob
 from kforge.pipeline.generation.schema import TRACKING_MODES, ConfigError, JobConfig
-from kforge.pipeline.storage import FAILED, FILTERED_PREFIX, KEPT, PADDING, PROVENANCE, UNSOLVED, read_record_json
+from kforge.pipeline.storage import FAILED, FILTERED_PREFIX, KEPT, PROVENANCE, UNSOLVED, Outcome, read_record_json
 
 WANDB_MODE_ENV = "WANDB_MODE"
 """Environment variable that overrides `tracking.wandb` when set (wandb's own name for it)."""
@@ -75,7 +75,7 @@ def batch_metrics(records: Sequence[dict], job: JobConfig) -> dict[str, float]:
     (stored steps: kept trajectories x window); seconds and seconds/<phase>: wall time from the records' provenance;
     env_steps_per_s and transitions_per_s over the batches that have it. Ratios without a denominator are left out.
     """
-    levels = [level for record in records for level in record["levels"] if level["outcome"] != PADDING]
+    levels = [level for record in records for level in record["levels"] if level["outcome"] != Outcome.PADDING]
     counts = collections.Counter(level["outcome"] for level in levels)
     trained = [level for level in levels if not level["outcome"].startswith(FILTERED_PREFIX)]
     metrics: dict[str, float] = {"levels": len(levels)}

@@ -12,15 +12,7 @@ from kforge.pipeline.generation.compile_cache import enable_compile_cache
 from kforge.pipeline.generation.level_batch import run_level_batch
 from kforge.pipeline.generation.resolved import ResolvedJob
 from kforge.pipeline.generation.schema import FIXED_BUDGET_MODE
-from kforge.pipeline.storage import (
-    PROVENANCE,
-    BatchTrajectories,
-    clean_uncommitted,
-    commit_age_limit,
-    open_dataset,
-    stage_level_batch,
-    unmark_committed,
-)
+from kforge.pipeline.storage import PROVENANCE, BatchTrajectories, ShardWriter, commit_age_limit
 
 
 class Worker:
@@ -41,22 +33,20 @@ class Worker:
 
         `coordinator` is the coordinator actor handle (or a local object with the same methods, for tests).
         """
-        dataset = open_dataset(self._job.output_dir)
         # Safe under the job's lease on the dataset; the coordinator's shard lease makes this worker its only writer.
         max_lease_age_s = commit_age_limit(self._job.lease.stale_after_s, self._job.lease.heartbeat_s)
-        job_id = _call(coordinator.job_id)
-        clean_uncommitted(dataset.store, shard, job_id, max_lease_age_s)
+        writer = ShardWriter(self._job.output_dir, shard, _call(coordinator.job_id), max_lease_age_s)
         summaries = []
         started = time.perf_counter()
         for batch, result in self._batches(coordinator, shard):
             written = time.perf_counter()
-            record = stage_level_batch(dataset, shard, batch, result, job_id)
+            record = writer.stage(batch, result)
             provenance = record.setdefault(PROVENANCE, {"seconds": {}})
             provenance["seconds"]["write"] = time.perf_counter() - written
             provenance["seconds"]["total"] = time.perf_counter() - started
             provenance["worker"] = self._name
             _call(coordinator.commit, shard, batch, record, self._name)
-            unmark_committed(dataset.store, shard, batch)
+            writer.committed(batch)
             summaries.append(
                 {
                     "shard": shard,

@@ -23,9 +23,7 @@ from kforge.pipeline.storage.lease import Lease, LeaseLost, commit_age_limit, re
 from kforge.pipeline.storage.manifest import (
     all_committed,
     commit_record,
-    committed_batches,
     iter_records,
-    read_record,
     read_record_json,
     read_record_sized,
     record_key,
@@ -36,7 +34,6 @@ from kforge.pipeline.storage.records import (
     FAILED,
     FILTERED_PREFIX,
     KEPT,
-    PADDING,
     PROVENANCE,
     UNSOLVED,
     ArrayEntry,
@@ -44,7 +41,7 @@ from kforge.pipeline.storage.records import (
     LevelRecord,
     Outcome,
 )
-from kforge.pipeline.storage.repair import DatasetDamaged, require_intact, withdraw_bad_batches, withdraw_commit
+from kforge.pipeline.storage.repair import DatasetDamaged, require_intact, withdraw_bad_batches
 from kforge.pipeline.storage.shard_store import (
     BLOSC_LEVEL,
     CONFIG_FILE,
@@ -60,10 +57,8 @@ from kforge.pipeline.storage.store import Store, StoreError, is_remote, join, op
 from kforge.pipeline.storage.verify import format_report, verify_dataset
 from kforge.pipeline.storage.writer import (
     BatchTrajectories,
-    clean_uncommitted,
+    ShardWriter,
     learning_curves,
-    stage_level_batch,
-    unmark_committed,
 )
 
 __all__ = [
@@ -92,21 +87,19 @@ __all__ = [
     "LEVEL_ID",
     "LEVEL_SEED",
     "MANIFEST_DIR",
-    "PADDING",
     "PROVENANCE",
     "STATE_PREFIX",
     "UNSOLVED",
     "VALID",
     "BatchTrajectories",
+    "ShardWriter",
     "DatasetDamaged",
     "DatasetError",
     "DatasetSpec",
     "Geometry",
     "Layout",
-    "clean_uncommitted",
     "all_committed",
     "commit_record",
-    "committed_batches",
     "create_dataset",
     "encode",
     "format_report",
@@ -116,18 +109,14 @@ __all__ = [
     "learning_curves",
     "make_layout",
     "open_dataset",
-    "read_record",
     "read_record_json",
     "read_record_sized",
     "record_key",
     "require_intact",
     "shard_name",
-    "stage_level_batch",
     "static_to_json",
     "unflatten_state",
-    "unmark_committed",
     "verify_dataset",
     "withdraw_bad_batches",
-    "withdraw_commit",
     "write_record",
 ]

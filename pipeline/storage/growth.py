@@ -11,13 +11,38 @@ from __future__ import annotations
 import json
 
 from kforge.pipeline.storage.layout import DatasetError
+from kforge.pipeline.storage.manifest import committed_batches
+from kforge.pipeline.storage.repair import withdraw_commit
 from kforge.pipeline.storage.shard_store import DATA_DIR, SPEC_ATTRIBUTE, DatasetSpec, open_dataset
 from kforge.pipeline.storage.store import Location, Store, open_store
 
 
-def grow_dataset(root: Location, spec: DatasetSpec) -> None:
+def grow_dataset(root: Location, spec: DatasetSpec, levels: tuple[int, int]) -> list[tuple[int, int]]:
     """Give the dataset at `root` the larger `spec` (same layout, batches per shard and levels per batch; at least as
-    many shards; new attributes). Idempotent. `DatasetError` if the spec differs in anything else or is smaller."""
+    many shards; new attributes), its level count growing from `levels[0]` to `levels[1]` (slot s holds level s):
+    first the commits of the stored level batches whose padding slots become levels are withdrawn, so that a run
+    regenerates them. Returns the (shard, batch) commits withdrawn. Idempotent. `DatasetError` if the spec differs
+    in anything else or is smaller."""
+    withdrawn = _withdraw_padding_batches(root, open_dataset(root).spec, *levels)
+    _grow_arrays(root, spec)
+    return withdrawn
+
+
+def _withdraw_padding_batches(root: Location, stored: DatasetSpec, old_levels: int, new_levels: int):
+    """Withdraw the commits of the stored level batches whose padding slots (level ids >= old_levels) become levels."""
+    geometry = stored.geometry
+    withdrawn = []
+    first = old_levels // geometry.levels_per_batch  # the global batch holding level old_levels
+    last = min(-(-new_levels // geometry.levels_per_batch), geometry.num_batches)
+    for global_batch in range(first, last):
+        shard, batch = divmod(global_batch, geometry.batches_per_shard)
+        if batch in committed_batches(root, shard) and withdraw_commit(root, shard, batch):
+            withdrawn.append((shard, batch))
+    return withdrawn
+
+
+def _grow_arrays(root: Location, spec: DatasetSpec) -> None:
+    """Give the dataset's arrays and its group's spec the larger `spec`, arrays first (`grow_dataset`)."""
     store = open_store(root)
     root = store.location
     current = open_dataset(store).spec

@@ -55,7 +55,7 @@ class Outcome(enum.StrEnum):
         return self in (Outcome.KEPT, Outcome.UNSOLVED)
 
 
-KEPT, UNSOLVED, FAILED, PADDING = Outcome.KEPT, Outcome.UNSOLVED, Outcome.FAILED, Outcome.PADDING
+KEPT, UNSOLVED, FAILED = Outcome.KEPT, Outcome.UNSOLVED, Outcome.FAILED
 
 
 @dataclasses.dataclass(frozen=True)

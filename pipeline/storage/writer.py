@@ -295,6 +295,26 @@ def unmark_committed(root: str | os.PathLike | Store, shard: int, batch: int) ->
         store.delete(key)
 
 
+class ShardWriter:
+    """The single writer of one shard under job `job_id`'s lease: it starts by removing what a crash left in the
+    shard (`clean_uncommitted`, `LeaseLost` if the job does not hold the lease with a heartbeat at most
+    `max_lease_age_s` old), then stages level batches (`stage`) and, once the coordinator committed a batch's record,
+    drops its staging markers (`committed`)."""
+
+    def __init__(self, root: str | os.PathLike | Store, shard: int, job_id: str, max_lease_age_s: float | None = None):
+        self._dataset = open_dataset(root)
+        self._shard, self._job_id = shard, job_id
+        clean_uncommitted(self._dataset.store, shard, job_id, max_lease_age_s)
+
+    def stage(self, batch: int, result: BatchTrajectories) -> dict:
+        """Write the batch's data files and return the record that commits them (`stage_level_batch`)."""
+        return stage_level_batch(self._dataset, self._shard, batch, result, self._job_id)
+
+    def committed(self, batch: int) -> None:
+        """The batch's record is committed: its files are the commit's now (`unmark_committed`)."""
+        unmark_committed(self._dataset.store, self._shard, batch)
+
+
 def clean_uncommitted(
     root: str | os.PathLike | Store, shard: int, job_id: str, max_lease_age_s: float | None = None
 ) -> list[str]:

@@ -13,7 +13,7 @@ from kforge.pipeline.generation.level_batch import (
     run_level_batch,
     sample_batch,
 )
-from kforge.pipeline.storage import FILTERED_PREFIX, KEPT, PADDING, UNSOLVED
+from kforge.pipeline.storage import FILTERED_PREFIX, KEPT, UNSOLVED, Outcome
 from kforge.pipeline.storage.writer import MAX_CURVE_POINTS, learning_curves
 
 
@@ -42,7 +42,7 @@ def test_level_batch_is_deterministic_and_outcomes_are_consistent(job):
     assert list(result.outcome) == list(again.outcome)
     np.testing.assert_array_equal(result.level_id, [6, 7])
     # The split has 6 levels: shard 1 holds levels 4..7, so its batch 1 (levels 6 and 7) is padding.
-    assert list(result.outcome) == [PADDING] * 2 and not result.kept.any()
+    assert list(result.outcome) == [Outcome.PADDING] * 2 and not result.kept.any()
     first = run_level_batch(job, 0, 0)
     for i, outcome in enumerate(first.outcome):
         assert outcome == KEPT or outcome == UNSOLVED or outcome.startswith(FILTERED_PREFIX), outcome
