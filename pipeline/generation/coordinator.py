@@ -3,8 +3,8 @@
 It runs as a Ray actor, but its state is only a cache of the manifest: a restarted coordinator (Ray restarts it,
 `max_restarts`) or a re-run job rebuilds it from the records, so its death loses no committed work. Every claim and
 commit names the worker and is refused (`ShardNotHeld`) unless that worker holds the shard, so a worker that was
-replaced cannot write beside its successor; every commit is fenced by the job's lease (`require_lease`) and
-creates its record only if none exists (`commit_record`).
+replaced cannot write beside its successor; every commit is fenced by the job's lease and creates its record only
+if none exists (`commit_level_batch`).
 """
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ from __future__ import annotations
 import dataclasses
 import os
 
-from kforge.pipeline.storage import DatasetError, all_committed, commit_record, require_lease
+from kforge.pipeline.storage import DatasetError, all_committed, commit_level_batch
 
 COMPILING = "compiling"
 """State of a claimed level batch before its first training report, while its worker has committed nothing in this
@@ -120,9 +120,7 @@ class Coordinator:
         the dataset's lease. Idempotent: a retried commit of the same batch changes nothing.
         """
         self._require_holder(shard, worker)
-        if self._job_id is not None:
-            require_lease(self._root, self._job_id, self._max_lease_age_s)
-        stored = commit_record(self._root, shard, batch, record)
+        stored = commit_level_batch(self._root, shard, batch, record, self._job_id, self._max_lease_age_s)
         if stored is None:
             self._committed[shard].add(batch)
             return False

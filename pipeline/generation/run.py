@@ -26,7 +26,6 @@ from kforge.pipeline.generation.tracking import Tracker, start_tracking
 from kforge.pipeline.generation.worker import Worker
 from kforge.pipeline.storage import (
     CONFIG_FILE,
-    DatasetDamaged,  # noqa: F401 (raised by `run_job` through `require_intact`; callers catch it from here)
     DatasetSpec,
     Geometry,
     Lease,

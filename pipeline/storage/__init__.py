@@ -19,10 +19,9 @@ from kforge.pipeline.storage.layout import (
     static_to_json,
     unflatten_state,
 )
-from kforge.pipeline.storage.lease import Lease, LeaseLost, commit_age_limit, require_lease
+from kforge.pipeline.storage.lease import Lease, LeaseLost, commit_age_limit
 from kforge.pipeline.storage.manifest import (
     all_committed,
-    commit_record,
     iter_records,
     read_record_json,
     read_record_sized,
@@ -41,7 +40,7 @@ from kforge.pipeline.storage.records import (
     LevelRecord,
     Outcome,
 )
-from kforge.pipeline.storage.repair import DatasetDamaged, require_intact, withdraw_bad_batches
+from kforge.pipeline.storage.repair import require_intact, withdraw_bad_batches
 from kforge.pipeline.storage.shard_store import (
     BLOSC_LEVEL,
     CONFIG_FILE,
@@ -58,6 +57,7 @@ from kforge.pipeline.storage.verify import format_report, verify_dataset
 from kforge.pipeline.storage.writer import (
     BatchTrajectories,
     ShardWriter,
+    commit_level_batch,
     learning_curves,
 )
 
@@ -74,7 +74,6 @@ __all__ = [
     "join",
     "open_store",
     "commit_age_limit",
-    "require_lease",
     "ACTION",
     "ACTION_MASK",
     "BLOSC_LEVEL",
@@ -93,13 +92,12 @@ __all__ = [
     "VALID",
     "BatchTrajectories",
     "ShardWriter",
-    "DatasetDamaged",
+    "commit_level_batch",
     "DatasetError",
     "DatasetSpec",
     "Geometry",
     "Layout",
     "all_committed",
-    "commit_record",
     "create_dataset",
     "encode",
     "format_report",

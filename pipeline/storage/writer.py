@@ -30,6 +30,7 @@ from kforge.pipeline.storage.layout import (
 )
 from kforge.pipeline.storage.lease import require_lease
 from kforge.pipeline.storage.manifest import (
+    commit_record,
     committed_batches,
     record_exists,
     remove_record,
@@ -313,6 +314,22 @@ class ShardWriter:
     def committed(self, batch: int) -> None:
         """The batch's record is committed: its files are the commit's now (`unmark_committed`)."""
         unmark_committed(self._dataset.store, self._shard, batch)
+
+
+def commit_level_batch(
+    root: str | os.PathLike | Store,
+    shard: int,
+    batch: int,
+    record: dict,
+    job_id: str | None = None,
+    max_lease_age_s: float | None = None,
+) -> dict | None:
+    """Commit a level batch whose files a `ShardWriter` staged: with `job_id`, only while that job holds the
+    dataset's lease with a heartbeat at most `max_lease_age_s` old (`LeaseLost` otherwise), and only if the batch is
+    not committed yet (`commit_record`). Returns the record as stored, or None if one exists."""
+    if job_id is not None:
+        require_lease(root, job_id, max_lease_age_s)
+    return commit_record(root, shard, batch, record)
 
 
 def clean_uncommitted(

@@ -32,12 +32,11 @@ from kforge.pipeline.storage import (
     Lease,
     LeaseLost,
     commit_age_limit,
-    commit_record,
     read_record_json,
     record_key,
 )
 from kforge.pipeline.storage.lease import LEASE_KEY, read_holder
-from kforge.pipeline.storage.manifest import remove_record
+from kforge.pipeline.storage.manifest import commit_record, remove_record
 from kforge.pipeline.storage.shard_store import open_dataset
 from kforge.pipeline.storage.verify import verify_dataset
 from kforge.pipeline.storage.writer import STAGING_DIR, clean_uncommitted, staged_by, staging_key

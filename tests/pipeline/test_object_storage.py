@@ -39,7 +39,6 @@ from kforge.pipeline.storage import (
     Lease,
     LeaseLost,
     Store,
-    commit_record,
     iter_records,
     open_dataset,
     read_record_json,
@@ -47,7 +46,7 @@ from kforge.pipeline.storage import (
 )
 from kforge.pipeline.storage.layout import DatasetError
 from kforge.pipeline.storage.lease import LEASE_KEY, read_holder
-from kforge.pipeline.storage.manifest import remove_record
+from kforge.pipeline.storage.manifest import commit_record, remove_record
 from kforge.pipeline.storage.verify import verify_dataset
 
 BUCKET = "kforge-test"

@@ -10,7 +10,7 @@ from pipeline_test_helpers import batch_file
 
 from kforge.pipeline.kinetix.export import export_kinetix
 from kforge.pipeline.learning import load_bc_config, train_bc
-from kforge.pipeline.storage import DatasetDamaged
+from kforge.pipeline.storage.repair import DatasetDamaged
 from kforge.pipeline.storage.shard_store import open_dataset
 
 DAMAGED = "1 committed level batches have missing, unreadable or damaged files"
