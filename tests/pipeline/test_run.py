@@ -53,13 +53,13 @@ from kforge.pipeline.generation.growth import ResumeRefused
 from kforge.pipeline.generation.level_batch import run_level_batch
 from kforge.pipeline.generation.resolved import resolve
 from kforge.pipeline.generation.run import (
-    DatasetDamaged,
     WorkerFailures,
     failure_cause,
     prepare_output,
     run_job,
 )
 from kforge.pipeline.storage.manifest import committed_batches, iter_records, record_key
+from kforge.pipeline.storage.repair import DatasetDamaged
 from kforge.pipeline.storage.shard_store import MANIFEST_DIR, open_dataset
 from kforge.pipeline.storage.verify import verify_dataset
 from kforge.pipeline.storage.writer import STAGING_DIR, stage_level_batch
