@@ -52,7 +52,8 @@ import numpy as np
 from benchmarks.machine import describe_machine, provenance
 from kforge.agents import collect_windows, evaluate, train_levels
 from kforge.configs import split_path
-from kforge.env import FilterReason, Level, StaticEnvParams, bundled_level_path, filter_levels, load_level
+from kforge.engine import physics_scheme
+from kforge.env import FilterReason, Level, bundled_level_path, filter_levels, load_level, under_scheme
 from kforge.pipeline.generation import (
     KeyPurpose,
     ResolvedJob,
@@ -81,15 +82,18 @@ KINETIX_OFFLINE_SOLVED_SHARE = 0.5
 """Share of generated levels Kinetix-Offline's card calls solvable (its experts' rollouts succeeded)."""
 
 
-def load_hand_levels(directory: Path, static: StaticEnvParams) -> tuple[list[str], Level]:
-    """The level files of `directory` (sorted by name) as one batched Level; they must have the split's size."""
+def load_hand_levels(directory: Path, job: ResolvedJob) -> tuple[list[str], Level]:
+    """The level files of `directory` (sorted by name) as one batched Level, played under the job's physics; they
+    must have the split's size."""
     paths = sorted(directory.glob("*.json"))
     if not paths:
         raise SystemExit(f"no level files in {directory}")
     loaded = [load_level(path) for path in paths]
+    scheme = physics_scheme(job.config.env.physics)
     for path, level in zip(paths, loaded, strict=True):
-        if level.static != static:
-            raise SystemExit(f"{path}: static parameters {level.static} differ from the split's {static}")
+        static = under_scheme(scheme, level.params, level.static)[1]
+        if static != job.static:
+            raise SystemExit(f"{path}: static parameters {static} differ from the split's {job.static}")
     return [path.stem for path in paths], jax.tree.map(lambda *x: jnp.stack(x), *(level.level for level in loaded))
 
 
@@ -440,7 +444,7 @@ def main(argv=None) -> None:
             "random s", ids, levels, job.split.seed, args.first_level, measurement, random=True
         )
     if "hand" in args.sets:
-        names, levels = load_hand_levels(args.hand_levels, job.static)
+        names, levels = load_hand_levels(args.hand_levels, job)
         first, count = hand_range(args.hand_first, args.hand_count, len(names), parser.error)
         names, levels = names[first : first + count], jax.tree.map(lambda x: x[first : first + count], levels)
         report["sets"]["hand"] = measure_set(
