@@ -46,6 +46,7 @@ from kforge.engine import PHYSICS_SCHEMES, physics_scheme
 from kforge.env import MULTI_DISCRETE_SIZES, ActionType, EnvParams, advance, load_level, reset, under_scheme
 
 KINETIX_PLAYER = "kinetix_paired_player"
+SIZES = ("s", "m", "l")
 PERTURBATION_M = 1e-6
 """[m] How far the ceiling's runs move each active shape's start position."""
 EPISODES_PER_CALL = 256
@@ -229,7 +230,9 @@ def plot(summary: dict, out: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    groups = [group for group in summary if not group.startswith("size/")]
+    groups = sorted(
+        (group for group in summary if not group.startswith("size/")), key=lambda g: (SIZES.index(g[-1]), g)
+    )
     figure, axes = plt.subplots(2, len(groups), figsize=(4 * len(groups), 6.5), sharex=True, squeeze=False)
     for column, group in enumerate(groups):
         entry = summary[group]
@@ -272,7 +275,7 @@ def format_summary(summary: dict) -> str:
 
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--sizes", nargs="+", default=["s", "m"], choices=["s", "m", "l"])
+    parser.add_argument("--sizes", nargs="+", default=["s", "m"], choices=SIZES)
     parser.add_argument("--no-hand", action="store_true", help="skip the hand-designed levels")
     parser.add_argument(
         "--random-levels",
