@@ -85,8 +85,10 @@ def dataset_figures(dataset: Path) -> dict:
     stats = collect_stats(dataset, show_progress=False)
     outcomes = {str(outcome): count for outcome, count in sorted(stats.outcomes.items(), key=lambda item: str(item[0]))}
     trained, kept = stats.trained, outcomes.get("kept", 0)
+    config = OmegaConf.to_container(OmegaConf.load(dataset / "config.yaml"))
+    config["output_dir"] = dataset.name  # the folder, not the machine's path to it
     return {
-        "config": OmegaConf.to_container(OmegaConf.load(dataset / "config.yaml")),
+        "config": config,
         "data_fingerprint": stats.fingerprint,
         "level_batches": {"committed": stats.batches_committed, "total": stats.batches_total},
         "levels": {
