@@ -172,9 +172,10 @@ def same_ends(a: dict, b: dict) -> np.ndarray:
 
 def pose_errors(a: dict, b: dict, active: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(episodes, steps + 1) the largest position distance [m] and angle difference [rad, in 0..pi] over the
-    active shapes of two traces, step by step."""
+    active shapes of two traces, step by step; NaN where either trace is (an engine gone unstable)."""
     distance = np.linalg.norm(a["position"] - b["position"], axis=-1)[..., active]
-    turn = np.abs((a["rotation"] - b["rotation"] + np.pi) % (2 * np.pi) - np.pi)[..., active]
+    with np.errstate(invalid="ignore"):
+        turn = np.abs((a["rotation"] - b["rotation"] + np.pi) % (2 * np.pi) - np.pi)[..., active]
     return distance.max(-1), turn.max(-1)
 
 
@@ -190,12 +191,17 @@ def compare_level(ours: dict, kinetix: dict, active: np.ndarray) -> dict:
 
 
 def _curve(errors: np.ndarray) -> dict:
-    """Median and 95th percentile over episodes (axis 0) per step, to CURVE_DIGITS significant digits."""
+    """Median and 95th percentile over episodes (axis 0) per step, to CURVE_DIGITS significant digits; an episode
+    counts up to its first NaN step, and `nan_episodes` says how many have one."""
 
     def rounded(values):
         return [float(f"{value:.{CURVE_DIGITS}g}") for value in values]
 
-    return {"median": rounded(np.median(errors, 0)), "p95": rounded(np.percentile(errors, 95, 0))}
+    return {
+        "median": rounded(np.nanmedian(errors, 0)),
+        "p95": rounded(np.nanpercentile(errors, 95, 0)),
+        "nan_episodes": int(np.isnan(errors).any(1).sum()),
+    }
 
 
 def summarize(compared: dict[str, dict]) -> dict:

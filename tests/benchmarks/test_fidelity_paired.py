@@ -94,6 +94,27 @@ def test_pose_errors_are_the_largest_over_active_shapes_with_angles_taken_around
     assert np.count_nonzero(position) == 1 and np.count_nonzero(angle) == 2
 
 
+def test_an_unstable_episode_counts_in_the_curves_until_it_goes_nan_and_is_counted():
+    a, b = trace(episodes=3), trace(episodes=3, seed=1)
+    b["position"][2, 100:] = np.nan  # one engine's third episode blows up at step 100
+    b["rotation"][2, 100:] = np.nan
+    position, angle = pose_errors(a, b, np.ones(SHAPES, bool))
+    assert (
+        np.isnan(position[2, 100:]).all() and np.isnan(angle[2, 100:]).all() and not np.isnan(position[2, :100]).any()
+    )
+    zeros = np.zeros(3, bool)
+    summary = summarize(
+        {
+            "random/l/x": {
+                label: {"same_end": zeros, "position": position, "angle": angle} for label in ("kforge", "ceiling")
+            }
+        }
+    )
+    curve = summary["size/l"]["kforge"]["position_error"]
+    assert curve["nan_episodes"] == 1
+    assert curve["median"][EPISODE_STEPS] == pytest.approx(float(np.median(position[:2, EPISODE_STEPS])), rel=1e-2)
+
+
 def test_shares_per_set_and_size_and_ours_minus_the_ceiling_in_points():
     def level(kforge_alike: list[bool], ceiling_alike: list[bool]) -> dict:
         zeros = np.zeros((len(kforge_alike), EPISODE_STEPS + 1))
