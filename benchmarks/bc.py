@@ -200,6 +200,14 @@ def plot(rows: list[dict], path: Path) -> None:
     figure.savefig(path, dpi=110)
 
 
+def without_machine_paths(text: str, args) -> str:
+    """`text` with the dataset's and the work directory's paths on this machine named DATASET and WORK_DIR."""
+    for path, name in ((args.work_dir, "WORK_DIR"), (Path(args.dataset), "DATASET")):
+        for spelling in sorted({str(path.absolute()), str(path)}, key=len, reverse=True):
+            text = text.replace(json.dumps(spelling)[1:-1], name)
+    return text
+
+
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--dataset", required=True, help="a dataset made by kforge run")
@@ -239,7 +247,7 @@ def main(argv=None) -> None:
         )
         rows.append({"levels": count, "budget": rule, "training": training, "evaluation": evaluation})
         log(table(rows))
-    command = ["DATASET" if argument == str(args.dataset) else argument for argument in sys.argv]
+    command = [{str(args.dataset): "DATASET", str(args.work_dir): "WORK_DIR"}.get(a, a) for a in sys.argv]
     report = provenance(command) | {  # the dataset named by its folder: no machine path in the report
         "machine": describe_machine(),
         "dataset": {"path": Path(args.dataset).name, "kept_levels": held},
@@ -267,7 +275,7 @@ def main(argv=None) -> None:
         )
     print(table(rows))
     if args.json:
-        args.json.write_text(json.dumps(report, indent=1) + "\n")
+        args.json.write_text(without_machine_paths(json.dumps(report, indent=1), args) + "\n")
     if args.plot and rows:
         plot(rows, args.plot)
 
