@@ -19,8 +19,14 @@ def test_a_done_stage_is_read_back_and_run_again_only_when_its_settings_change(t
     assert not list((tmp_path / "stages").glob("*.tmp"))
 
 
-def test_the_budget_rule_is_passes_over_the_training_trajectories():
-    # 16 levels: 2 held out (10 %, rounded up), 14 trajectories in one batch of 14: 100 passes, 100 steps
-    assert budget(16, epochs=100, batch_size=32) == {"batch_size": 14, "num_steps": 100}
-    # 512 levels: 52 held out, 460 trajectories in batches of 32: 100 passes, ceil(100 * 460 / 32) steps
-    assert budget(512, epochs=100, batch_size=32) == {"batch_size": 32, "num_steps": 1438}
+def test_the_budget_rule_is_passes_over_the_training_trajectories_validated_every_five():
+    # 16 levels: 2 held out (10 %, rounded up), 14 trajectories in one batch of 14: 100 passes, 100 steps, a
+    # validation every 5 passes (5 steps)
+    assert budget(16, epochs=100, batch_size=32) == {"batch_size": 14, "num_steps": 100, "validate_every_steps": 5}
+    # 512 levels: 52 held out, 460 trajectories in batches of 32: ceil(100 * 460 / 32) steps, a validation every
+    # ceil(5 * 460 / 32) steps
+    assert budget(512, epochs=100, batch_size=32) == {
+        "batch_size": 32,
+        "num_steps": 1438,
+        "validate_every_steps": 72,
+    }
