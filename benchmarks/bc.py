@@ -30,7 +30,7 @@ import sys
 from pathlib import Path
 
 from benchmarks.kinetix_transfer import SAMPLED_LEVELS, transfer
-from benchmarks.kinetix_venv import DEFAULT_KINETIX_VENV
+from benchmarks.kinetix_venv import DEFAULT_KINETIX_VENV, REPOSITORY
 from benchmarks.machine import describe_machine, provenance
 from kforge.pipeline.learning import (
     UNSEEN_FIRST_LEVEL,
@@ -201,11 +201,12 @@ def plot(rows: list[dict], path: Path) -> None:
 
 
 def without_machine_paths(text: str, args) -> str:
-    """`text` with the dataset's and the work directory's paths on this machine named DATASET and WORK_DIR."""
+    """`text` with the dataset's and the work directory's paths on this machine named DATASET and WORK_DIR, and the
+    checkout's files (the bundled levels) by their paths in the repository."""
     for path, name in ((args.work_dir, "WORK_DIR"), (Path(args.dataset), "DATASET")):
         for spelling in sorted({str(path.absolute()), str(path)}, key=len, reverse=True):
             text = text.replace(json.dumps(spelling)[1:-1], name)
-    return text
+    return text.replace(json.dumps(f"{REPOSITORY}{os.sep}")[1:-1], "")
 
 
 def main(argv=None) -> None:
