@@ -41,7 +41,7 @@ from kforge.env import (
     random_action,
     under_scheme,
 )
-from kforge.pipeline.generation import JobConfig, merge_layers, resolve, to_schema_object
+from kforge.pipeline.generation import JobConfig, ResolvedJob, merge_layers, resolve, to_schema_object
 from kforge.pipeline.learning.checkpoints import checkpoint_steps, restore_checkpoint
 from kforge.pipeline.learning.config import LEVEL_SETS, BCConfig, network_config, run_config_file
 from kforge.pipeline.learning.evaluation_sets import (
@@ -205,13 +205,16 @@ def play(
     return np.concatenate(successes), np.concatenate(failures)
 
 
-def dataset_job(dataset: str) -> JobConfig | None:
-    """The generation config stored with the dataset (None if it has none: a dataset not made by `kforge run`)."""
+def dataset_job(dataset: str) -> ResolvedJob | None:
+    """The generation config stored with the dataset, resolved once for every set evaluation plays (None if it has
+    none: a dataset not made by `kforge run`)."""
     text = open_dataset(dataset).store.read(CONFIG_FILE)
     if text is None:
         return None
-    return to_schema_object(
-        merge_layers(JobConfig, [(f"{dataset}/{CONFIG_FILE}", OmegaConf.create(text.decode()))]), JobConfig
+    return resolve(
+        to_schema_object(
+            merge_layers(JobConfig, [(f"{dataset}/{CONFIG_FILE}", OmegaConf.create(text.decode()))]), JobConfig
+        )
     )
 
 
@@ -296,11 +299,11 @@ def play_level_files(
     return level_set_entry(played)
 
 
-def play_physics(job: JobConfig | None, static: StaticEnvParams) -> tuple[str, EnvParams]:
+def play_physics(job: ResolvedJob | None, static: StaticEnvParams) -> tuple[str, EnvParams]:
     """(scheme name, env params) evaluation plays the dataset's levels under: its job's `env.physics` (Kinetix's play
     unless the job named another), Kinetix's play for data made without a job config."""
     if job is not None:
-        return job.env.physics, resolve(job).env_params
+        return job.config.env.physics, job.env_params
     default = JOB_PHYSICS_SCHEME
     return default, under_scheme(physics_scheme(default), EnvParams(), static)[0]
 
@@ -370,7 +373,7 @@ def _dataset_set_entry(policy: TrainedPolicy, ids: list, env_params: EnvParams, 
     }
 
 
-def _unseen_set_entry(policy: TrainedPolicy, job: JobConfig | None, count: int, plan: Episodes) -> dict:
+def _unseen_set_entry(policy: TrainedPolicy, job: ResolvedJob | None, count: int, plan: Episodes) -> dict:
     """The set entry of `count` unseen levels of the dataset's split, checked disjoint from the dataset's levels."""
     dataset = policy.config.dataset
     if job is None:

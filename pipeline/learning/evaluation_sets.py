@@ -29,7 +29,7 @@ from kforge.env import (
     reset,
     under_scheme,
 )
-from kforge.pipeline.generation import EnvSection, JobConfig, resolve, sample_batch
+from kforge.pipeline.generation import EnvSection, ResolvedJob, sample_batch
 from kforge.pipeline.learning.data import kept_levels
 from kforge.pipeline.reading import TrajectoryDatasetManager
 from kforge.pipeline.storage import DatasetError, iter_records, open_dataset
@@ -113,13 +113,13 @@ def dataset_starts(
     return starts, stored, rates
 
 
-def unseen_starts(job: JobConfig, count: int = UNSEEN_LEVELS) -> StartSet:
+def unseen_starts(resolved: ResolvedJob, count: int = UNSEEN_LEVELS) -> StartSet:
     """Start states of the first `count` split levels from `UNSEEN_FIRST_LEVEL` on that the split's filter keeps."""
+    job = resolved.config
     if job.split.num_levels > UNSEEN_FIRST_LEVEL:
         raise DatasetError(
             f"split.num_levels={job.split.num_levels} reaches the unseen levels (ids from {UNSEEN_FIRST_LEVEL} on)"
         )
-    resolved = resolve(job)
     env_params, static = resolved.env_params, resolved.static
     kept_ids, kept_levels_ = [], []
     first = UNSEEN_FIRST_LEVEL

@@ -12,6 +12,7 @@ from pipeline_test_helpers import tiny_job
 
 from kforge.engine import physics_scheme
 from kforge.env import EnvParams, StaticEnvParams, list_levels, load_level, under_scheme
+from kforge.pipeline.generation import resolve
 from kforge.pipeline.learning.evaluation import play_physics
 from kforge.pipeline.learning.evaluation_sets import hand_starts
 
@@ -34,9 +35,9 @@ def same(a, b) -> bool:
 def test_evaluation_plays_kinetix_unless_the_job_names_another_scheme(tmp_path):
     name, params = play_physics(None, KINETIX_S)  # data made without a job config
     assert name == "kinetix" and same(params, KINETIX_PARAMS)
-    name, params = play_physics(tiny_job(tmp_path), KINETIX_S)  # the default job
+    name, params = play_physics(resolve(tiny_job(tmp_path)), KINETIX_S)  # the default job
     assert name == "kinetix" and same(params.sim, KINETIX_PARAMS.sim)
-    name, params = play_physics(tiny_job(tmp_path, "env.physics=kforge"), SIZE_S)
+    name, params = play_physics(resolve(tiny_job(tmp_path, "env.physics=kforge")), SIZE_S)
     assert name == "kforge" and same(params.sim, KFORGE_PARAMS.sim)
 
 
@@ -54,22 +55,22 @@ def test_unseen_levels_are_a_fixed_range_past_every_dataset_that_the_filter_keep
     """The unseen set starts at the documented level 2^31 whatever the dataset's size, holds only the levels the
     split's filter keeps there, in order, and is the same levels every time."""
     from kforge.env import filter_levels, reset
-    from kforge.pipeline.generation import resolve, sample_batch
+    from kforge.pipeline.generation import sample_batch
     from kforge.pipeline.learning.evaluation_sets import UNSEEN_FIRST_LEVEL, UNSEEN_SAMPLE_CHUNK, unseen_starts
 
     assert UNSEEN_FIRST_LEVEL == 2**31
     job = tiny_job(tmp_path)
-    starts = unseen_starts(job, count=5)
+    resolved = resolve(job)
+    starts = unseen_starts(resolved, count=5)
     ids = starts.level_ids
     candidates = np.arange(2**31, 2**31 + UNSEEN_SAMPLE_CHUNK)
-    resolved = resolve(job)
     levels = sample_batch(resolved, candidates)
     keep = np.asarray(filter_levels(levels, resolved.env_params, resolved.static, job.filter.noop_steps).keep)
     assert 0 < keep.sum() < len(keep)  # the filter drops some of the range: the set is not the range's first five
     assert candidates[keep][:5].tolist() == ids
     expected = jax.vmap(reset)(sample_batch(resolved, np.asarray(ids)))
     np.testing.assert_array_equal(starts.states.sim.bodies.position, expected.sim.bodies.position)
-    again = unseen_starts(tiny_job(tmp_path / "grown", "split.num_levels=40"), count=5)  # a larger dataset
+    again = unseen_starts(resolve(tiny_job(tmp_path / "grown", "split.num_levels=40")), count=5)  # a larger dataset
     assert again.level_ids == ids
     np.testing.assert_array_equal(again.states.sim.bodies.position, starts.states.sim.bodies.position)
 
@@ -82,7 +83,7 @@ def test_unseen_levels_that_are_dataset_levels_are_refused_in_one_line(tmp_path,
 
     held = dataset_level_ids(str(dataset_dir))
     assert held == {10 * g + k for g in range(4) for k in range(3)}  # kept and unsolved levels alike
-    starts = unseen_starts(tiny_job(tmp_path), count=2)
+    starts = unseen_starts(resolve(tiny_job(tmp_path)), count=2)
     check_unseen_disjoint(starts, str(dataset_dir), held)
     overlapping = dataclasses.replace(starts, level_ids=[starts.level_ids[0], 22])
     with pytest.raises(DatasetError, match=r"^\S+: 1 unseen levels are dataset levels \(first: 22\)[^\n]*$"):
