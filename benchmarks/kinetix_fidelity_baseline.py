@@ -131,15 +131,12 @@ def sample_levels(size: str, count: int, seed: int, out_dir: Path) -> list[str]:
     return paths
 
 
-def _size_of(static) -> str:
+def size_of(static) -> str:
+    """The Kinetix size whose entity counts a level file's static parameters have."""
+    counts = ("num_polygons", "num_circles", "num_joints", "num_thrusters")
     for size in ("s", "m", "l"):
         reference = static_env_params_from_size(size)
-        if (static.num_polygons, static.num_circles, static.num_joints, static.num_thrusters) == (
-            reference.num_polygons,
-            reference.num_circles,
-            reference.num_joints,
-            reference.num_thrusters,
-        ):
+        if all(getattr(static, name) == getattr(reference, name) for name in counts):
             return size
     raise ValueError(f"level sizes {static} match no Kinetix size")
 
@@ -160,7 +157,7 @@ def play(paths: list[str], episodes: int, seed: int, chunk_levels: int, emit, va
     groups: dict[str, list[tuple[str, object]]] = {}
     for path in paths:
         state, static, _ = load_from_json_file(str(Path(path).resolve()))
-        size = _size_of(static)
+        size = size_of(static)
         state = expand_env_state(state, static_env_params_from_size(size))
         if variant.get("exact_disc_inertia") == 1:
             state = with_exact_disc_inertia(state)
@@ -278,7 +275,7 @@ TRACE_FIELDS = {
 def _level_without_reset(path: str):
     """(start state, env without auto-reset, static params, env params) of a level file, in its size's shapes."""
     state, static, _ = load_from_json_file(str(Path(path).resolve()))
-    static, params = static_env_params_from_size(_size_of(static)), EnvParams(dense_reward_scale=0.0)
+    static, params = static_env_params_from_size(size_of(static)), EnvParams(dense_reward_scale=0.0)
     env = make_kinetix_env(
         ActionType.MULTI_DISCRETE, ObservationType.SYMBOLIC_FLAT, None, params, static, auto_reset=False
     )

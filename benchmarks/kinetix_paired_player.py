@@ -20,7 +20,6 @@ from __future__ import annotations
 import argparse
 import hashlib
 import os
-import sys
 import time
 from pathlib import Path
 
@@ -36,24 +35,11 @@ from kinetix.environment import (
 )
 from kinetix.util.saving import expand_env_state, load_from_json_file
 
-SIZES = ("s", "m", "l")
+from benchmarks.kinetix_fidelity_baseline import log, size_of
+
 CHUNK_LEVELS = 8
 """Levels played per compiled call by default (each with both runs of every episode)."""
 RUNS = ("plain", "perturbed")
-
-
-def log(line: str) -> None:
-    print(line, file=sys.stderr, flush=True)
-
-
-def size_of(static) -> str:
-    """The Kinetix size whose entity counts a level file's static parameters have."""
-    counts = ("num_polygons", "num_circles", "num_joints", "num_thrusters")
-    for size in SIZES:
-        reference = static_env_params_from_size(size)
-        if all(getattr(static, name) == getattr(reference, name) for name in counts):
-            return size
-    raise ValueError(f"level sizes {static} match no Kinetix size")
 
 
 def load_level(path: str) -> tuple[str, object]:
