@@ -51,6 +51,7 @@ class ContactGeometry:
     restitution: jnp.ndarray  # (C, W, 1) [-] mixed coefficient
     enabled: jnp.ndarray  # (C, W, 2) bool, per point
     softness: Softness  # fields (C, W, 1): stiffer against static bodies
+    batch: jnp.ndarray  # (C, W) i32 the Jax2D solver batch of each pair (`engine.jax2d_contacts`), else 0
 
 
 @struct.dataclass
@@ -116,6 +117,7 @@ def prepare_contacts(
         restitution=pairs.restitution[:, None],
         enabled=enabled,
         softness=jax.tree_util.tree_map(lambda x: x[:, None], pairs.softness),
+        batch=jnp.zeros(layout.num_pairs, jnp.int32),
     )
     return to_colour_layout(per_pair, layout)
 

@@ -16,7 +16,7 @@ import functools
 
 import numpy as np
 
-from kforge.engine.params import StaticSimParams
+from kforge.engine.params import ContactOrder, StaticSimParams
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -84,6 +84,17 @@ def _balanced_edge_colouring(pairs: list[tuple[int, int]], num_reserved: int) ->
         num_colours += 1
 
 
+def _jax2d_kinds(num_polygon_polygon: int, polygon_circle: list[tuple[int, int]], num_circle_circle: int):
+    """One colour per kind of pair in Jax2D's pair order (circle-polygon pairs by circle, then polygon)."""
+    first_circle = num_polygon_polygon + len(polygon_circle)
+    kinds = [
+        list(range(num_polygon_polygon)),
+        sorted(range(num_polygon_polygon, first_circle), key=lambda k: polygon_circle[k - num_polygon_polygon][::-1]),
+        list(range(first_circle, first_circle + num_circle_circle)),
+    ]
+    return [kind for kind in kinds if kind]
+
+
 @functools.cache
 def pair_layout(static: StaticSimParams) -> PairLayout:
     """The candidate pairs of `static` and their solver colours (cached per static params)."""
@@ -92,11 +103,14 @@ def pair_layout(static: StaticSimParams) -> PairLayout:
     polygon_circle = [(a, b) for a in range(p) for b in range(p, n)]
     circle_circle = [(a, b) for a in range(p, n) for b in range(a + 1, n)]
     pairs = polygon_polygon + polygon_circle + circle_circle
-    colours = _balanced_edge_colouring(pairs, reserved)
+    if static.contact_order == ContactOrder.JAX2D:
+        colours = _jax2d_kinds(len(polygon_polygon), polygon_circle, len(circle_circle))
+    else:
+        colours = _balanced_edge_colouring(pairs, reserved)
     width = max((len(c) for c in colours), default=0)
     colour_slots = np.full((len(colours), width), len(pairs), np.int32)
     for row, colour in enumerate(colours):
-        colour_slots[row, : len(colour)] = colour
+        colour_slots[row, : len(colour)] = colour  # in the colour's order
     pair_array = np.asarray(pairs, np.int32).reshape(-1, 2)
     padded_pairs = np.concatenate([pair_array, np.full((1, 2), n, np.int32)])
     return PairLayout(

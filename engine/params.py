@@ -84,6 +84,28 @@ class CollisionRules(enum.IntEnum):
     point in its slot, whatever feature that one touched at (Box2D's: of the point of the same feature)."""
 
 
+class ContactOrder(enum.IntEnum):
+    """In which order one pass solves the contacts."""
+
+    COLOURED = 0
+    """Gauss-Seidel over colours of pairs that share no movable body (`engine.pairs`); each pair's normal rows, then
+    its friction rows."""
+    JAX2D = 1
+    """Jax2D's: per kind of pair, batches of pairs at once, point by point, a point's normal row then its friction row
+    (`engine.jax2d_contacts`)."""
+
+
+class JointLaw(enum.IntEnum):
+    """How joints hold their anchors together, their fixed angles and their limits."""
+
+    SOFT = 0
+    """Box2D v3's soft point constraint (a 2x2 effective-mass solve) and angle rows; limits as `LimitLaw` says."""
+    JAX2D = 1
+    """Jax2D's: an under-relaxed impulse along the anchors' relative velocity, biased by their gap, and in every
+    pass a direct move of the bodies that closes most of the gap (`engine.jax2d_joints`); fixed angles and limits
+    by Jax2D's angular impulse (`LimitLaw` unused)."""
+
+
 class LimitLaw(enum.IntEnum):
     """How a revolute joint's angle limits hold."""
 
@@ -156,6 +178,8 @@ LAW_FIELDS: dict[str, type[enum.IntEnum]] = {
     "contact_points": ContactPoints,
     "collision_rules": CollisionRules,
     "limit_law": LimitLaw,
+    "joint_law": JointLaw,
+    "contact_order": ContactOrder,
 }
 """`StaticSimParams` law field -> its enum."""
 
@@ -188,7 +212,9 @@ class StaticSimParams:
     contact_law: ContactLaw = ContactLaw.SOFT  # how overlapping shapes are pushed apart
     contact_points: ContactPoints = ContactPoints.MIDWAY  # where contact points lie, how deep they count
     collision_rules: CollisionRules = CollisionRules.BOX2D  # where shapes touch, which impulses they start from
-    limit_law: LimitLaw = LimitLaw.SPECULATIVE  # how joint angle limits hold
+    limit_law: LimitLaw = LimitLaw.SPECULATIVE  # how joint angle limits hold (the soft joint law)
+    joint_law: JointLaw = JointLaw.SOFT  # how joints hold their anchors, angles and limits
+    contact_order: ContactOrder = ContactOrder.COLOURED  # in which order a pass solves the contacts
     swept_speculative_contacts: bool = True  # a circle's speculative contact acts only if its free motion meets
     # what it faces within the step (a near miss makes no contact)
     batching: Batching = Batching()  # how a vmapped step batches and the form of the solver's loops (execution only)

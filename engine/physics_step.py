@@ -36,6 +36,8 @@ from kforge.engine.contact_solver import (
     warm_start_contacts,
 )
 from kforge.engine.geometry import cross2, dot2, norm2, rotate
+from kforge.engine.jax2d_contacts import solve_contacts_jax2d, solver_batches
+from kforge.engine.jax2d_joints import solve_joints_jax2d
 from kforge.engine.joint_solver import (
     JointFrames,
     JointImpulses,
@@ -51,8 +53,10 @@ from kforge.engine.pairs import PairLayout, pair_layout
 from kforge.engine.params import (
     CollisionRules,
     ContactLaw,
+    ContactOrder,
     ContactPoints,
     ForceTiming,
+    JointLaw,
     LimitLaw,
     MotorLaw,
     SimParams,
@@ -177,6 +181,8 @@ class _Substeps:
     sweep: Sweep
     unrolled: bool  # the substeps and passes written out, not looped
     rows: ContactRows
+    geometry: ContactGeometry  # the rows' geometry (rebuilt from moved bodies under Jax2D's joint law)
+    response_scale: jnp.ndarray  # (N+1, 3, *batch)
     joint_rows: JointRows
     scalars: SolverScalars
     acceleration: Motion
@@ -219,21 +225,52 @@ class _Substeps:
         )
 
 
+def _rows_at(substeps: _Substeps, pose: Motion) -> ContactRows:
+    """The contact rows with each point's levers from its bodies' current positions (Jax2D's contacts read the
+    positions that its joints moved within the step)."""
+    layout = substeps.layout
+    shift = [p - s for p, s in zip(pose[:2], substeps.start_pose[:2], strict=True)]
+    geometry = substeps.geometry
+
+    def moved_lever(lever, bodies):
+        along = jnp.stack([component[bodies] for component in shift], axis=2)  # (C, W, 2, *batch)
+        return lever - along[:, :, None]
+
+    geometry = geometry.replace(
+        lever_a=moved_lever(geometry.lever_a, layout.colour_body_a),
+        lever_b=moved_lever(geometry.lever_b, layout.colour_body_b),
+    )
+    return build_rows(geometry, substeps.response_scale, layout)
+
+
 def _solver_pass(substeps: _Substeps, carry, use_bias: bool, advance: bool, contacts: bool = True):
     """Joints then, if `contacts`, contacts; then, if `advance`, integrate positions. `carry`: velocities, poses,
     contact and joint impulses."""
     velocity, pose, contact_impulses, joint_impulses = carry
-    frames = substeps.frames_at(pose, use_bias)
-    velocity, joint_impulses = solve_joints(
-        velocity, substeps.joint_rows, frames, joint_impulses, substeps.joint_pass(use_bias)
-    )
+    if substeps.static.joint_law == JointLaw.JAX2D:
+        frames = substeps.frames_at(substeps.start_pose, True)
+        velocity, pose, joint_impulses = solve_joints_jax2d(velocity, pose, substeps.joint_rows, frames, joint_impulses)
+    else:
+        frames = substeps.frames_at(pose, use_bias)
+        velocity, joint_impulses = solve_joints(
+            velocity, substeps.joint_rows, frames, joint_impulses, substeps.joint_pass(use_bias)
+        )
     if contacts:
         unmoved = substeps.start_frames is not None and use_bias
         moved = None if unmoved else tuple(p - s for p, s in zip(pose, substeps.start_pose, strict=True))
         settings = substeps.contact_pass(use_bias)
-        velocity, contact_impulses = solve_contacts(
-            velocity, moved, substeps.rows, contact_impulses, substeps.layout, settings
-        )
+        rows = substeps.rows
+        if substeps.static.joint_law == JointLaw.JAX2D:
+            rows = _rows_at(substeps, pose)
+        if substeps.static.contact_order == ContactOrder.JAX2D:
+            batches = substeps.geometry.batch
+            velocity, contact_impulses = solve_contacts_jax2d(
+                velocity, rows, contact_impulses, substeps.layout, batches, settings
+            )
+        else:
+            velocity, contact_impulses = solve_contacts(
+                velocity, moved, rows, contact_impulses, substeps.layout, settings
+            )
     step_length, move = substeps.scalars.substep, substeps.movable
     pose = tuple(jnp.where(move & advance, p + step_length * v, p) for p, v in zip(pose, velocity, strict=True))
     return velocity, pose, contact_impulses, joint_impulses
@@ -282,6 +319,8 @@ def _solve(static: StaticSimParams, solver_loops: str, skip_idle_bounce: bool, s
         sweep=sweep,
         unrolled=solver_loops == "unrolled",
         rows=rows,
+        geometry=solver_input.contact_geometry,
+        response_scale=solver_input.response_scale,
         joint_rows=joint_rows,
         scalars=scalars,
         acceleration=_components(solver_input.acceleration),
@@ -441,6 +480,11 @@ def _contact_constraints(state: SimState, start: StartBodies, params: SimParams,
     contact_geometry = prepare_contacts(
         manifold, pairs, start.pose[:n, :2], start.velocity[:n], start.acceleration[:n], layout
     )
+    if static.contact_order == ContactOrder.JAX2D:
+        a, b = layout.body_a, layout.body_b
+        modes = modes_collide(bodies.collision_mode[a], bodies.collision_mode[b])
+        counted = manifold.valid.any(-1) & bodies.active[a] & bodies.active[b] & modes
+        contact_geometry = contact_geometry.replace(batch=solver_batches(counted, layout))
     normal_warm, tangent_warm = match_warm_start(state.contacts, manifold.feature, jax2d_rules)
     warm = jnp.where(jnp.tile(point_enabled, (1, 2)), jnp.concatenate([normal_warm, tangent_warm], -1), 0.0)
     contact_impulses = to_colour_layout(

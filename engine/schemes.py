@@ -9,9 +9,10 @@ import dataclasses
 from kforge.engine.params import (
     CollisionRules,
     ContactLaw,
+    ContactOrder,
     ContactPoints,
     ForceTiming,
-    LimitLaw,
+    JointLaw,
     SimParams,
     StaticSimParams,
 )
@@ -39,9 +40,9 @@ DEFAULT_PHYSICS_SCHEME = "kforge"
 PHYSICS_SCHEMES = {
     # The engine's defaults: 4 substeps, soft contacts and joints; every row of the physics test plan holds.
     DEFAULT_PHYSICS_SCHEME: PhysicsScheme(),
-    # Jax2D's scheme and contact geometry, the closest to Kinetix's play: one step of 10 passes, Baumgarte's push-out,
-    # gravity and thrust at the step's start, no speculative contacts, Jax2D's contact points and geometry,
-    # overlaps found a step late below twice the inner radius, joints past a limit returned at a bounded rate.
+    # Jax2D's scheme, the closest to Kinetix's play: one step of 10 passes, Baumgarte's push-out, gravity and thrust
+    # at the step's start, no speculative contacts, Jax2D's contact points and geometry, overlaps found a step late
+    # below twice the inner radius, Jax2D's joints and its order of solving contacts.
     "kinetix": PhysicsScheme(
         sim_fields=(("speculative_distance", 0.0), ("overlap_allowance", 2.0)),
         solver_fields=(
@@ -52,7 +53,8 @@ PHYSICS_SCHEMES = {
             ("force_timing", ForceTiming.STEP_START),
             ("contact_points", ContactPoints.KINETIX),
             ("collision_rules", CollisionRules.JAX2D),
-            ("limit_law", LimitLaw.BOUNDED_RETURN),
+            ("joint_law", JointLaw.JAX2D),
+            ("contact_order", ContactOrder.JAX2D),
         ),
     ),
 }

@@ -20,7 +20,6 @@ from kforge.engine import (
     ContactLaw,
     ContactPoints,
     ForceTiming,
-    LimitLaw,
     MotorLaw,
     SceneBuilder,
     SimParams,
@@ -28,6 +27,7 @@ from kforge.engine import (
     physics_scheme,
     step,
 )
+from kforge.engine.params import ContactOrder, JointLaw
 
 KINETIX = physics_scheme("kinetix")
 
@@ -45,11 +45,8 @@ def test_the_kinetix_scheme_is_jax2ds_solver_and_contact_geometry_and_keeps_size
     assert (sim.base_friction, sim.dt) == (0.7, 1.0 / 30.0)  # what it does not set is the level's own
     batching = Batching("whole", 8, "unrolled")
     static = KINETIX.static(dataclasses.replace(SIZE_M, batching=batching))
-    assert (static.contact_law, static.force_timing, static.limit_law) == (
-        ContactLaw.BAUMGARTE,
-        ForceTiming.STEP_START,
-        LimitLaw.BOUNDED_RETURN,
-    )
+    assert (static.contact_law, static.force_timing) == (ContactLaw.BAUMGARTE, ForceTiming.STEP_START)
+    assert (static.joint_law, static.contact_order) == (JointLaw.JAX2D, ContactOrder.JAX2D)
     assert (static.contact_points, static.collision_rules) == (ContactPoints.KINETIX, CollisionRules.JAX2D)
     assert (static.num_substeps, static.num_iterations, static.num_relax_iterations) == (1, 10, 0)
     assert (static.num_polygons, static.num_circles, static.num_joints, static.num_thrusters) == (6, 3, 2, 2)
@@ -66,7 +63,7 @@ def test_a_scheme_sets_only_continuous_constants_in_sim_params_and_its_laws_stat
 def test_physics_options_are_the_laws_and_solver_settings_without_the_sizes_or_the_execution_form():
     options = KINETIX.static(SIZE_M).physics_options()
     assert options["num_substeps"] == 1 and options["num_iterations"] == 10 and options["num_relax_iterations"] == 0
-    assert options["contact_law"] == ContactLaw.BAUMGARTE and options["limit_law"] == LimitLaw.BOUNDED_RETURN
+    assert options["contact_law"] == ContactLaw.BAUMGARTE and options["joint_law"] == JointLaw.JAX2D
     assert options["swept_speculative_contacts"] is True and options["block_contacts"] is False
     assert not {"num_polygons", "num_circles", "num_joints", "num_thrusters", "num_reserved_static"} & set(options)
     assert "batching" not in options
