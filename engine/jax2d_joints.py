@@ -77,7 +77,7 @@ def _solve_one(velocity, pose, row: JointRows, frame: JointFrames, linear, angul
     gap = (anchor_b[0] - anchor_a[0], anchor_b[1] - anchor_a[1])
     inverse_mass_sum = _one_or(ma + mb)
     denominator = _one_or(
-        inverse_mass_sum + _cross(lever_a, direction) ** 2 * ia + _cross(lever_b, direction) ** 2 * ib
+        inverse_mass_sum + (_cross(lever_a, direction) ** 2 * ia + _cross(lever_b, direction) ** 2 * ib)
     )
     impulse = tuple((relative[k] + GAP_VELOCITY_RATE * gap[k]) / denominator * IMPULSE_SHARE for k in range(2))
     turn_a = _cross(lever_a, impulse) * ia
@@ -86,7 +86,7 @@ def _solve_one(velocity, pose, row: JointRows, frame: JointFrames, linear, angul
     # back.
     angle = frame.angle
     excess = angle - jnp.clip(angle, row.lower_angle, row.upper_angle)
-    relative_turn = (velocity_b[2] + turn_b) - (velocity_a[2] + turn_a)
+    relative_turn = velocity_b[2] + turn_b - velocity_a[2] - turn_a
     fixed = row.solve_angle
     limit_turn = (jnp.sign(relative_turn) == jnp.sign(excess * LIMIT_ANGLE_RATE)) * (
         relative_turn + excess * LIMIT_ANGLE_RATE

@@ -19,10 +19,12 @@ from kforge.env.pixels import render_image
 from kforge.env.play import GIF_FPS, record_episode
 from kforge.env.rollout import Outcome, Policy, first_episode_outcomes
 from kforge.env.sampler import sample_level, sample_levels
+from kforge.env.sampler_shapes import DISC_INERTIA_SHARE
 from kforge.env.state import EnvState, Level, Role, empty_task, initial_state
 
 __all__ = [
     "BUNDLED_SIZES",
+    "DISC_INERTIA_SHARE",
     "GIF_FPS",
     "GIF_RESOLUTION",
     "MULTI_DISCRETE_SIZES",

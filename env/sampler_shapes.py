@@ -35,6 +35,8 @@ MAX_RADIUS = 0.4  # [m] (0.5 m * circle_max_size_coeff 0.8)
 # Placement and material.
 GOAL_SIDE_CHANCE = 0.5  # [-] probability that green is confined to the left half and blue to the right half
 SHAPE_DENSITY = 1.0  # [kg/m^2]
+DISC_INERTIA_SHARE = 0.25  # [-] a sampled disc's inertia per m r^2: Kinetix's sampler stores Jax2D's pi rho r^4 / 4
+# (m r^2 / 4, mass gathered towards the centre; a uniform disc has m r^2 / 2), so sampled levels turn as Kinetix's do
 SHAPE_FRICTION = 1.0  # [-]
 SHAPE_COLLISION_MODE = 1  # collides with modes 1 and 2 (everything sampled, and the boundaries)
 
@@ -200,11 +202,13 @@ def body_half_extents(vertices):
 
 
 def shape_mass(shape: Shape):
-    """Mass [kg] and inertia about the centre [kg m^2] of a proposed shape at `SHAPE_DENSITY`."""
+    """Mass [kg] and inertia about the centre [kg m^2] of a proposed shape at `SHAPE_DENSITY` (a disc's inertia by
+    `DISC_INERTIA_SHARE`)."""
     polygon_mass, _, polygon_inertia = polygon_mass_properties(
         rectangle_vertices(shape.half_extents), MAX_POLYGON_VERTICES, SHAPE_DENSITY
     )
-    circle_mass, circle_inertia = circle_mass_properties(shape.radius, SHAPE_DENSITY)
+    circle_mass, _ = circle_mass_properties(shape.radius, SHAPE_DENSITY)
+    circle_inertia = DISC_INERTIA_SHARE * circle_mass * shape.radius**2
     return (
         jnp.where(shape.is_polygon, polygon_mass, circle_mass),
         jnp.where(shape.is_polygon, polygon_inertia, circle_inertia),

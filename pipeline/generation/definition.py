@@ -7,6 +7,7 @@ import hashlib
 import json
 import math
 
+from kforge.env import DISC_INERTIA_SHARE
 from kforge.pipeline.generation.resolved import ResolvedJob
 from kforge.pipeline.generation.schema import FIXED_BUDGET_MODE
 
@@ -16,13 +17,14 @@ DATA_SECTIONS = ("split", "work", "filter", "env", "ppo", "experts", "collect")
 
 def data_definition(job: ResolvedJob) -> dict:
     """What defines the dataset's content, as JSON values: the config's data sections (`experts` only where a budget
-    mode reads it), and the physics the levels play under: the scheme's name, every engine parameter of a step and
-    every solver setting (set by the code, not the config, so that data made by code with other physics is told
-    apart)."""
+    mode reads it); the physics the levels play under: the scheme's name, every engine parameter of a step and
+    every solver setting; and what the level sampler sets that no config does (a disc's inertia). The last two are
+    set by the code, not the config, so that data made by code with other physics or levels is told apart."""
     config = job.config
     sections = [name for name in DATA_SECTIONS if name != "experts" or config.experts.budget_mode != FIXED_BUDGET_MODE]
     data = {section: dataclasses.asdict(getattr(config, section)) for section in sections}
-    return data | {"physics": physics_definition(config.env.physics, job.env_params.sim, job.static.sim)}
+    physics = physics_definition(config.env.physics, job.env_params.sim, job.static.sim)
+    return data | {"physics": physics, "levels": {"disc_inertia_share": DISC_INERTIA_SHARE}}
 
 
 def physics_definition(scheme: str, sim, static_sim) -> dict:

@@ -172,7 +172,7 @@ def test_levels_are_valid(sampled, size):
     density = task.densities
     mass = np.where(np.arange(n) < p, 0.0, density * math.pi * b.radius**2)
     mass[:, reserved:p] = density[:, reserved:p] * width * height
-    inertia = np.where(np.arange(n) < p, 0.0, 0.5 * mass * b.radius**2)
+    inertia = np.where(np.arange(n) < p, 0.0, 0.25 * mass * b.radius**2)  # Kinetix's sampler: m r^2 / 4
     inertia[:, reserved:p] = mass[:, reserved:p] * (width**2 + height**2) / 12.0
     np.testing.assert_allclose(b.inverse_mass[movable], 1.0 / mass[movable], rtol=1e-4)
     np.testing.assert_allclose(b.inverse_inertia[movable], 1.0 / inertia[movable], rtol=1e-4)
