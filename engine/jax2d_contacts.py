@@ -68,10 +68,6 @@ def _reset_slots(layout: PairLayout) -> np.ndarray:
     return reset
 
 
-def _colour(tree, c):
-    return jax.tree_util.tree_map(lambda x: x[c], tree)
-
-
 def _solve_point(velocity, rows: ContactRows, impulse, bodies, p: int, in_batch, settings: ContactPass):
     """Point `p` of every pair of one colour in `in_batch` at once: its normal row, then its friction row."""
     width = bodies.shape[0] // 2
@@ -105,19 +101,22 @@ def solve_contacts_jax2d(
     Jax2D's contacts follow Baumgarte's law with the separations of the step's start."""
     reset = _reset_slots(layout)
     per_colour = []
+    width = layout.colour_slots.shape[1]
     for c, real in enumerate(_real_slots(layout)):
-        colour_rows = _colour(rows, c)
-        impulse = [x[c] for x in impulses.impulse]
-        bodies = np.concatenate([layout.colour_body_a[c], layout.colour_body_b[c]])
+        real = int(real)  # the colour's real pairs come first: only they are solved
+        colour_rows = jax.tree_util.tree_map(lambda x, c=c, real=real: x[c, :real], rows)
+        impulse = [x[c, :real] for x in impulses.impulse]
+        bodies = np.concatenate([layout.colour_body_a[c, :real], layout.colour_body_b[c, :real]])
         points = NUM_POINTS if layout.colour_slots[c, 0] < layout.num_polygon_polygon else 1
         for p in range(points):
-            for b in range(_num_batches(int(real))):
-                in_batch = batches[c] == b
+            for b in range(_num_batches(real)):
+                in_batch = batches[c, :real] == b
                 velocity, impulse = _solve_point(velocity, colour_rows, impulse, bodies, p, in_batch, settings)
         if reset[c].any():
-            keep = jnp.asarray(~reset[c]).reshape(reset[c].shape + (1,) * (impulse[0].ndim - 1))
+            keep = jnp.asarray(~reset[c, :real]).reshape((real,) + (1,) * (impulse[0].ndim - 1))
             impulse = [jnp.where(keep, x, 0.0) for x in impulse]
-        per_colour.append(impulse)
+        padding = [(0, width - real)] + [(0, 0)] * (impulse[0].ndim - 1)
+        per_colour.append([jnp.pad(x, padding) for x in impulse])
     impulse = tuple(jnp.stack([colour[r] for colour in per_colour]) for r in range(len(impulses.impulse)))
     max_normal = tuple(jnp.maximum(m, i) for m, i in zip(impulses.max_normal, impulse[:NUM_POINTS], strict=True))
     return velocity, ContactImpulses(impulse, max_normal)
