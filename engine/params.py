@@ -27,8 +27,9 @@ class ForceTiming(enum.IntEnum):
     SPREAD = 0
     """A share in every substep, before its solve (Box2D v3): positions follow the acceleration to second order."""
     STEP_START = 1
-    """Kinetix's (Jax2D's): the whole step's impulse before the first substep, so a body in free flight moves dt
-    x (v + a dt) per step, dt^2 a x 3/8 further than SPREAD with 4 substeps (6 cm more fall per second of flight)."""
+    """Kinetix's (Jax2D's): the whole step's impulse before the first substep, in Jax2D's arithmetic (v + g dt, then
+    each thruster's power x base power x action x dt along its direction), so a body in free flight moves dt x
+    (v + a dt) per step, dt^2 a x 3/8 further than SPREAD with 4 substeps (6 cm more fall per second of flight)."""
 
 
 class MotorLaw(enum.IntEnum):

@@ -130,7 +130,7 @@ class SolverScalars:
 class SolverInput:
     """Bodies (N+1 rows: the last is a dummy for colour padding) and constraints entering the substeps."""
 
-    velocity: jnp.ndarray  # (N+1, 3) vx [m/s], vy [m/s], w [rad/s]
+    velocity: jnp.ndarray  # (N+1, 3) vx [m/s], vy [m/s], w [rad/s]; under STEP_START after the step's forces
     pose: jnp.ndarray  # (N+1, 3) x [m], y [m], rotation [rad]
     acceleration: jnp.ndarray  # (N+1, 3) from gravity and thrusters, zero for bodies that cannot move
     movable: jnp.ndarray  # (N+1,) bool
@@ -160,14 +160,11 @@ class Prepared:
     feature: jnp.ndarray  # (K, 2) i32
 
 
-def force_substeps(static: StaticSimParams, index) -> jnp.ndarray:
-    """How many substeps' worth of gravity and thrust substep `index` (traced) adds to the velocities, by
-    `static.force_timing`: SPREAD 1 in each, STEP_START all of them in the first.
+def spread_force_share(index) -> jnp.ndarray:
+    """The substeps' worth of gravity and thrust that substep `index` (traced) adds under `ForceTiming.SPREAD`: 1.
 
-    Both are selections on the index, as when the law was a traced parameter: a constant share would be hoisted out of
-    the substep loop, and the update's product rounded apart from its sum, changing the step's bits (1 ulp)."""
-    if static.force_timing == ForceTiming.STEP_START:
-        return jnp.where(index == 0, static.num_substeps, 0)
+    A selection on the index: a constant share would be hoisted out of the substep loop, and the update's product
+    rounded apart from its sum, changing the step's bits (1 ulp)."""
     return jnp.where(index >= 0, 1, 0)
 
 
@@ -282,8 +279,9 @@ def _substep(substeps: _Substeps, carry, index):
     velocity, pose, contact_impulses, joint_impulses = carry
     if static.limit_law == LimitLaw.KINETIX:  # Kinetix's: nothing carried
         joint_impulses = joint_impulses.replace(limit=jnp.zeros_like(joint_impulses.limit))
-    share = force_substeps(static, index) * scalars.substep
-    velocity = tuple(v + share * a for v, a in zip(velocity, substeps.acceleration, strict=True))
+    if static.force_timing == ForceTiming.SPREAD:  # STEP_START: in the solver's starting velocities
+        share = spread_force_share(index) * scalars.substep
+        velocity = tuple(v + share * a for v, a in zip(velocity, substeps.acceleration, strict=True))
     velocity = warm_start_joints(velocity, substeps.joint_rows, substeps.frames_at(pose, True), joint_impulses)
     velocity = warm_start_contacts(velocity, substeps.rows, contact_impulses, substeps.layout)
     carry = (velocity, pose, contact_impulses, joint_impulses)
@@ -378,6 +376,29 @@ def _external_acceleration(state: SimState, params: SimParams, thruster_actions,
     external = owner.T @ jnp.concatenate([thrust, torque[:, None]], -1)
     gravity = jnp.concatenate([state.gravity, jnp.zeros(1)])
     return jnp.where(movable[:, None], response_scale * external + gravity, 0.0)
+
+
+def _step_start_velocity(state: SimState, params: SimParams, start: StartBodies, thruster_actions) -> jnp.ndarray:
+    """(N+1, 3) velocities after the whole step's gravity, then thrust, in Jax2D's arithmetic
+    (`ForceTiming.STEP_START`): v + g dt, then a thruster's impulse power x base power x action x dt along its
+    direction."""
+    bodies, thrusters = state.bodies, state.thrusters
+    n = bodies.active.shape[0]
+    gravity = jnp.concatenate([state.gravity * params.dt, jnp.zeros(1)])
+    velocity = jnp.where(start.movable[:, None], start.velocity + gravity, start.velocity)
+    rotation = bodies.rotation[thrusters.body]
+    lever = rotate(rotation, thrusters.anchor)
+    angle = thrusters.angle + rotation
+    direction = jnp.stack([jnp.cos(angle), jnp.sin(angle)], -1)
+    action = jnp.clip(thruster_actions, 0.0, 1.0)
+    force = thrusters.power * thrusters.active * params.base_thruster_power * action * params.dt
+    response = start.response_scale[thrusters.body]
+    change = jnp.concatenate(
+        [response[:, :2] * direction * force[:, None], (response[:, 2] * cross2(lever, direction) * force)[:, None]], -1
+    )
+    for k in range(thrusters.body.shape[0]):
+        velocity = jnp.where((jnp.arange(n + 1) == thrusters.body[k])[:, None], velocity + change[k], velocity)
+    return velocity
 
 
 def _extend(x):
@@ -536,8 +557,11 @@ def prepare_step(
         state, start, params, static
     )
     joint_rows, joint_impulses = _joint_constraints(state.joints, start, motor_actions, params, static)
+    velocity = start.velocity
+    if static.force_timing == ForceTiming.STEP_START:
+        velocity = _step_start_velocity(state, params, start, thruster_actions)
     solver_input = SolverInput(
-        velocity=start.velocity,
+        velocity=velocity,
         pose=start.pose,
         acceleration=start.acceleration,
         movable=start.movable,

@@ -41,10 +41,11 @@ PHYSICS_SCHEMES = {
     # The engine's defaults: 4 substeps, soft contacts and joints; every row of the physics test plan holds.
     DEFAULT_PHYSICS_SCHEME: PhysicsScheme(),
     # Jax2D's scheme, the closest to Kinetix's play: one step of 10 passes, Baumgarte's push-out, gravity and thrust
-    # at the step's start, no speculative contacts, Jax2D's contact points and geometry, overlaps found a step late
-    # below twice the inner radius, Jax2D's joints and its order of solving contacts.
+    # at the step's start, no speculative contacts (overlaps are found a step late, and fast thin shapes may pass
+    # through each other, as in Jax2D), Jax2D's contact points and geometry, its joints and its order of solving
+    # contacts.
     "kinetix": PhysicsScheme(
-        sim_fields=(("speculative_distance", 0.0), ("overlap_allowance", 2.0)),
+        sim_fields=(("speculative_distance", 0.0), ("speculative_reach", 0.0)),
         solver_fields=(
             ("num_substeps", 1),
             ("num_iterations", 10),

@@ -112,3 +112,35 @@ def test_the_last_pair_of_a_padded_kind_keeps_no_impulse_and_the_others_keep_the
     assert normal[pairs.index((0, lower))].max() > 0.0
     position = np.asarray(state.bodies.position)
     assert position[upper, 1] - position[lower, 1] == pytest.approx(2 * radius, abs=0.02)  # still stacked
+
+
+def test_the_step_starts_with_gravity_then_thrust_in_jax2ds_arithmetic():
+    """Jax2D adds g dt to a body's velocity, then each thruster's impulse inverse mass x direction x (power x base
+    power x action x dt), and turns it by inverse inertia x (lever x direction) x the same; a box in free flight
+    with a thruster off its centre has, after one step, exactly those float32 velocities."""
+    builder = SceneBuilder(SIZE_S)
+    box = builder.add_box((2.5, 3.0), (0.6, 0.2), rotation=0.3)
+    angle, power = 1.1, 1.7
+    builder.add_thruster(box, (2.6, 3.05), angle, power=power)
+    state = builder.build()
+    params = KINETIX.sim(SimParams())
+    _, trajectory = run(state, KINETIX.static(SIZE_S), 1, params=params, thrust=np.ones(1, np.float32))
+    f32 = np.float32
+    bodies, thruster = state.bodies, state.thrusters
+    rotation = f32(bodies.rotation[box])
+    turn = f32(thruster.angle[0]) + rotation
+    direction = np.array([np.cos(turn), np.sin(turn)], f32)
+    anchor = np.asarray(thruster.anchor[0], f32)
+    lever = np.array(
+        [
+            np.cos(rotation) * anchor[0] - np.sin(rotation) * anchor[1],
+            np.sin(rotation) * anchor[0] + np.cos(rotation) * anchor[1],
+        ],
+        f32,
+    )
+    dt = f32(params.dt)
+    force = f32(power) * f32(1.0) * f32(params.base_thruster_power) * f32(1.0) * dt
+    velocity = np.asarray(state.gravity, f32) * dt + f32(bodies.inverse_mass[box]) * direction * force
+    spin = f32(bodies.inverse_inertia[box]) * (lever[0] * direction[1] - lever[1] * direction[0]) * force
+    np.testing.assert_allclose(trajectory.velocity[1, box], velocity, rtol=2e-7)
+    assert trajectory.angular_velocity[1, box] == pytest.approx(spin, rel=2e-6)

@@ -41,7 +41,7 @@ def test_the_default_scheme_changes_nothing():
 
 def test_the_kinetix_scheme_is_jax2ds_solver_and_contact_geometry_and_keeps_sizes_and_level_constants():
     sim = KINETIX.sim(SimParams(base_friction=0.7, dt=1.0 / 30.0))
-    assert (sim.speculative_distance, sim.overlap_allowance) == (0.0, 2.0)
+    assert (sim.speculative_distance, sim.speculative_reach) == (0.0, 0.0)  # no speculative contacts
     assert (sim.base_friction, sim.dt) == (0.7, 1.0 / 30.0)  # what it does not set is the level's own
     batching = Batching("whole", 8, "unrolled")
     static = KINETIX.static(dataclasses.replace(SIZE_M, batching=batching))
