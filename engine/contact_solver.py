@@ -269,10 +269,16 @@ def received_changes(layout: PairLayout) -> tuple[np.ndarray, np.ndarray]:
     flat list [changes of every slot's body a; changes of every slot's body b], in that list's order, and (N, D)
     whether each index is a real entry (D: the most any body receives; padding slots go to the dummy body N)."""
     owners = np.concatenate([layout.colour_body_a.reshape(-1), layout.colour_body_b.reshape(-1)])
-    entries = [np.flatnonzero(owners == body) for body in range(layout.num_bodies)]
+    return changes_by_body(owners, layout.num_bodies)
+
+
+def changes_by_body(owners: np.ndarray, num_bodies: int) -> tuple[np.ndarray, np.ndarray]:
+    """For a flat list of changes whose bodies are `owners`: (N, D) the indices of each body's changes in list order,
+    and (N, D) whether each index is a real entry (D: the most any body receives)."""
+    entries = [np.flatnonzero(owners == body) for body in range(num_bodies)]
     width = max((len(e) for e in entries), default=0)
-    indices = np.zeros((layout.num_bodies, width), np.int32)
-    real = np.zeros((layout.num_bodies, width), bool)
+    indices = np.zeros((num_bodies, width), np.int32)
+    real = np.zeros((num_bodies, width), bool)
     for body, found in enumerate(entries):
         indices[body, : len(found)], real[body, : len(found)] = found, True
     return indices, real
@@ -287,17 +293,24 @@ def warm_start_contacts(velocity: Motion, rows: ContactRows, impulses: ContactIm
     """
     change_a, change_b = _velocity_changes(rows, impulses.impulse)
     indices, real = received_changes(layout)
-    n = layout.num_bodies
 
     def received(v, da, db):
         changes = jnp.concatenate([da.reshape((-1,) + da.shape[2:]), db.reshape((-1,) + db.shape[2:])])
-        bodies = v[:n]
-        for k in range(indices.shape[1]):
-            takes = real[:, k].reshape((n,) + (1,) * (v.ndim - 1))
-            bodies = jnp.where(takes, bodies + changes[indices[:, k]], bodies)
-        return jnp.concatenate([bodies, v[n:]])
+        return add_in_order(v, changes, indices, real)
 
     return tuple(received(v, da, db) for v, da, db in zip(velocity, change_a, change_b, strict=True))
+
+
+def add_in_order(v, changes, indices: np.ndarray, real: np.ndarray):
+    """`v` (N+1, *batch) plus, for each real body, its `changes` (M, *batch) one by one in the fixed order of
+    `changes_by_body`'s `indices` and `real` (N, D): the same bits on every backend, where a scatter-add onto a body
+    changed several times is lowered to atomic additions of varying order on a GPU."""
+    n = indices.shape[0]
+    bodies = v[:n]
+    for k in range(indices.shape[1]):
+        takes = real[:, k].reshape((n,) + (1,) * (v.ndim - 1))
+        bodies = jnp.where(takes, bodies + changes[indices[:, k]], bodies)
+    return jnp.concatenate([bodies, v[n:]])
 
 
 class _ColourSolve(NamedTuple):

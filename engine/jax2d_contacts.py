@@ -5,7 +5,8 @@ separate sweeps over the batches, each point's normal row then its friction row.
 kind with no accumulated impulse when the kind's batches have padding (Jax2D's padding writes over it), so that pair
 starts every pass, and every step, from zero.
 
-Rank-polymorphic like `engine.contact_solver`: per-scene axes first, any trailing batch axes."""
+Rank-polymorphic like `engine.contact_solver`: per-scene axes first, any trailing batch axes. A body's changes within a
+batch are summed in a fixed order, so every backend gives the same bits."""
 
 from __future__ import annotations
 
@@ -22,6 +23,8 @@ from kforge.engine.contact_solver import (
     _push_target,
     _row_speed,
     _velocity_changes,
+    add_in_order,
+    changes_by_body,
 )
 from kforge.engine.pairs import PairLayout
 
@@ -86,8 +89,10 @@ def _solve_point(velocity, rows: ContactRows, impulse, bodies, p: int, in_batch,
     deltas = [jnp.zeros_like(normal)] * len(impulse)
     deltas[p], deltas[r] = normal - old_normal, friction - old_friction
     change_a, change_b = _velocity_changes(rows, deltas)
+    indices, real = changes_by_body(bodies, velocity[0].shape[0] - 1)
     velocity = tuple(
-        v.at[bodies].add(jnp.concatenate([da, db])) for v, da, db in zip(velocity, change_a, change_b, strict=True)
+        add_in_order(v, jnp.concatenate([da, db]), indices, real)
+        for v, da, db in zip(velocity, change_a, change_b, strict=True)
     )
     impulse = list(impulse)
     impulse[p], impulse[r] = normal, friction
