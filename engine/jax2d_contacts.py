@@ -71,8 +71,9 @@ def _reset_slots(layout: PairLayout) -> np.ndarray:
     return reset
 
 
-def _solve_point(velocity, rows: ContactRows, impulse, bodies, p: int, in_batch, settings: ContactPass):
-    """Point `p` of every pair of one colour in `in_batch` at once: its normal row, then its friction row."""
+def _solve_point(velocity, rows: ContactRows, impulse, bodies, p: int, in_batch, settings: ContactPass, num_reserved):
+    """Point `p` of every pair of one colour in `in_batch` at once: its normal row, then its friction row. The
+    reserved static bodies (indices below `num_reserved`) never move, so their changes (zero) are not added."""
     width = bodies.shape[0] // 2
     motion = tuple(v[bodies] for v in velocity)
     vel_a, vel_b = tuple(m[:width] for m in motion), tuple(m[width:] for m in motion)
@@ -89,7 +90,7 @@ def _solve_point(velocity, rows: ContactRows, impulse, bodies, p: int, in_batch,
     deltas = [jnp.zeros_like(normal)] * len(impulse)
     deltas[p], deltas[r] = normal - old_normal, friction - old_friction
     change_a, change_b = _velocity_changes(rows, deltas)
-    indices, real = changes_by_body(bodies, velocity[0].shape[0] - 1)
+    indices, real = changes_by_body(np.where(bodies < num_reserved, -1, bodies), velocity[0].shape[0] - 1)
     velocity = tuple(
         add_in_order(v, jnp.concatenate([da, db]), indices, real)
         for v, da, db in zip(velocity, change_a, change_b, strict=True)
@@ -104,6 +105,7 @@ def solve_contacts_jax2d(
 ):
     """One pass over every contact in Jax2D's order (`batches`: `solver_batches`); returns velocities and impulses.
     Jax2D's contacts follow Baumgarte's law with the separations of the step's start."""
+    num_reserved = layout.num_reserved_static
     reset = _reset_slots(layout)
     per_colour = []
     width = layout.colour_slots.shape[1]
@@ -116,7 +118,9 @@ def solve_contacts_jax2d(
         for p in range(points):
             for b in range(_num_batches(real)):
                 in_batch = batches[c, :real] == b
-                velocity, impulse = _solve_point(velocity, colour_rows, impulse, bodies, p, in_batch, settings)
+                velocity, impulse = _solve_point(
+                    velocity, colour_rows, impulse, bodies, p, in_batch, settings, num_reserved
+                )
         if reset[c].any():
             keep = jnp.asarray(~reset[c, :real]).reshape((real,) + (1,) * (impulse[0].ndim - 1))
             impulse = [jnp.where(keep, x, 0.0) for x in impulse]

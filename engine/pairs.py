@@ -26,6 +26,7 @@ class PairLayout:
     body_a: np.ndarray  # (K,) i32, lower global index of the pair
     body_b: np.ndarray  # (K,) i32, higher global index
     num_bodies: int  # N; colour padding uses the dummy body index N
+    num_reserved_static: int  # bodies 0.. that are always static
     num_polygon_polygon: int
     num_polygon_circle: int
     num_circle_circle: int
@@ -117,6 +118,7 @@ def pair_layout(static: StaticSimParams) -> PairLayout:
         body_a=pair_array[:, 0],
         body_b=pair_array[:, 1],
         num_bodies=n,
+        num_reserved_static=reserved,
         num_polygon_polygon=len(polygon_polygon),
         num_polygon_circle=len(polygon_circle),
         num_circle_circle=len(circle_circle),
