@@ -8,10 +8,9 @@ sum of every pass's impulse since the scene started, which warm starts the next 
 
 from __future__ import annotations
 
-import jax
 import jax.numpy as jnp
 
-from kforge.engine.joint_solver import JointFrames, JointImpulses, JointRows
+from kforge.engine.joint_solver import JointFrames, JointImpulses, JointRows, _select_motion, _take
 
 GAP_VELOCITY_RATE = 2.0
 """[1/s] Velocity bias per metre of gap between a joint's anchors (Jax2D's `baumgarte_coefficient_joints_v`)."""
@@ -35,20 +34,13 @@ def _cross(a, b):
     return a[0] * b[1] - a[1] * b[0]
 
 
-def _pick(component, mask):
-    """The row of a (N+1, *batch) `component` chosen by a (N+1, *batch) one-hot mask: (*batch)."""
-    return jnp.sum(jnp.where(mask, component, 0.0), axis=0)
-
-
 def _solve_one(velocity, pose, row: JointRows, frame: JointFrames, linear, angular):
     """One joint's pass: the velocities and poses after it, and its impulses (soft-law convention) after it."""
     mask_a, mask_b = frame.mask_a, frame.mask_b
     ma, ia = row.response_a[0], row.response_a[2]
     mb, ib = row.response_b[0], row.response_b[2]
-    position_a = tuple(_pick(pose[k], mask_a) for k in range(2))
-    position_b = tuple(_pick(pose[k], mask_b) for k in range(2))
-    velocity_a = tuple(_pick(velocity[k], mask_a) for k in range(3))
-    velocity_b = tuple(_pick(velocity[k], mask_b) for k in range(3))
+    position_a, position_b = _select_motion(pose, mask_a)[:2], _select_motion(pose, mask_b)[:2]
+    velocity_a, velocity_b = _select_motion(velocity, mask_a), _select_motion(velocity, mask_b)
     lever_a, lever_b = frame.lever_a, frame.lever_b
     anchor_a = tuple(position_a[k] + lever_a[k] for k in range(2))
     anchor_b = tuple(position_b[k] + lever_b[k] for k in range(2))
@@ -118,10 +110,6 @@ def _solve_one(velocity, pose, row: JointRows, frame: JointFrames, linear, angul
     linear = jnp.stack([linear[0] - gated(impulse[0]), linear[1] - gated(impulse[1])])
     angular = jnp.where(solve & fixed, angular - angular_impulse, 0.0)
     return velocity, (*moved, pose[2]), linear, angular
-
-
-def _take(tree, j):
-    return jax.tree_util.tree_map(lambda x: x[j], tree)
 
 
 def solve_joints_jax2d(velocity, pose, rows: JointRows, frames: JointFrames, impulses: JointImpulses):
