@@ -25,7 +25,7 @@ computation, with `while` bodies multiplied by XLA's `known_trip_count`.
     python -m benchmarks.engine_speed --sizes s m --batches 1 256 --repeats 15 --vs-substeps 2
     python -m benchmarks.engine_speed --sizes s m l --batches 1 256 --repeats 9 --vs-substeps 1 --vs-iterations 10 \
         --vs-relax-iterations 0 --vs-sim contact_law=1 --vs-sim force_timing=1 --vs-sim speculative_distance=0 \
-        --vs-sim overlap_allowance=1
+        --vs-sim speculative_reach=0
 
 `--vs-sim KEY=VALUE` also times ours with those `SimParams` (compiled in as constants) or `StaticSimParams` laws,
 called alternately with the defaults, and prints the ratio: what a physics option costs. `--vs-substeps N` does the

@@ -18,7 +18,7 @@ from none).
     python -m benchmarks.fidelity_trace levels/s/k0-00030.json --noop --substeps 1 --iterations 10 --relax-iterations 0
     python -m benchmarks.fidelity_trace levels/s/k0-00454.json --noop --from-step 0:21 --substeps 1 --iterations 10 \
         --relax-iterations 0 --sim contact_law=1 --sim force_timing=1 --sim speculative_distance=0 \
-        --sim overlap_allowance=2 --sim contact_points=1
+        --sim speculative_reach=0 --sim contact_points=1
 
 (the second a random level that `python -m benchmarks.fidelity --random-levels 64 --level-dir levels` sampled.)
 """

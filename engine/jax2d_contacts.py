@@ -10,6 +10,8 @@ batch are summed in a fixed order, so every backend gives the same bits."""
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -71,9 +73,27 @@ def _reset_slots(layout: PairLayout) -> np.ndarray:
     return reset
 
 
-def _solve_point(velocity, rows: ContactRows, impulse, bodies, p: int, in_batch, settings: ContactPass, num_reserved):
-    """Point `p` of every pair of one colour in `in_batch` at once: its normal row, then its friction row. The
-    reserved static bodies (indices below `num_reserved`) never move, so their changes (zero) are not added."""
+class _Colour(NamedTuple):
+    """One colour's real pairs: their rows, their bodies (every pair's body a, then every pair's body b) and which of
+    those bodies' changes each body receives, in order (`changes_by_body`; the reserved static bodies, which never
+    move, receive none)."""
+
+    rows: ContactRows
+    bodies: np.ndarray
+    received: tuple[np.ndarray, np.ndarray]
+
+    @classmethod
+    def of(cls, rows: ContactRows, layout: PairLayout, c: int, real: int) -> _Colour:
+        """Colour `c` of `rows`, its first `real` slots."""
+        bodies = np.concatenate([layout.colour_body_a[c, :real], layout.colour_body_b[c, :real]])
+        receivers = np.where(bodies < layout.num_reserved_static, -1, bodies)
+        colour_rows = jax.tree_util.tree_map(lambda x: x[c, :real], rows)
+        return cls(colour_rows, bodies, changes_by_body(receivers, layout.num_bodies))
+
+
+def _solve_point(velocity, colour: _Colour, impulse, p: int, in_batch, settings: ContactPass):
+    """Point `p` of every pair of `colour` in `in_batch` at once: its normal row, then its friction row."""
+    rows, bodies = colour.rows, colour.bodies
     width = bodies.shape[0] // 2
     motion = tuple(v[bodies] for v in velocity)
     vel_a, vel_b = tuple(m[:width] for m in motion), tuple(m[width:] for m in motion)
@@ -90,7 +110,7 @@ def _solve_point(velocity, rows: ContactRows, impulse, bodies, p: int, in_batch,
     deltas = [jnp.zeros_like(normal)] * len(impulse)
     deltas[p], deltas[r] = normal - old_normal, friction - old_friction
     change_a, change_b = _velocity_changes(rows, deltas)
-    indices, real = changes_by_body(np.where(bodies < num_reserved, -1, bodies), velocity[0].shape[0] - 1)
+    indices, real = colour.received
     velocity = tuple(
         add_in_order(v, jnp.concatenate([da, db]), indices, real)
         for v, da, db in zip(velocity, change_a, change_b, strict=True)
@@ -105,22 +125,18 @@ def solve_contacts_jax2d(
 ):
     """One pass over every contact in Jax2D's order (`batches`: `solver_batches`); returns velocities and impulses.
     Jax2D's contacts follow Baumgarte's law with the separations of the step's start."""
-    num_reserved = layout.num_reserved_static
     reset = _reset_slots(layout)
     per_colour = []
     width = layout.colour_slots.shape[1]
     for c, real in enumerate(_real_slots(layout)):
         real = int(real)  # the colour's real pairs come first: only they are solved
-        colour_rows = jax.tree_util.tree_map(lambda x, c=c, real=real: x[c, :real], rows)
+        colour = _Colour.of(rows, layout, c, real)
         impulse = [x[c, :real] for x in impulses.impulse]
-        bodies = np.concatenate([layout.colour_body_a[c, :real], layout.colour_body_b[c, :real]])
         points = NUM_POINTS if layout.colour_slots[c, 0] < layout.num_polygon_polygon else 1
         for p in range(points):
             for b in range(_num_batches(real)):
                 in_batch = batches[c, :real] == b
-                velocity, impulse = _solve_point(
-                    velocity, colour_rows, impulse, bodies, p, in_batch, settings, num_reserved
-                )
+                velocity, impulse = _solve_point(velocity, colour, impulse, p, in_batch, settings)
         if reset[c].any():
             keep = jnp.asarray(~reset[c, :real]).reshape((real,) + (1,) * (impulse[0].ndim - 1))
             impulse = [jnp.where(keep, x, 0.0) for x in impulse]

@@ -34,18 +34,10 @@ def _cross(a, b):
     return a[0] * b[1] - a[1] * b[0]
 
 
-def _solve_one(velocity, pose, row: JointRows, frame: JointFrames, linear, angular):
-    """One joint's pass: the velocities and poses after it, and its impulses (soft-law convention) after it."""
-    mask_a, mask_b = frame.mask_a, frame.mask_b
-    ma, ia = row.response_a[0], row.response_a[2]
-    mb, ib = row.response_b[0], row.response_b[2]
-    position_a, position_b = _select_motion(pose, mask_a)[:2], _select_motion(pose, mask_b)[:2]
-    velocity_a, velocity_b = _select_motion(velocity, mask_a), _select_motion(velocity, mask_b)
-    lever_a, lever_b = frame.lever_a, frame.lever_b
-    anchor_a = tuple(position_a[k] + lever_a[k] for k in range(2))
-    anchor_b = tuple(position_b[k] + lever_b[k] for k in range(2))
+def _meeting_point(anchor_a, anchor_b, ma, mb):
+    """Where Jax2D's joint acts: the anchors' average weighted by the bodies' masses (a static body's anchor)."""
     weight_a, weight_b = _one_or(ma), _one_or(mb)
-    point = tuple(
+    return tuple(
         jnp.where(
             ma == 0.0,
             anchor_a[k],
@@ -58,6 +50,18 @@ def _solve_one(velocity, pose, row: JointRows, frame: JointFrames, linear, angul
         for k in range(2)
     )
 
+
+def _point_impulse(row: JointRows, frame: JointFrames, moving_a, moving_b, gap):
+    """The under-relaxed impulse on body a along the anchors' relative velocity at their meeting point, biased by
+    their `gap`; `moving_a` and `moving_b` hold each body's position and velocity."""
+    (position_a, velocity_a), (position_b, velocity_b) = moving_a, moving_b
+    ma, ia = row.response_a[0], row.response_a[2]
+    mb, ib = row.response_b[0], row.response_b[2]
+    lever_a, lever_b = frame.lever_a, frame.lever_b
+    anchor_a = tuple(position_a[k] + lever_a[k] for k in range(2))
+    anchor_b = tuple(position_b[k] + lever_b[k] for k in range(2))
+    point = _meeting_point(anchor_a, anchor_b, ma, mb)
+
     def point_velocity(motion, position):
         arm = (point[0] - position[0], point[1] - position[1])
         return motion[0] - motion[2] * arm[1], motion[1] + motion[2] * arm[0]
@@ -66,19 +70,18 @@ def _solve_one(velocity, pose, row: JointRows, frame: JointFrames, linear, angul
     relative = (speed_b[0] - speed_a[0], speed_b[1] - speed_a[1])
     length = _one_or(jnp.sqrt(relative[0] ** 2 + relative[1] ** 2))
     direction = (relative[0] / length, relative[1] / length)
-    gap = (anchor_b[0] - anchor_a[0], anchor_b[1] - anchor_a[1])
-    inverse_mass_sum = _one_or(ma + mb)
     denominator = _one_or(
-        inverse_mass_sum + (_cross(lever_a, direction) ** 2 * ia + _cross(lever_b, direction) ** 2 * ib)
+        _one_or(ma + mb) + (_cross(lever_a, direction) ** 2 * ia + _cross(lever_b, direction) ** 2 * ib)
     )
-    impulse = tuple((relative[k] + GAP_VELOCITY_RATE * gap[k]) / denominator * IMPULSE_SHARE for k in range(2))
-    turn_a = _cross(lever_a, impulse) * ia
-    turn_b = -_cross(lever_b, impulse) * ib
-    # Angular impulse: fixed joints hold their reference angle, joints past a limit turn back unless already turning
-    # back.
+    return tuple((relative[k] + GAP_VELOCITY_RATE * gap[k]) / denominator * IMPULSE_SHARE for k in range(2))
+
+
+def _angular_impulse(row: JointRows, frame: JointFrames, relative_turn):
+    """The angular impulse on body a: a fixed joint turns back to its reference angle, a joint past a limit turns
+    back unless already turning back (`relative_turn`: b's angular velocity less a's)."""
+    ia, ib = row.response_a[2], row.response_b[2]
     angle = frame.angle
     excess = angle - jnp.clip(angle, row.lower_angle, row.upper_angle)
-    relative_turn = velocity_b[2] + turn_b - velocity_a[2] - turn_a
     fixed = row.solve_angle
     limit_turn = (jnp.sign(relative_turn) == jnp.sign(excess * LIMIT_ANGLE_RATE)) * (
         relative_turn + excess * LIMIT_ANGLE_RATE
@@ -86,7 +89,29 @@ def _solve_one(velocity, pose, row: JointRows, frame: JointFrames, linear, angul
     turn_change = jnp.where(fixed, relative_turn + angle * FIXED_ANGLE_RATE, limit_turn)
     angular_impulse = turn_change / _one_or(ia + ib)
     applies_angular = fixed | (row.solve_limits & (excess != 0.0))
-    angular_impulse = jnp.where(applies_angular, angular_impulse, 0.0)
+    return jnp.where(applies_angular, angular_impulse, 0.0)
+
+
+def _add_to_bodies(values, mask_a, mask_b, change_a, change_b):
+    """Each of `values` ((N+1, *batch) arrays) with `change_a` added at body a and `change_b` at body b."""
+    return tuple(
+        v + jnp.where(mask_a, da[None], 0.0) + jnp.where(mask_b, db[None], 0.0)
+        for v, da, db in zip(values, change_a, change_b, strict=True)
+    )
+
+
+def _solve_one(velocity, pose, row: JointRows, frame: JointFrames, linear, angular):
+    """One joint's pass: the velocities and poses after it, and its impulses (soft-law convention) after it."""
+    mask_a, mask_b = frame.mask_a, frame.mask_b
+    ma, ia = row.response_a[0], row.response_a[2]
+    mb, ib = row.response_b[0], row.response_b[2]
+    position_a, position_b = _select_motion(pose, mask_a)[:2], _select_motion(pose, mask_b)[:2]
+    velocity_a, velocity_b = _select_motion(velocity, mask_a), _select_motion(velocity, mask_b)
+    anchor_gap = tuple(position_b[k] + frame.lever_b[k] - (position_a[k] + frame.lever_a[k]) for k in range(2))
+    impulse = _point_impulse(row, frame, (position_a, velocity_a), (position_b, velocity_b), anchor_gap)
+    turn_a = _cross(frame.lever_a, impulse) * ia
+    turn_b = -_cross(frame.lever_b, impulse) * ib
+    angular_impulse = _angular_impulse(row, frame, velocity_b[2] + turn_b - velocity_a[2] - turn_a)
     turn_a = turn_a + angular_impulse * ia
     turn_b = turn_b - angular_impulse * ib
     solve = row.solve_point
@@ -94,21 +119,16 @@ def _solve_one(velocity, pose, row: JointRows, frame: JointFrames, linear, angul
     def gated(x):
         return jnp.where(solve, x, 0.0)
 
+    inverse_mass_sum = _one_or(ma + mb)
     change_a = (gated(ma * impulse[0]), gated(ma * impulse[1]), gated(turn_a))
     change_b = (gated(-mb * impulse[0]), gated(-mb * impulse[1]), gated(turn_b))
-    move_a = tuple(gated(gap[k] / inverse_mass_sum * ma * GAP_POSITION_SHARE) for k in range(2))
-    move_b = tuple(gated(-gap[k] / inverse_mass_sum * mb * GAP_POSITION_SHARE) for k in range(2))
-    velocity = tuple(
-        v + jnp.where(mask_a, da[None], 0.0) + jnp.where(mask_b, db[None], 0.0)
-        for v, da, db in zip(velocity, change_a, change_b, strict=True)
-    )
-    moved = tuple(
-        p + jnp.where(mask_a, da[None], 0.0) + jnp.where(mask_b, db[None], 0.0)
-        for p, da, db in zip(pose[:2], move_a, move_b, strict=True)
-    )
+    move_a = tuple(gated(anchor_gap[k] / inverse_mass_sum * ma * GAP_POSITION_SHARE) for k in range(2))
+    move_b = tuple(gated(-anchor_gap[k] / inverse_mass_sum * mb * GAP_POSITION_SHARE) for k in range(2))
+    velocity = _add_to_bodies(velocity, mask_a, mask_b, change_a, change_b)
+    moved = _add_to_bodies(pose[:2], mask_a, mask_b, move_a, move_b)
     # Stored as the impulse on b: Jax2D's accumulated impulse acts on a, negated on b.
     linear = jnp.stack([linear[0] - gated(impulse[0]), linear[1] - gated(impulse[1])])
-    angular = jnp.where(solve & fixed, angular - angular_impulse, 0.0)
+    angular = jnp.where(solve & row.solve_angle, angular - angular_impulse, 0.0)
     return velocity, (*moved, pose[2]), linear, angular
 
 

@@ -16,7 +16,6 @@ import jax.numpy as jnp
 from flax import struct
 
 from kforge.engine.geometry import rotate
-from kforge.engine.params import LimitLaw
 from kforge.engine.softness import Softness
 from kforge.engine.state import Joints, StartBodies
 from kforge.engine.sweep import Motion, Sweep
@@ -41,7 +40,6 @@ class JointRows:
     solve_motor: jnp.ndarray  # (J,) bool
     solve_limits: jnp.ndarray  # (J,) bool
     reference_angle: jnp.ndarray  # (J,) [rad]
-    start_excess: jnp.ndarray  # (J,) [rad] how far the joint angle is beyond a limit at the step's start (signed)
     lower_angle: jnp.ndarray  # (J,) [rad]
     upper_angle: jnp.ndarray  # (J,) [rad]
     motor_target: jnp.ndarray  # (J,) [rad/s] target of angular_velocity_b - angular_velocity_a
@@ -73,7 +71,6 @@ def prepare_joints(joints: Joints, start: StartBodies, motor_actions, params, su
     movable = (response_a[:, 0] + response_b[:, 0] + inverse_inertia_sum) > 0
     revolute = joints.active & ~joints.is_fixed & movable
     rotatable = inverse_inertia_sum > 0
-    start_angle = pose[b, 2] - pose[a, 2] - joints.reference_angle
     return JointRows(
         body_a=a,
         body_b=b,
@@ -87,7 +84,6 @@ def prepare_joints(joints: Joints, start: StartBodies, motor_actions, params, su
         solve_motor=motor_rows & revolute & joints.motor_on & rotatable & (motor_actions != 0.0),  # 0 = motor off
         solve_limits=revolute & joints.has_limits & rotatable,
         reference_angle=joints.reference_angle,
-        start_excess=start_angle - jnp.clip(start_angle, joints.lower_angle, joints.upper_angle),
         lower_angle=joints.lower_angle,
         upper_angle=joints.upper_angle,
         motor_target=joints.motor_speed * base_motor_speed * jnp.clip(motor_actions, -1.0, 1.0),
@@ -248,8 +244,6 @@ class JointPass:
     softness: Softness
     inverse_substep: jnp.ndarray  # [1/s]
     use_bias: bool | jnp.ndarray  # the soft position-correcting solve, otherwise the relaxing solve (may be traced)
-    limit_law: LimitLaw  # static
-    limit_recovery_rate: jnp.ndarray  # [1/s] LimitLaw.KINETIX, BOUNDED_RETURN: return per radian beyond a limit
     constraint_motors: bool  # static: motors are rows (`engine.params.MotorLaw.CONSTRAINT`)
     sweep: Sweep  # one of `engine.sweep.SWEEPS`
 
@@ -258,13 +252,10 @@ def _angular_row(axial_mass, relative_speed, error, old, settings: JointPass, on
     """New impulse of an angular row driving `relative_speed` and the position `error` to zero.
 
     One-sided rows (limits) are speculative while `error` > 0: they only stop the motion that would cross it; past it
-    (`error` < 0) they turn back at most `limit_recovery_rate` x the excess under `LimitLaw.BOUNDED_RETURN`
-    (otherwise as fast as the joint's softness).
+    (`error` < 0) they turn back as fast as the joint's softness.
     """
     softness, use_bias = settings.softness, settings.use_bias
     bias = jnp.where(use_bias, softness.bias_rate * error, 0.0)
-    if one_sided and settings.limit_law == LimitLaw.BOUNDED_RETURN:
-        bias = jnp.where(error < 0, jnp.maximum(bias, settings.limit_recovery_rate * error), bias)
     mass_scale = jnp.where(use_bias, softness.mass_scale, 1.0)
     impulse_scale = jnp.where(use_bias, softness.impulse_scale, 0.0)
     if one_sided:
@@ -289,23 +280,17 @@ def _motor_row(row: JointRows, impulse: JointImpulses, wa, wb, settings: JointPa
 
 
 def _limit_rows(row: JointRows, frame: JointFrames, impulse: JointImpulses, wa, wb, settings: JointPass):
-    """The angle limits: one-sided rows (speculative laws), or Kinetix's turning back from beyond a limit. Returns the
-    new lower and upper limit impulses and the two angular velocities after them."""
+    """The angle limits as one-sided speculative rows: the new lower and upper limit impulses and the two angular
+    velocities after them."""
     ia, ib = row.response_a[2], row.response_b[2]
     mass = row.axial_mass
     lower_old, upper_old = impulse.limit[0], impulse.limit[1]
-    if settings.limit_law == LimitLaw.KINETIX:
-        excess = row.start_excess
-        outward = row.solve_limits & (excess != 0.0) & (jnp.sign(wb - wa) == jnp.sign(excess))
-        lower = lower_old + jnp.where(outward, -mass * (wb - wa + settings.limit_recovery_rate * excess), 0.0)
-        upper = upper_old
-    else:
-        lower = _angular_row(mass, wb - wa, frame.angle - row.lower_angle, lower_old, settings, True)
-        lower = jnp.where(row.solve_limits, jnp.maximum(lower, 0.0), 0.0)
-        lower_change = lower - lower_old
-        upper_speed = (wa - ia * lower_change) - (wb + ib * lower_change)
-        upper = _angular_row(mass, upper_speed, row.upper_angle - frame.angle, upper_old, settings, True)
-        upper = jnp.where(row.solve_limits, jnp.maximum(upper, 0.0), 0.0)
+    lower = _angular_row(mass, wb - wa, frame.angle - row.lower_angle, lower_old, settings, True)
+    lower = jnp.where(row.solve_limits, jnp.maximum(lower, 0.0), 0.0)
+    lower_change = lower - lower_old
+    upper_speed = (wa - ia * lower_change) - (wb + ib * lower_change)
+    upper = _angular_row(mass, upper_speed, row.upper_angle - frame.angle, upper_old, settings, True)
+    upper = jnp.where(row.solve_limits, jnp.maximum(upper, 0.0), 0.0)
     wa, wb = wa - ia * (lower - lower_old), wb + ib * (lower - lower_old)
     wa, wb = wa - ia * (upper_old - upper), wb + ib * (upper_old - upper)
     return (lower, upper), wa, wb
@@ -351,12 +336,7 @@ def _solve_joint(
 
 def solve_joints(velocity: Motion, rows: JointRows, frames: JointFrames, impulses: JointImpulses, settings: JointPass):
     """One sweep (`settings.sweep`) over the joints in index order: motor, limits, fixed angle, then the point
-    constraint.
-
-    `settings.limit_law` (static) chooses how limits hold: under `LimitLaw.KINETIX` the lower limit slot holds the
-    signed sum of this substep's limit impulses, and the upper slot 0; under `LimitLaw.BOUNDED_RETURN` the speculative
-    rows turn a joint back from beyond a limit at most `limit_recovery_rate` [1/s] per radian. Returns the velocities
-    and the new impulses.
+    constraint. Returns the velocities and the new impulses.
     """
 
     def gather(velocity, j):

@@ -100,27 +100,13 @@ class JointLaw(enum.IntEnum):
     """How joints hold their anchors together, their fixed angles and their limits."""
 
     SOFT = 0
-    """Box2D v3's soft point constraint (a 2x2 effective-mass solve) and angle rows; limits as `LimitLaw` says."""
+    """Box2D v3's soft point constraint (a 2x2 effective-mass solve) and angle rows; angle limits as one-sided
+    speculative rows with accumulated impulses: a limit holds under load, within the joint's softness, and a joint
+    approaching it is stopped at it."""
     JAX2D = 1
     """Jax2D's: an under-relaxed impulse along the anchors' relative velocity, biased by their gap, and in every
     pass a direct move of the bodies that closes most of the gap (`engine.jax2d_joints`); fixed angles and limits
-    by Jax2D's angular impulse (`LimitLaw` unused)."""
-
-
-class LimitLaw(enum.IntEnum):
-    """How a revolute joint's angle limits hold."""
-
-    SPECULATIVE = 0
-    """One-sided soft rows with accumulated impulses (Box2D v3): a limit holds under load, within the joint's
-    softness, and a joint approaching it is stopped at it."""
-    KINETIX = 1
-    """Kinetix's (Jax2D's): in every solve, a joint beyond a limit and turning further out gets its relative angular
-    velocity set to -limit_recovery_rate x its excess angle; nothing is accumulated, so a load that pushes out again
-    after the joints' solve (contacts, the servo) bends it past the limit."""
-    BOUNDED_RETURN = 2
-    """SPECULATIVE's rows, turning a joint back from beyond a limit at most as fast as Kinetix does
-    (limit_recovery_rate x its excess angle): a level that starts with a joint past its limit unfolds as slowly as in
-    Kinetix, and no joint passes a limit it approaches."""
+    by Jax2D's angular impulse."""
 
 
 @struct.dataclass
@@ -138,9 +124,6 @@ class SimParams:
     restitution_threshold: float = 1.0  # [m/s] approach speeds below this never bounce
     speculative_distance: float = 0.02  # [m] contacts are created this far before shapes touch
     speculative_reach: float = 1.0  # [-] share of a step's motion added to the speculative distance
-    overlap_allowance: float = 0.0  # [-] a pair moving less in a step than this share of its thinner shape's inner
-    # radius gets no motion in its margin and may overlap for a step, as in Jax2D; faster pairs keep it (no tunnelling),
-    # and so do pairs that bounce (restitution > 0), whose rebound then starts at the surface
     touch_distance: float = 0.005  # [m] shapes closer than this count as touching
     push_touch_distance: float = float("inf")  # [m] a contact that pushed counts as touching if this close at start
     base_friction: float = 0.4  # [-] friction of a pair = base_friction * sqrt(f_a^2 + f_b^2) (Kinetix's mixing)
@@ -159,7 +142,6 @@ class SimParams:
     base_thruster_power: float = 10.0  # [N] force per unit of thruster power and action
     motor_decay: float = 0.1  # [s/rad] servo: the impulse is tanh(motor_decay x speed error) of its bound
     motor_limit_fade: float = 0.1  # [rad] servo: the impulse fades to 0 over this angle before a joint limit
-    limit_recovery_rate: float = 5.0  # [1/s] KINETIX, BOUNDED_RETURN: speed of return per unit of excess angle
 
     baumgarte_share: float = 0.2  # [-] BAUMGARTE: share of the overlap beyond contact_slop closed per step (Jax2D's)
     contact_slop: float = 0.01  # [m] BAUMGARTE: overlap left uncorrected (Jax2D's)
@@ -178,7 +160,6 @@ LAW_FIELDS: dict[str, type[enum.IntEnum]] = {
     "contact_law": ContactLaw,
     "contact_points": ContactPoints,
     "collision_rules": CollisionRules,
-    "limit_law": LimitLaw,
     "joint_law": JointLaw,
     "contact_order": ContactOrder,
 }
@@ -213,7 +194,6 @@ class StaticSimParams:
     contact_law: ContactLaw = ContactLaw.SOFT  # how overlapping shapes are pushed apart
     contact_points: ContactPoints = ContactPoints.MIDWAY  # where contact points lie, how deep they count
     collision_rules: CollisionRules = CollisionRules.BOX2D  # where shapes touch, which impulses they start from
-    limit_law: LimitLaw = LimitLaw.SPECULATIVE  # how joint angle limits hold (the soft joint law)
     joint_law: JointLaw = JointLaw.SOFT  # how joints hold their anchors, angles and limits
     contact_order: ContactOrder = ContactOrder.COLOURED  # in which order a pass solves the contacts
     swept_speculative_contacts: bool = True  # a circle's speculative contact acts only if its free motion meets

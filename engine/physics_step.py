@@ -12,7 +12,6 @@ from flax import struct
 from kforge.engine.batch_last import Batching, vmap_batch_last, vmap_in_chunks
 from kforge.engine.collision import (
     Manifolds,
-    WorldGeometry,
     circle_contact_clearance,
     manifolds,
     world_geometry,
@@ -57,7 +56,6 @@ from kforge.engine.params import (
     ContactPoints,
     ForceTiming,
     JointLaw,
-    LimitLaw,
     MotorLaw,
     SimParams,
     StaticSimParams,
@@ -88,16 +86,6 @@ def _bounding_radius(bodies):
     return jnp.where(bodies.n_vertices > 0, polygon_radius, bodies.radius)
 
 
-def _inner_radius(geometry: WorldGeometry):
-    """(N,) [m] the distance from a polygon's vertex centroid to its nearest edge line (a circle's radius); the
-    centroid, not the body's position, which a static body may hold outside its shape (Kinetix's walls)."""
-    count = jnp.maximum(jnp.sum(geometry.edge_valid, -1), 1)[:, None]
-    centroid = jnp.sum(jnp.where(geometry.edge_valid[..., None], geometry.vertices, 0.0), 1) / count
-    depth = dot2(geometry.normals, geometry.vertices - centroid[:, None, :])
-    depth = jnp.where(geometry.edge_valid, depth, jnp.inf)
-    return jnp.where(geometry.edge_valid[:, 0], jnp.min(depth, -1), geometry.radius)
-
-
 def match_warm_start(cache: ContactCache, feature, by_slot: bool):
     """Last step's impulses for points whose feature id reappears (in either point slot); with `by_slot` (static),
     for points whose slot held a point last step (Jax2D's)."""
@@ -122,7 +110,6 @@ class SolverScalars:
     max_push_velocity: jnp.ndarray  # [m/s]
     restitution_threshold: jnp.ndarray  # [m/s]
     joint_softness: Softness
-    limit_recovery_rate: jnp.ndarray  # [1/s] LimitLaw.KINETIX, BOUNDED_RETURN: return per radian beyond a limit
     push_law: PushLaw
 
 
@@ -195,14 +182,12 @@ class _Substeps:
 
     def joint_pass(self, use_bias: bool) -> JointPass:
         """How a pass solves the joints."""
-        limit_law, constraint_motors = self.static.limit_law, self.static.motor_law == MotorLaw.CONSTRAINT
+        constraint_motors = self.static.motor_law == MotorLaw.CONSTRAINT
         scalars = self.scalars
         return JointPass(
             softness=scalars.joint_softness,
             inverse_substep=scalars.inverse_substep,
             use_bias=use_bias,
-            limit_law=limit_law,
-            limit_recovery_rate=scalars.limit_recovery_rate,
             constraint_motors=constraint_motors,
             sweep=self.sweep,
         )
@@ -277,8 +262,6 @@ def _substep(substeps: _Substeps, carry, index):
     """Integrate velocities, warm start, soft solve, integrate positions, then relax without bias."""
     static, scalars = substeps.static, substeps.scalars
     velocity, pose, contact_impulses, joint_impulses = carry
-    if static.limit_law == LimitLaw.KINETIX:  # Kinetix's: nothing carried
-        joint_impulses = joint_impulses.replace(limit=jnp.zeros_like(joint_impulses.limit))
     if static.force_timing == ForceTiming.SPREAD:  # STEP_START: in the solver's starting velocities
         share = spread_force_share(index) * scalars.substep
         velocity = tuple(v + share * a for v, a in zip(velocity, substeps.acceleration, strict=True))
@@ -426,21 +409,14 @@ def _start_bodies(state: SimState, params: SimParams, motor_actions, thruster_ac
     return start
 
 
-def _contact_margin(bodies: Bodies, start: StartBodies, geometry: WorldGeometry, params: SimParams, layout: PairLayout):
-    """(K,) [m] each pair's speculative distance: the base distance plus this step's motion, unless the pair moves
-    less than `overlap_allowance` of its thinner shape and does not bounce (then it may overlap for a step)."""
+def _contact_margin(bodies: Bodies, start: StartBodies, params: SimParams, layout: PairLayout):
+    """(K,) [m] each pair's speculative distance: the base distance plus its share of this step's motion."""
     n = layout.num_bodies
     a, b = layout.body_a, layout.body_b
     velocity, acceleration = start.velocity, start.acceleration
     reach = norm2(velocity[:n, :2]) + jnp.abs(velocity[:n, 2]) * _bounding_radius(bodies)
     reach = reach + params.dt * norm2(acceleration[:n, :2])
     motion = params.dt * (reach[a] + reach[b])
-    inner = _inner_radius(geometry)
-    thinner = jnp.minimum(inner[a], inner[b])
-    restitution = jnp.minimum(bodies.restitution[a], bodies.restitution[b])
-    # A pair that bounces keeps its margin: its restitution then acts at the surface, not from an overlap's depth.
-    allowed = (motion <= params.overlap_allowance * thinner) & (restitution <= 0.0)
-    motion = jnp.where(allowed, 0.0, motion)
     return params.speculative_distance + params.speculative_reach * motion
 
 
@@ -486,7 +462,7 @@ def _contact_constraints(state: SimState, start: StartBodies, params: SimParams,
     n = static.num_bodies
     bodies = state.bodies
     geometry = world_geometry(bodies)
-    margin = _contact_margin(bodies, start, geometry, params, layout)
+    margin = _contact_margin(bodies, start, params, layout)
     jax2d_rules = static.collision_rules == CollisionRules.JAX2D
     manifold = manifolds(geometry, layout, margin, static.contact_points == ContactPoints.KINETIX, jax2d_rules)
     info = _touching(state, manifold, params, layout)
@@ -539,7 +515,6 @@ def _solver_scalars(params: SimParams, static: StaticSimParams) -> SolverScalars
         max_push_velocity=params.max_push_velocity,
         restitution_threshold=params.restitution_threshold,
         joint_softness=make_softness(params.joint_hertz, params.joint_damping_ratio, substep),
-        limit_recovery_rate=params.limit_recovery_rate,
         push_law=PushLaw(
             depth=params.baumgarte_depth,
             rate=params.baumgarte_share / params.dt,

@@ -369,7 +369,15 @@ def test_sim_params_hold_only_continuous_constants_and_the_laws_are_static():
     assert not switches, f"SimParams fields that are not floats (law switches belong in StaticSimParams): {switches}"
     static = StaticSimParams()
     laws = [f.name for f in dataclasses.fields(static) if isinstance(getattr(static, f.name), enum.Enum)]
-    assert {"force_timing", "motor_law", "contact_law", "contact_points", "collision_rules", "limit_law"} <= set(laws)
+    assert {
+        "force_timing",
+        "motor_law",
+        "contact_law",
+        "contact_points",
+        "collision_rules",
+        "joint_law",
+        "contact_order",
+    } <= set(laws)
     assert set(laws) <= set(static.physics_options())
 
 

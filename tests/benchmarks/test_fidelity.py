@@ -149,7 +149,7 @@ def test_a_kinetix_variant_reads_its_value_as_its_type():
 
 def test_sim_switches_and_a_kinetix_variant_are_not_given_together(capsys):
     with pytest.raises(SystemExit):
-        fidelity.main(["--sim", "overlap_allowance=1", "--kinetix-variant", "padding_writes=0"])
+        fidelity.main(["--sim", "speculative_reach=0", "--kinetix-variant", "padding_writes=0"])
     assert "give one of them" in capsys.readouterr().err
     with pytest.raises(SystemExit):
         fidelity.main(["--substeps", "8", "--kinetix-variant", "padding_writes=0"])
@@ -174,10 +174,11 @@ def test_the_kinetix_physics_scheme_plays_as_the_measured_setting_spelled_out():
         "contact_law": 1.0,
         "force_timing": 1.0,
         "speculative_distance": 0.0,
-        "overlap_allowance": 2.0,
+        "speculative_reach": 0.0,
         "contact_points": 1.0,
         "collision_rules": 1.0,
-        "limit_law": 2.0,
+        "joint_law": 1.0,
+        "contact_order": 1.0,
     }
     solver = {"substeps": 1, "iterations": 10, "relax_iterations": 0}
     named = fidelity.play_ours(paths, 4, 0, {}, lambda line: None, None, "kinetix")

@@ -118,7 +118,7 @@ def _spinning_disc_in_the_floor(law: ContactPoints, depth: float, radius: float,
     builder = SceneBuilder(SIZE_S)
     disc = builder.add_circle((2.5, FLOOR_TOP + radius - depth), radius, angular_velocity=spin)
     state = zero_gravity(builder.build())
-    params = SimParams(speculative_distance=0.0, overlap_allowance=1.0)
+    params = SimParams(speculative_distance=0.0, speculative_reach=0.0)
     static = dataclasses.replace(SIZE_S, contact_law=ContactLaw.BAUMGARTE, contact_points=law, **JAX2D_SCHEME)
     _, traj = run(state, static, 1, params=params)
     mass = 1.0 / float(state.bodies.inverse_mass[disc])

@@ -220,17 +220,11 @@ def test_bounce_restitution_one():
     assert np.all((ratios[:5] >= 0.97) & (ratios[:5] <= 1.01))
 
 
-NO_SPECULATIVE_MARGIN = SimParams(speculative_distance=0.0, overlap_allowance=1.0)
-"""Contacts found only once shapes overlap, for pairs moving less in a step than their thinner shape's inner radius
-(Jax2D's landings)."""
-
-
-@pytest.mark.parametrize("params", [PARAMS, NO_SPECULATIVE_MARGIN], ids=["default", "no_speculative_margin"])
-def test_bounce_restitution_half(params):
+def test_bounce_restitution_half():
     """Without a speculative margin the 0.1 m ball, falling 9 cm a step at its first impact, would be found up to
     that deep in the floor and climb out of it after its rebound, losing g x depth of its energy (height ratio 0.21);
-    a pair that bounces keeps its margin under the overlap allowance, so the rebound starts at the surface."""
-    heights, _, impacts = _bounce_heights(0.5, drop=1.5, steps=240, params=params)
+    the margin starts the rebound at the surface."""
+    heights, _, impacts = _bounce_heights(0.5, drop=1.5, steps=240, params=PARAMS)
     ratios = heights / np.concatenate([[1.5], heights[:-1]])
     # Bounces whose impact speed is well above the 1 m/s restitution threshold.
     checked = ratios[: int(np.sum(impacts[: len(ratios)] > 1.2))]
@@ -569,55 +563,6 @@ def test_swept_speculative_contacts_keep_fast_bodies_from_tunnelling(tunnelling_
     assert tunnelling_sweep[shape] == passes
 
 
-@pytest.mark.parametrize("allowance", [1.0, 2.0])
-@pytest.mark.parametrize("shape", ["box", "circle"])
-def test_the_overlap_allowance_keeps_fast_bodies_from_tunnelling(tunnelling_sweep, shape, allowance):
-    """With `overlap_allowance` 1 (or 2) a pair that moves less in a step than its thinner shape's inner radius (or
-    twice it) gets no motion in its margin, but faster pairs keep it: the 0.1 m box (inner radius 5 cm) and the 5 cm
-    circle shot at the 0.1 m wall pass it no more often than by default, so never up to 20 m/s (at 4 times the inner
-    radius both pass it at 10 m/s from one start offset of three: the allowed overlap reaches the wall's far side)."""
-    allowing = SimParams(overlap_allowance=allowance)
-    passes = {v: sum(_shoot(shape, v, phase, allowing) for phase in TUNNEL_PHASES) for v in TUNNEL_SPEEDS}
-    measured(f"tunnelling {shape} with overlap allowance {allowance:g}", pass_throughs_per_speed=passes)
-    assert all(passes[v] <= tunnelling_sweep[shape][v] for v in TUNNEL_SPEEDS)
-    assert not any(passes[v] for v in TUNNEL_SPEEDS if v <= 20.0)
-
-
-def _box_shot_at_a_wall(wall_reference: tuple[float, float] | None) -> float:
-    """Zero gravity: a 0.4 m box 5 cm from a fixed 1 x 3 m wall's face moves at 7.2 m/s (12 cm a step) towards it
-    under `overlap_allowance=2` and no speculative distance. The wall's position is its centroid, or the world point
-    `wall_reference` (its shape unchanged), as Kinetix stores its walls. Returns how far the box moved in a step [m]."""
-    builder = SceneBuilder(SIZE_S, boundaries=False)
-    wall = builder.add_box((1.0, 2.0), (1.0, 3.0), static=True, slot=1)
-    box = builder.add_box((1.5 + 0.05 + 0.2, 2.0), (0.4, 0.4), velocity=(-7.2, 0.0))
-    state = zero_gravity(builder.build())
-    if wall_reference is not None:
-        bodies = state.bodies
-        shift = jnp.asarray(wall_reference, jnp.float32) - bodies.position[wall]
-        state = state.replace(
-            bodies=bodies.replace(
-                position=bodies.position.at[wall].set(bodies.position[wall] + shift),
-                vertices=bodies.vertices.at[wall].add(-shift),
-            )
-        )
-    params = SimParams(overlap_allowance=2.0, speculative_distance=0.0)
-    _, traj = run(state, SIZE_S, 1, params=params)
-    return float(traj.position[0, box, 0] - traj.position[1, box, 0])
-
-
-def test_the_overlap_allowance_measures_a_shape_from_its_centroid_not_its_stored_position():
-    """The box moves 12 cm in a step, under twice its inner radius (2 x 0.2 m), so it is found a step late, as in
-    Jax2D: it moves the whole 12 cm and ends 7 cm inside the wall. So it does when the wall's position is a corner on
-    its face (Kinetix's left wall spans x in [-5, 0] from position (0, 0)) or outside it (its right wall): measured
-    from there the wall's inner radius was 0 or negative, and the box got a speculative contact that stopped it at
-    the face (docs/fidelity.md)."""
-    free_flight = 7.2 / 60.0
-    moved = {where: _box_shot_at_a_wall(where) for where in (None, (1.5, 3.5), (3.0, 2.0))}
-    measured("box shot at a wall stored by centroid, face corner, outside point", moved=moved)
-    for distance in moved.values():
-        assert distance == pytest.approx(free_flight, abs=1e-5)
-
-
 LANDING_BOX, LANDING_TILT, LANDING_SPEED = (0.58, 0.395), 0.5, 4.0  # [m], [rad], [m/s]
 LANDING_CORNER = rotate(LANDING_TILT, -0.5 * np.array(LANDING_BOX))
 """The landing box's lowest corner relative to its centre (P - c)."""
@@ -658,12 +603,12 @@ def test_a_tilted_box_landing_on_its_corner_turns_about_it_keeping_its_angular_m
     assert abs(traj.angular_velocity[-1, box] / expected - 1.0) <= 0.05
 
 
-def test_a_slow_landing_overlaps_the_floor_for_a_step_only_under_the_overlap_allowance():
-    """By default the motion in the margin stops the corner at the floor; with `overlap_allowance=1` (the box moves
-    6.7 cm a step, less than its 19.75 cm inner radius) the contact is found only once the corner is in the floor, as
-    in Jax2D, 2.4 cm deep at free motion, and the box is pushed out again."""
+def test_a_landing_overlaps_the_floor_for_a_step_only_without_the_steps_motion_in_the_margin():
+    """By default the motion in the margin stops the corner at the floor; without it (`speculative_reach=0`, the
+    kinetix scheme's; the box moves 6.7 cm a step) the contact is found only once the corner is in the floor, as in
+    Jax2D, 2.4 cm deep at free motion, and the box is pushed out again."""
     default = _lowest_corner_above_floor(SimParams())
-    allowing = _lowest_corner_above_floor(SimParams(overlap_allowance=1.0))
+    allowing = _lowest_corner_above_floor(SimParams(speculative_reach=0.0))
     measured("slow landing", deepest_default=default.min(), deepest_allowing=allowing.min(), last_allowing=allowing[-1])
     np.testing.assert_allclose(allowing[:5], default[:5], atol=1e-5)  # the same free motion before the landing
     assert default.min() > -0.005
@@ -776,7 +721,6 @@ def test_each_body_receives_its_slots_changes_in_slot_order(static):
 def test_warm_start_equals_every_slots_impulse_added_to_its_bodies():
     """Random rows and impulses in size m's colour layout: the warm-started velocities equal a sequential
     scatter-add (numpy's add.at) of each slot's change onto its bodies a and b; the dummy body N is left alone."""
-    import jax.numpy as jnp
 
     from kforge.engine.contact_solver import ContactImpulses, ContactRows, _velocity_changes, warm_start_contacts
     from kforge.engine.pairs import pair_layout
@@ -927,7 +871,7 @@ def _box_resting_one_step(block: bool):
     static = dataclasses.replace(
         SIZE_S, num_iterations=3, num_relax_iterations=0, block_contacts=block, contact_law=ContactLaw.BAUMGARTE
     )
-    params = SimParams(speculative_distance=0.0, overlap_allowance=1.0)
+    params = SimParams(speculative_distance=0.0, speculative_reach=0.0)
     final, traj = run(state, static, 1, params=params)
     impulses = np.asarray(final.contacts.normal_impulse[pair_index(static, 0, box)], np.float64)
     mass = 1.0 / float(state.bodies.inverse_mass[box])

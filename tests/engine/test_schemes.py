@@ -71,8 +71,8 @@ def test_physics_options_are_the_laws_and_solver_settings_without_the_sizes_or_t
 
 def test_a_law_must_be_one_of_its_enum():
     assert StaticSimParams(contact_law=1).contact_law is ContactLaw.BAUMGARTE
-    with pytest.raises(ValueError, match=r"StaticSimParams.limit_law must be a LimitLaw \(SPECULATIVE=0, KINETIX=1, "):
-        StaticSimParams(limit_law=3)
+    with pytest.raises(ValueError, match=r"StaticSimParams.joint_law must be a JointLaw \(SOFT=0, JAX2D=1\), got 3"):
+        StaticSimParams(joint_law=3)
     with pytest.raises(ValueError, match="StaticSimParams.swept_speculative_contacts must be a bool, got 1"):
         StaticSimParams(swept_speculative_contacts=1)
 
