@@ -1,8 +1,8 @@
 """RL agents that train on env tasks: PPO specialists, one parameter set per level, many levels per program.
 
-Public surface: the config, training of a level batch, evaluation, expert windows for the dataset, training in segments
-for adaptive budgets, the learner and its optimiser; for behaviour cloning, its policy networks and objective, and
-episodes of any policy given as an actor function.
+Public surface: the config, training of a level batch, evaluation and the dataset's expert windows (each with its plan
+of how the expert plays), training in segments for adaptive budgets, the learner and its optimiser; for behaviour
+cloning, its policy networks and objective, and episodes of any policy given as an actor function.
 
 The PPO hyperparameters' declaration (`PPOHyperparameters`) loads without JAX, so that a job config's schema can
 derive from it; every other name imports its module when first used.
@@ -14,9 +14,9 @@ from kforge.agents.hyperparameters import PPOHyperparameters
 
 _SOURCES = {
     "kforge.agents.bc_networks": "Architecture NetworkConfig make_bc_network",
-    "kforge.agents.collect": "collect_windows",
+    "kforge.agents.collect": "WindowPlan collect_windows",
     "kforge.agents.config": "PPOConfig",
-    "kforge.agents.episodes": "evaluate network_actor run_episode",
+    "kforge.agents.episodes": "EpisodePlan evaluate network_actor run_episode",
     "kforge.agents.imitation": "ImitationTerms imitation_terms",
     "kforge.agents.policy": "sample",
     "kforge.agents.ppo": "Batch initial_params learn make_optimizer train_levels",
@@ -29,10 +29,12 @@ _MODULE_OF = {name: module for module, names in _SOURCES.items() for name in nam
 __all__ = [
     "Architecture",
     "Batch",
+    "EpisodePlan",
     "ImitationTerms",
     "NetworkConfig",
     "PPOConfig",
     "PPOHyperparameters",
+    "WindowPlan",
     "check_segmented",
     "collect_windows",
     "evaluate",

@@ -33,27 +33,6 @@ class Window(NamedTuple):
     successful: jnp.ndarray  # (L,) bool: at least one episode ended and every ending was a success
 
 
-def collect_windows(
-    params,
-    levels: Level,
-    keys: jax.Array,
-    config: PPOConfig,
-    env_params: EnvParams,
-    static: StaticEnvParams,
-    num_steps: int = WINDOW_STEPS,
-    greedy: bool = False,
-) -> Window:
-    """Roll each level's expert (leading axis L on params and levels) for `num_steps` env steps from the start.
-
-    Episodes that end are followed by the level's start (auto-reset), so a window may hold several episodes.
-    Actions are sampled from the policy, or its most probable choice per slot when `greedy`; one key per level.
-    """
-    check_level_keys(keys, num_levels(levels))
-    if num_steps < 1:
-        raise ValueError(f"num_steps must be >= 1, got {num_steps}")
-    return _collect(params, levels, keys, WindowPlan(config, static, num_steps, greedy), env_params)
-
-
 @dataclasses.dataclass(frozen=True)
 class WindowPlan:
     """How the expert plays a level's window: its network (`config`), the env's static size, the env steps, and
@@ -61,8 +40,20 @@ class WindowPlan:
 
     config: PPOConfig
     static: StaticEnvParams
-    num_steps: int
-    greedy: bool
+    num_steps: int = WINDOW_STEPS
+    greedy: bool = False
+
+
+def collect_windows(params, levels: Level, keys: jax.Array, plan: WindowPlan, env_params: EnvParams) -> Window:
+    """Roll each level's expert (leading axis L on params and levels) for `plan.num_steps` env steps from the start.
+
+    Episodes that end are followed by the level's start (auto-reset), so a window may hold several episodes.
+    Actions are sampled from the policy, or its most probable choice per slot when `plan.greedy`; one key per level.
+    """
+    check_level_keys(keys, num_levels(levels))
+    if plan.num_steps < 1:
+        raise ValueError(f"num_steps must be >= 1, got {plan.num_steps}")
+    return _collect(params, levels, keys, plan, env_params)
 
 
 @functools.partial(jax.jit, static_argnames=("plan",))

@@ -104,25 +104,21 @@ def evaluate(
     params,
     levels: Level,
     keys: jax.Array,
-    config: PPOConfig,
+    plan: EpisodePlan,
     env_params: EnvParams,
-    static: StaticEnvParams,
-    num_episodes: int,
     start_states: EnvState | None = None,
-    greedy: bool = False,
 ) -> EvalOutput:
-    """Run `num_episodes` episodes per level with that level's parameters (leading axis L on params and levels).
+    """Run `plan.num_episodes` episodes per level with that level's parameters (leading axis L on params and levels).
 
     Episodes start from `start_states` (batched `EnvState`, e.g. mid-trajectory) or, when None, from each level's
     start; they run until success, failure, instability or the time limit, with no reset. Actions are sampled from
-    the policy, or its most probable choice per slot when `greedy`. `keys`: one PRNG key per level.
+    the policy, or its most probable choice per slot when `plan.greedy`. `keys`: one PRNG key per level.
     """
     check_level_keys(keys, num_levels(levels))
-    if num_episodes < 1:
-        raise ValueError(f"num_episodes must be >= 1, got {num_episodes}")
+    if plan.num_episodes < 1:
+        raise ValueError(f"num_episodes must be >= 1, got {plan.num_episodes}")
     if start_states is None:
         start_states = jax.vmap(reset)(levels)
-    plan = EpisodePlan(config, static, num_episodes, greedy)
     return _evaluate(params, levels, start_states, keys, plan, env_params)
 
 

@@ -34,6 +34,7 @@ from benchmarks.kinetix_venv import DEFAULT_KINETIX_VENV, REPOSITORY
 from benchmarks.machine import describe_machine, provenance
 from kforge.pipeline.learning import (
     UNSEEN_FIRST_LEVEL,
+    Episodes,
     evaluate_policy,
     kept_levels,
     load_bc_config,
@@ -127,9 +128,8 @@ def evaluate_stage(args, run_dir: str, log) -> dict:
     return evaluate_policy(
         load_policy(run_dir),
         ("train", "unseen", "hand"),
-        episodes=args.episodes,
+        episodes=Episodes(count=args.episodes, seed=0),
         unseen_levels=args.unseen_levels,
-        seed=0,
         report=log,
     )
 

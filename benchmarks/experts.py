@@ -50,7 +50,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from benchmarks.machine import describe_machine, provenance
-from kforge.agents import collect_windows, evaluate, train_levels
+from kforge.agents import EpisodePlan, WindowPlan, collect_windows, evaluate, train_levels
 from kforge.configs import split_path
 from kforge.engine import physics_scheme
 from kforge.env import FilterReason, Level, bundled_level_path, filter_levels, load_level, under_scheme
@@ -123,27 +123,23 @@ class _BatchExperts:
         self.job, self.params, self.levels, self.seed, self.indices = job, params, levels, seed, indices
 
     def window(self):
+        job = self.job
         return collect_windows(
             self.params,
             self.levels,
             level_keys(self.seed, self.indices, KeyPurpose.COLLECT),
-            self.job.ppo,
-            self.job.env_params,
-            self.job.static,
-            num_steps=self.job.collect.window_steps,
-            greedy=self.job.collect.greedy,
+            WindowPlan(job.ppo, job.static, num_steps=job.collect.window_steps, greedy=job.collect.greedy),
+            job.env_params,
         )
 
     def evaluate(self, episodes: int):
+        job = self.job
         return evaluate(
             self.params,
             self.levels,
             level_keys(self.seed, self.indices, EVALUATE_PURPOSE),
-            self.job.ppo,
-            self.job.env_params,
-            self.job.static,
-            num_episodes=episodes,
-            greedy=self.job.collect.greedy,
+            EpisodePlan(job.ppo, job.static, num_episodes=episodes, greedy=job.collect.greedy),
+            job.env_params,
         )
 
 

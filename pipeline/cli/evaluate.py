@@ -83,7 +83,7 @@ def _parse_args(argv: Sequence[str] | None, prog: str | None) -> tuple[argparse.
 def _evaluate(args: argparse.Namespace, sets: tuple[str, ...]) -> dict:
     """The evaluation report of the policy's checkpoint on `sets`, progress on stderr."""
     from kforge.engine import use_deterministic_ops
-    from kforge.pipeline.learning import evaluate_policy, load_policy
+    from kforge.pipeline.learning import Episodes, evaluate_policy, load_policy
     from kforge.pipeline.storage import DatasetError
 
     use_deterministic_ops()  # before the first computation: repeatable on GPUs too
@@ -93,10 +93,8 @@ def _evaluate(args: argparse.Namespace, sets: tuple[str, ...]) -> dict:
         return evaluate_policy(
             policy,
             sets,
-            episodes=args.episodes,
+            episodes=Episodes(count=args.episodes, seed=args.seed, greedy=args.greedy),
             unseen_levels=args.unseen_levels,
-            greedy=args.greedy,
-            seed=args.seed,
             max_levels=args.max_levels,
             report=lambda line: print(line, file=sys.stderr),
         )

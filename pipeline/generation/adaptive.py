@@ -31,6 +31,7 @@ from kforge.pipeline.generation.level_batch import (
     Experts,
     KeyPurpose,
     PhaseClock,
+    SampledBatch,
     batch_level_indices,
     batch_result,
     level_key,
@@ -114,10 +115,7 @@ class _BatchWork:
     """A claimed level batch while its levels train."""
 
     batch: int
-    indices: np.ndarray
-    levels: object  # Level with leading axis L
-    filtered: object
-    dropped: np.ndarray
+    sampled: SampledBatch
     clock: PhaseClock
     num_updates: dataclasses.InitVar[int]  # PPO updates of the whole budget (the learning curves' length)
     params: list = dataclasses.field(init=False)  # per position: the expert's parameters (None until done)
@@ -129,7 +127,7 @@ class _BatchWork:
     train_seconds: float = 0.0
 
     def __post_init__(self, num_updates: int):
-        count, curve = len(self.indices), (len(self.indices), num_updates)
+        count, curve = len(self.sampled.indices), (len(self.sampled.indices), num_updates)
         self.params = [None] * count
         self.success_rate = np.full(count, np.nan, np.float32)
         self.env_steps, self.trained_env_steps = np.zeros(count, np.int64), np.zeros(count, np.int64)
@@ -200,7 +198,7 @@ class _SlotStream:
     def _start(self, slot: int, run: _LevelRun) -> None:
         """Put the level of `run`, freshly initialised, in `slot`."""
         work = self.works[run.batch]
-        level = _level_at(work.levels, run.position)
+        level = _level_at(work.sampled.levels, run.position)
         training = start_level(level, self._train_key(work, run.position), self.job.ppo, self.job.static)
         if self.trainings is None:  # the first level fills every slot; the others take theirs as they come
             self.slot_levels = jax.tree.map(lambda x: jnp.stack([x] * self.num_slots), level)
@@ -211,7 +209,7 @@ class _SlotStream:
         self.slots[slot] = run
 
     def _train_key(self, work: _BatchWork, position: int) -> jax.Array:
-        return level_key(self.job.split.seed, int(work.indices[position]), KeyPurpose.TRAIN)
+        return level_key(self.job.split.seed, int(work.sampled.indices[position]), KeyPurpose.TRAIN)
 
     def _claim_work(self) -> list[tuple[int, BatchTrajectories]]:
         """Claim and prepare the next level batch: its trainable levels join the queue; the rest get fresh
@@ -222,14 +220,14 @@ class _SlotStream:
             return []
         job, clock = self.job, PhaseClock()
         indices = batch_level_indices(job, self.shard, batch)
-        levels, filtered, dropped = sample_and_filter(job, indices)
-        work = _BatchWork(batch, indices, levels, filtered, dropped, clock, job.ppo.num_updates)
+        sampled = sample_and_filter(job, indices)
+        work = _BatchWork(batch, sampled, clock, job.ppo.num_updates)
         clock.lap("sample_and_filter")
         self.works[batch] = work
         for position in range(len(indices)):
-            if dropped[position] or indices[position] >= job.split.num_levels:
+            if sampled.dropped[position] or indices[position] >= job.split.num_levels:
                 key = self._train_key(work, position)
-                fresh = start_level(_level_at(levels, position), key, job.ppo, job.static)
+                fresh = start_level(_level_at(sampled.levels, position), key, job.ppo, job.static)
                 work.params[position] = jax.device_get(fresh.best.params)
             else:
                 self.queue.append(_LevelRun(batch, position))
@@ -258,7 +256,7 @@ class _SlotStream:
         if not (rule.solved_window and any(rule.evaluations_solved(slots[slot].success_rates) for slot in occupied)):
             return np.zeros(self.num_slots, bool)
         started = time.perf_counter()
-        indices = [self.works[run.batch].indices[run.position] if run is not None else 0 for run in slots]
+        indices = [self.works[run.batch].sampled.indices[run.position] if run is not None else 0 for run in slots]
         params = self.trainings.best.params
         successful = windows_successful(self.job, params, self.slot_levels, np.asarray(indices))
         for slot in occupied:
@@ -303,10 +301,7 @@ class _SlotStream:
             curve_success_rate=work.curve_success_rate,
             curve_mean_return=work.curve_mean_return,
         )
-        job = self.job
-        return work.batch, batch_result(
-            job, work.indices, work.levels, work.filtered, work.dropped, experts, work.clock, job.experts.budget_mode
-        )
+        return work.batch, batch_result(self.job, work.sampled, experts, work.clock, self.job.experts.budget_mode)
 
 
 def _level_at(levels, position: int):

@@ -9,6 +9,7 @@ the batch spread over them when their count divides it (`pipeline.generation.dev
 
 from __future__ import annotations
 
+import dataclasses
 import enum
 import functools
 import queue
@@ -22,7 +23,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from kforge.agents import collect_windows, initial_params, train_levels
+from kforge.agents import WindowPlan, collect_windows, initial_params, train_levels
 from kforge.env import FilterReason, Level, filter_levels, sample_levels
 from kforge.pipeline.generation.devices import over_local_devices
 from kforge.pipeline.generation.estimated_progress import ProgressListener, estimated_progress
@@ -90,10 +91,20 @@ def _compiling_sample_program(job: ResolvedJob, keys: jax.Array) -> Future:
 _sample_programs: dict[tuple, Future] = {}
 
 
-def sample_and_filter(job: ResolvedJob, indices: np.ndarray):
-    """(levels, the filter's verdicts, (L,) bool dropped by the filter) of a level batch."""
+@dataclasses.dataclass(frozen=True)
+class SampledBatch:
+    """A level batch as sampled and filtered, before its experts train (leading axis L)."""
+
+    indices: np.ndarray  # (L,) int split-level index of each level
+    levels: Level
+    filtered: object  # the filter's verdicts (`env.filter_levels`), leaves (L,)
+    dropped: np.ndarray  # (L,) bool: dropped by the filter
+
+
+def sample_and_filter(job: ResolvedJob, indices: np.ndarray) -> SampledBatch:
+    """The level batch of split-level `indices`, sampled and filtered."""
     levels = sample_batch(job, indices)
-    return (levels, *filter_batch(job, levels))
+    return SampledBatch(indices, levels, *filter_batch(job, levels))
 
 
 def filter_batch(job: ResolvedJob, levels: Level):
@@ -139,13 +150,12 @@ def run_level_batch(
     abstract_levels = _batch_shapes(job, indices)
     _compiling_filter_program(job, abstract_levels)
     _compiling_collect_program(job, abstract_levels, level_keys(job.split.seed, indices, KeyPurpose.COLLECT))
-    levels = sample_batch(job, indices)
-    filtered, dropped = filter_batch(job, levels)
+    sampled = sample_and_filter(job, indices)
     clock.lap("sample_and_filter")
 
     train = compiling_train.result()
     with estimated_progress(train, config.num_updates, on_progress or _ignore_progress):
-        trained = jax.block_until_ready(train(levels, train_keys, params))
+        trained = jax.block_until_ready(train(sampled.levels, train_keys, params))
     clock.lap("train")
     metrics, selection = jax.device_get((trained.metrics, trained.selection))
     experts = Experts(
@@ -156,7 +166,7 @@ def run_level_batch(
         curve_success_rate=np.asarray(metrics.success_rate),
         curve_mean_return=np.asarray(metrics.mean_return),
     )
-    return batch_result(job, indices, levels, filtered, dropped, experts, clock, FIXED_BUDGET_MODE)
+    return batch_result(job, sampled, experts, clock, FIXED_BUDGET_MODE)
 
 
 class Experts(NamedTuple):
@@ -171,18 +181,11 @@ class Experts(NamedTuple):
 
 
 def batch_result(
-    job: ResolvedJob,
-    indices: np.ndarray,
-    levels: Level,
-    filtered,
-    dropped: np.ndarray,
-    experts: Experts,
-    clock: PhaseClock,
-    budget_mode: str,
+    job: ResolvedJob, sampled: SampledBatch, experts: Experts, clock: PhaseClock, budget_mode: str
 ) -> BatchTrajectories:
     """Roll out every expert of the batch for its window, and each level's outcome: the batch's data."""
-    config = job.ppo
-    window = jax.device_get(_windows(job, experts.params, levels, indices))
+    config, indices, filtered, dropped = job.ppo, sampled.indices, sampled.filtered, sampled.dropped
+    window = jax.device_get(_windows(job, experts.params, sampled.levels, indices))
     clock.lap("collect")
     finite = _finite_per_level(experts.params) & _finite_per_level(window)
     in_split = indices < job.split.num_levels
@@ -277,7 +280,7 @@ def _compiling_collect_program(job: ResolvedJob, levels: Level, keys: jax.Array)
     compiles beside the training program and while the experts train."""
     env_params, static = job.env_params, job.static
     config = job.ppo
-    program = (config, static, len(keys), job.collect.window_steps, job.collect.greedy)
+    program = (WindowPlan(config, static, job.collect.window_steps, job.collect.greedy), len(keys))
     compiling = _collect_programs.get(program)
     if compiling is None or (compiling.done() and compiling.exception() is not None):
         params = jax.eval_shape(jax.vmap(lambda key: initial_params(key, config, static)), keys)
@@ -301,11 +304,11 @@ def _windows(job: ResolvedJob, params, levels: Level, indices: np.ndarray):
     return _compiled_collect_program(job, levels, keys)(params, levels, keys, env_params)
 
 
-def _collect_program(config, static, num_levels: int, num_steps: int, greedy: bool):
+def _collect_program(plan: WindowPlan, num_levels: int):
     """(expert params, levels, keys, env params) -> `collect_windows`, spread over the local devices."""
 
     def collect(params, levels, keys, env_params):
-        return collect_windows(params, levels, keys, config, env_params, static, num_steps=num_steps, greedy=greedy)
+        return collect_windows(params, levels, keys, plan, env_params)
 
     return over_local_devices(collect, num_levels, level_args=3, shared_args=1)
 

@@ -13,7 +13,7 @@ __getattr__, __all__ = lazy_surface(
         "kforge.pipeline.learning.config": "LEVEL_SETS load_bc_config run_config_file",
         "kforge.pipeline.learning.data": "kept_levels validation_split",
         "kforge.pipeline.learning.evaluation": (
-            "evaluate_policy level_set_entry load_policy play_level_files readable_sizes report_table"
+            "Episodes evaluate_policy level_set_entry load_policy play_level_files readable_sizes report_table"
         ),
         "kforge.pipeline.learning.evaluation_sets": "UNSEEN_FIRST_LEVEL size_of",
         "kforge.pipeline.learning.train": "Learner TrainingInterrupted train_bc",

@@ -117,6 +117,11 @@ class Episodes:
     greedy: bool = False
 
 
+DEFAULT_EPISODES = Episodes(count=16, seed=0)
+"""How `evaluate_policy` plays each start unless told: 16 first episodes [episodes per start], keys from seed 0,
+sampled actions."""
+
+
 class _Chunk(NamedTuple):
     """Start states played together in one compiled program (leading axis S)."""
 
@@ -311,10 +316,8 @@ def play_physics(job: ResolvedJob | None, static: StaticEnvParams) -> tuple[str,
 def evaluate_policy(
     policy: TrainedPolicy,
     level_sets: tuple[str, ...] = ("train", "unseen", "hand"),
-    episodes: int = 16,
+    episodes: Episodes = DEFAULT_EPISODES,
     unseen_levels: int = UNSEEN_LEVELS,
-    greedy: bool = False,
-    seed: int = 0,
     max_levels: int | None = None,
     report=None,
 ) -> dict:
@@ -323,21 +326,20 @@ def evaluate_policy(
     unknown = [name for name in level_sets if name not in LEVEL_SETS]
     if unknown:
         raise ValueError(f"unknown level set {unknown[0]!r}; expected some of {', '.join(LEVEL_SETS)}")
-    if episodes < 1:
-        raise ValueError(f"episodes must be >= 1, got {episodes}")
+    if episodes.count < 1:
+        raise ValueError(f"episodes must be >= 1, got {episodes.count}")
     dataset = policy.config.dataset
     job = dataset_job(dataset)
     scheme_name, env_params = play_physics(job, policy.static)
     scheme = physics_scheme(scheme_name)
-    plan = Episodes(episodes, seed, greedy)
     result = {
         "policy": str(policy.run_dir),
         "physics": scheme_name,
         "step": policy.step,
         "dataset": dataset,
-        "episodes": episodes,
-        "greedy": greedy,
-        "seed": seed,
+        "episodes": episodes.count,
+        "greedy": episodes.greedy,
+        "seed": episodes.seed,
         "sets": {},
     }
     split_ids = json.loads((policy.run_dir / LEVELS_FILE).read_text())
@@ -345,13 +347,15 @@ def evaluate_policy(
         if report is not None:
             report(f"evaluating on {name} levels")
         if name in ("train", "validation"):
-            result["sets"][name] = _dataset_set_entry(policy, split_ids[name][:max_levels], env_params, plan)
+            result["sets"][name] = _dataset_set_entry(policy, split_ids[name][:max_levels], env_params, episodes)
         elif name == "unseen":
             count = unseen_levels if max_levels is None else min(unseen_levels, max_levels)
-            result["sets"][name] = _unseen_set_entry(policy, job, count, plan)
+            result["sets"][name] = _unseen_set_entry(policy, job, count, episodes)
         else:
             files = {size: list_levels(size)[:max_levels] for size in readable_sizes(policy, scheme)}
-            result["sets"][name] = play_level_files(policy, files, scheme, episodes, seed, greedy)
+            result["sets"][name] = play_level_files(
+                policy, files, scheme, episodes.count, episodes.seed, episodes.greedy
+            )
     return result
 
 

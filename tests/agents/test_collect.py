@@ -5,12 +5,13 @@ import numpy as np
 from agents_test_helpers import ENV_PARAMS, STATIC, TRAIN_CONFIG, keys, mirrored_level, stack, thruster_level
 
 from kforge.agents import initial_params
-from kforge.agents.collect import collect_windows
+from kforge.agents.collect import WindowPlan, collect_windows
 from kforge.engine import SceneBuilder
 from kforge.env import Role, step
 from kforge.env.level_builder import build_level
 
-WINDOW = 96
+WINDOW_STEPS = 96  # [env steps] of each window
+WINDOW_PLAN = WindowPlan(TRAIN_CONFIG, STATIC, num_steps=WINDOW_STEPS)
 
 
 def _level(index: int, levels):
@@ -19,9 +20,7 @@ def _level(index: int, levels):
 
 def test_trained_experts_give_successful_replayable_windows(trained_mixed):
     levels = stack(thruster_level(), mirrored_level())
-    window = jax.device_get(
-        collect_windows(trained_mixed.params, levels, keys(5, 6), TRAIN_CONFIG, ENV_PARAMS, STATIC, WINDOW)
-    )
+    window = jax.device_get(collect_windows(trained_mixed.params, levels, keys(5, 6), WINDOW_PLAN, ENV_PARAMS))
     for i in range(2):
         done, success = window.done[i], window.success[i]
         # Independent re-derivation of the success criterion from the per-step flags.
@@ -51,7 +50,7 @@ def test_a_window_with_a_failed_episode_is_not_successful():
     level = build_level(scene, roles={green: Role.GREEN, red: Role.RED, blue: Role.BLUE})
     # Two seeds, and the batch shape and window of the test above, so both run one compiled program.
     params = jax.vmap(lambda k: initial_params(k, TRAIN_CONFIG, STATIC))(keys(0, 2))
-    window = collect_windows(params, stack(level, level), keys(1, 3), TRAIN_CONFIG, ENV_PARAMS, STATIC, WINDOW)
+    window = collect_windows(params, stack(level, level), keys(1, 3), WINDOW_PLAN, ENV_PARAMS)
     for i in range(2):
         assert int(window.episodes_ended[i]) >= 2 and int(window.successes[i]) == 0
         assert not bool(window.successful[i])

@@ -19,7 +19,7 @@ from agents_test_helpers import (
     thruster_level,
 )
 
-from kforge.agents import evaluate, initial_params
+from kforge.agents import EpisodePlan, evaluate, initial_params
 from kforge.env import reset
 
 EPISODES = 8
@@ -41,7 +41,8 @@ def _fixed_policy(fire: bool):
 def _evaluate(params, start_states=None, seed=0):
     levels = stack(thruster_level())
     batched = stack(params)
-    return evaluate(batched, levels, keys(seed), TRAIN_CONFIG, ENV_PARAMS, STATIC, EPISODES, start_states=start_states)
+    plan = EpisodePlan(TRAIN_CONFIG, STATIC, EPISODES)
+    return evaluate(batched, levels, keys(seed), plan, ENV_PARAMS, start_states=start_states)
 
 
 def _acceleration() -> float:
@@ -116,11 +117,11 @@ def test_evaluation_from_a_stored_state_keeps_its_time_limit():
 
 @pytest.mark.slow
 def test_trained_expert_succeeds_in_evaluation(trained_mixed):
-    episodes = 64
+    plan = EpisodePlan(TRAIN_CONFIG, STATIC, num_episodes=64)
     levels = stack(thruster_level())
     expert = jax.tree.map(lambda x: x[:1], trained_mixed.params)
-    trained = evaluate(expert, levels, keys(7), TRAIN_CONFIG, ENV_PARAMS, STATIC, episodes)
+    trained = evaluate(expert, levels, keys(7), plan, ENV_PARAMS)
     assert float(trained.success_rate[0]) >= 0.9
     untrained = stack(initial_params(jax.random.PRNGKey(0), TRAIN_CONFIG, STATIC))
-    before = evaluate(untrained, levels, keys(7), TRAIN_CONFIG, ENV_PARAMS, STATIC, episodes)
+    before = evaluate(untrained, levels, keys(7), plan, ENV_PARAMS)
     assert float(before.success_rate[0]) <= 0.25  # measured 0.16: a near-uniform policy is mostly too slow

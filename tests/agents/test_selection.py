@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from agents_test_helpers import ENV_PARAMS, STATIC, TRAIN_CONFIG, keys, mirrored_level, stack, thruster_level
 
-from kforge.agents import evaluate, train_levels
+from kforge.agents import EpisodePlan, evaluate, train_levels
 from kforge.agents.ppo import train_from
 
 UNLEARN_UPDATES = 8
@@ -65,7 +65,8 @@ def test_a_policy_that_unlearns_its_level_is_returned_as_it_was_at_its_best(trai
 
     def success(params) -> float:
         batched = jax.tree.map(lambda x: x[None], (params, level))
-        result = evaluate(*batched, keys(11), UNLEARN_CONFIG, ENV_PARAMS, STATIC, num_episodes=EVAL_EPISODES)
+        plan = EpisodePlan(UNLEARN_CONFIG, STATIC, num_episodes=EVAL_EPISODES)
+        result = evaluate(*batched, keys(11), plan, ENV_PARAMS)
         return float(result.success_rate[0])
 
     # Fresh episodes agree: the returned policy still mostly solves the level, the last one mostly does not (32

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from pipeline_test_helpers import tiny_job
 
-from kforge.agents import collect_windows, initial_params
+from kforge.agents import WindowPlan, collect_windows, initial_params
 from kforge.pipeline.generation import resolve
 from kforge.pipeline.generation.level_batch import (
     KeyPurpose,
@@ -35,11 +35,8 @@ def test_the_collection_program_compiled_ahead_rolls_out_what_collect_windows_do
         params,
         levels,
         level_keys(job.split.seed, indices, KeyPurpose.COLLECT),
-        config,
+        WindowPlan(config, static, num_steps=job.collect.window_steps, greedy=job.collect.greedy),
         env_params,
-        static,
-        num_steps=job.collect.window_steps,
-        greedy=job.collect.greedy,
     )
     jax.tree.map(np.testing.assert_array_equal, window, expected)
     assert window.actions.shape == (len(indices), job.collect.window_steps, 6)
