@@ -1,8 +1,8 @@
 """RL agents that train on env tasks: PPO specialists, one parameter set per level, many levels per program.
 
 Public surface: the config, training of a level batch, evaluation and the dataset's expert windows (each with its plan
-of how the expert plays), training in segments for adaptive budgets, the learner and its optimiser; for behaviour
-cloning, its policy networks and objective, and episodes of any policy given as an actor function.
+of how the expert plays), training in segments for adaptive budgets; for behaviour cloning, its policy networks and
+objective, and episodes of any policy given as an actor function.
 
 The PPO hyperparameters' declaration (`PPOHyperparameters`) loads without JAX, so that a job config's schema can
 derive from it; every other name imports its module when first used.
@@ -18,8 +18,7 @@ _SOURCES = {
     "kforge.agents.config": "PPOConfig",
     "kforge.agents.episodes": "EpisodePlan evaluate network_actor run_episode",
     "kforge.agents.imitation": "ImitationTerms imitation_terms",
-    "kforge.agents.policy": "sample",
-    "kforge.agents.ppo": "Batch initial_params learn make_optimizer train_levels",
+    "kforge.agents.ppo": "initial_params train_levels",
     "kforge.agents.segments": "check_segmented put_slot start_level train_segments",
 }
 """Module -> the public names it defines (separated by spaces), each imported when first used."""
@@ -28,7 +27,6 @@ _MODULE_OF = {name: module for module, names in _SOURCES.items() for name in nam
 
 __all__ = [
     "Architecture",
-    "Batch",
     "EpisodePlan",
     "ImitationTerms",
     "NetworkConfig",
@@ -40,13 +38,10 @@ __all__ = [
     "evaluate",
     "imitation_terms",
     "initial_params",
-    "learn",
     "make_bc_network",
-    "make_optimizer",
     "network_actor",
     "put_slot",
     "run_episode",
-    "sample",
     "start_level",
     "train_levels",
     "train_segments",

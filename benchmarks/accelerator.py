@@ -55,7 +55,7 @@ import numpy as np  # noqa: E402
 from benchmarks.engine_speed import JAX2D_PUBLISHED_PEAK_STEPS_PER_SECOND  # noqa: E402
 from benchmarks.kinetix_venv import REPOSITORY  # noqa: E402
 from benchmarks.machine import describe_machine, provenance  # noqa: E402
-from kforge.engine import SOLVER_LOOP_FORMS  # noqa: E402
+from kforge.engine.batch_last import SOLVER_LOOP_FORMS  # noqa: E402
 
 XLA_FLAGS = "XLA_FLAGS"
 """The environment variable XLA reads its flags from, once per process."""
@@ -424,7 +424,7 @@ def engine_determinism(size: str, batch: int, steps: int) -> dict:
 def measure_engine_determinism(size: str, batch: int, steps: int) -> dict:
     """`engine_determinism` in fresh processes (XLA reads its flags once per process), with XLA's deterministic GPU
     ops off and on."""
-    from kforge.engine import with_deterministic_ops
+    from kforge.engine.determinism import with_deterministic_ops
 
     results = {}
     for ops, flag in (("default_ops", "--xla_gpu_deterministic_ops=false"), ("deterministic_ops", "")):

@@ -44,7 +44,9 @@ def worker(dataset: str, batch_size: int, steps: int, run_dir: str) -> dict:
     """The figures of the tree this process imports `kforge` from."""
     import jax
 
-    from kforge.pipeline.learning import Learner, kept_levels, load_bc_config, validation_split
+    from kforge.pipeline.learning import kept_levels, load_bc_config
+    from kforge.pipeline.learning.data import validation_split
+    from kforge.pipeline.learning.train import Learner
     from kforge.pipeline.reading import TrajectoryDatasetManager
     from kforge.pipeline.storage import open_dataset
 

@@ -54,7 +54,8 @@ from benchmarks.sim_overrides import (
     with_solver_scheme,
 )
 from benchmarks.timing import best_time, best_times_interleaved
-from kforge.engine import DEFAULT_PHYSICS_SCHEME, PHYSICS_SCHEMES, Batching, SimParams, physics_scheme, step
+from kforge.engine import PHYSICS_SCHEMES, Batching, SimParams, physics_scheme, step
+from kforge.engine.schemes import DEFAULT_PHYSICS_SCHEME
 
 GPU_BATCHES = (4096, 16384, 65536)
 JAX2D_PUBLISHED_PEAK_STEPS_PER_SECOND = {"s": 2e7, "m": 9e6, "l": 1.7e6}

@@ -50,18 +50,18 @@ from benchmarks.sim_overrides import (
     split_sim_overrides,
 )
 from benchmarks.sim_overrides import with_solver_scheme as with_sim_scheme
-from kforge.engine import DEFAULT_PHYSICS_SCHEME, physics_scheme
+from kforge.engine import physics_scheme
+from kforge.engine.schemes import DEFAULT_PHYSICS_SCHEME
 from kforge.env import (
     EnvParams,
-    Outcome,
     Policy,
     StaticEnvParams,
     bundled_level_path,
-    first_episode_outcomes,
     list_levels,
     load_level,
     under_scheme,
 )
+from kforge.env.rollout import Outcome, first_episode_outcomes
 
 KINETIX_BASELINE = "kinetix_fidelity_baseline"
 OUTCOME_NAMES = {

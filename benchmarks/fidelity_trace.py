@@ -44,7 +44,8 @@ from benchmarks.sim_overrides import (
     with_sim_overrides,
     with_solver_scheme,
 )
-from kforge.engine import DEFAULT_PHYSICS_SCHEME, physics_scheme
+from kforge.engine import physics_scheme
+from kforge.engine.schemes import DEFAULT_PHYSICS_SCHEME
 from kforge.env import (
     MULTI_DISCRETE_SIZES,
     ActionType,

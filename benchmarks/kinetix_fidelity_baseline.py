@@ -51,7 +51,7 @@ from benchmarks.kinetix_variants import parse_variant
 
 MULTI_DISCRETE_SIZES = (3, 3, 3, 3, 2, 2)
 OUTCOMES = ("timeout", "success", "failure", "unstable")
-"""Outcome names by code; the order of `env.Outcome` in kforge."""
+"""Outcome names by code; the order of `env.rollout.Outcome` in kforge."""
 QUEUE_SLOTS = 512
 """Episodes stepped together; Kinetix's env steps per second stop growing from about 256 on a CPU."""
 CALL_ROUNDING = 64

@@ -32,7 +32,9 @@ from benchmarks.kinetix_venv import DEFAULT_KINETIX_VENV, REPOSITORY, baseline_c
 from benchmarks.machine import describe_machine, provenance
 from kforge.engine import physics_scheme
 from kforge.env import bundled_level_path, list_levels
-from kforge.pipeline.learning import level_set_entry, load_policy, play_level_files, readable_sizes, size_of
+from kforge.pipeline.learning import load_policy
+from kforge.pipeline.learning.evaluation import level_set_entry, play_level_files, readable_sizes
+from kforge.pipeline.learning.evaluation_sets import size_of
 
 KINETIX_SCHEME = "kinetix"
 """kforge plays the levels under Kinetix's physics scheme."""

@@ -32,7 +32,7 @@ from kforge.agents import (
     NetworkConfig,
     make_bc_network,
 )
-from kforge.agents import sample as sample_action  # the BC policy's sampling of its logits, as in kforge's evaluation
+from kforge.agents.policy import sample as sample_action  # the BC policy's sampling, as kforge's evaluation does
 from kforge.env import MULTI_DISCRETE_SIZES, EntityObservation, bundled_level_path
 
 PARAMS_FILE = "params.msgpack"

@@ -29,19 +29,17 @@ from kforge.pipeline.reading import TrajectoryDatasetManager
 from kforge.pipeline.storage import (
     ACTION,
     DONE,
-    LEVEL_ID,
-    LEVEL_SEED,
     VALID,
-    ArrayEntry,
     BatchRecord,
     DatasetSpec,
     Geometry,
-    LevelRecord,
     Outcome,
     create_dataset,
     make_layout,
-    write_record,
 )
+from kforge.pipeline.storage.layout import LEVEL_ID, LEVEL_SEED
+from kforge.pipeline.storage.manifest import write_record
+from kforge.pipeline.storage.records import ArrayEntry, LevelRecord
 
 BUCKET = "kforge-bench"
 SERVER_START_TIMEOUT_S = 60.0

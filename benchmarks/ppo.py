@@ -7,10 +7,10 @@ compile time is printed on its own. Measuring several level counts (`--levels 1 
 (vmapped) gains over training one. `--vs kinetix` runs benchmarks/kinetix_ppo_baseline.py (Kinetix's PPO loop with its
 5 x 128 network, one of its random levels) in the kinetix-env virtualenv of benchmarks/kinetix_venv.py, with our envs,
 rollout length, epochs and minibatches, so both sides collect and learn from the same number of samples per update; it
-prints the ratios. `--learner` also times the learner alone (`agents.learn`: one update's epochs of minibatch SGD, on a
-batch of one update's samples per level) alternately with the training call, and prints its share of the training time
-(the training call also plays its final evaluation). Wall time is the figure; process CPU seconds are printed beside it
-because a shared machine makes wall times noisy. `--json` prints one JSON document instead.
+prints the ratios. `--learner` also times the learner alone (`agents.ppo.learn`: one update's epochs of minibatch SGD,
+on a batch of one update's samples per level) alternately with the training call, and prints its share of the training
+time (the training call also plays its final evaluation). Wall time is the figure; process CPU seconds are printed
+beside it because a shared machine makes wall times noisy. `--json` prints one JSON document instead.
 
     python -m benchmarks.ppo --vs kinetix
     python -m benchmarks.ppo --sizes s --levels 1 8 --updates 2 --json
@@ -33,7 +33,8 @@ import yaml
 from benchmarks.kinetix_venv import DEFAULT_KINETIX_VENV, REPOSITORY, baseline_command, kinetix_python
 from benchmarks.machine import describe_machine, provenance
 from benchmarks.timing import best_time, best_times_interleaved
-from kforge.agents import Batch, PPOConfig, initial_params, learn, make_optimizer, train_levels
+from kforge.agents import PPOConfig, initial_params, train_levels
+from kforge.agents.ppo import Batch, learn, make_optimizer
 from kforge.env import MULTI_DISCRETE_SIZES, EnvParams, StaticEnvParams, observation_shape, sample_levels
 
 LEVEL_SEED = 0
@@ -114,7 +115,7 @@ def measure_ours(
 
 
 def learner_program(num_levels: int, config: PPOConfig, static: StaticEnvParams):
-    """`agents.learn` on `num_levels` levels at once (vmap, as in training) and its arguments: fresh parameters and
+    """`agents.ppo.learn` on `num_levels` levels at once (vmap, as in training) and its arguments: fresh parameters and
     a batch of one update's samples per level (random observations and actions; the learner's work does not depend
     on the values)."""
     keys = jax.random.split(jax.random.key(TRAIN_SEED), 4)

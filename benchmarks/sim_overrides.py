@@ -7,7 +7,8 @@ import argparse
 import dataclasses
 import enum
 
-from kforge.engine import DEFAULT_PHYSICS_SCHEME, PHYSICS_SCHEMES, SimParams, StaticSimParams
+from kforge.engine import PHYSICS_SCHEMES, SimParams, StaticSimParams
+from kforge.engine.schemes import DEFAULT_PHYSICS_SCHEME
 
 LAW_FIELDS: dict[str, type[enum.IntEnum]] = {
     field.name: type(getattr(StaticSimParams(), field.name))

@@ -30,7 +30,9 @@ from pathlib import Path
 import numpy as np
 from numcodecs import Blosc
 
-from kforge.pipeline.storage import BLOSC_LEVEL, DATA_DIR, DONE, VALID, encode, is_coded, open_dataset
+from kforge.pipeline.storage import DATA_DIR, DONE, VALID, open_dataset
+from kforge.pipeline.storage.shard_store import BLOSC_LEVEL
+from kforge.pipeline.storage.state_codec import encode, is_coded
 
 
 def _blosc(level: int = BLOSC_LEVEL, shuffle: int = Blosc.SHUFFLE) -> Callable[[np.ndarray], int]:

@@ -6,11 +6,11 @@ bitwise-repeatable GPU execution (`use_deterministic_ops`), and the demo scene w
 env layer, the geometry, mass properties, contact manifolds and collision filter its levels are built and checked with.
 """
 
-from kforge.engine.batch_last import SOLVER_LOOP_FORMS, Batching
+from kforge.engine.batch_last import Batching
 from kforge.engine.collision import manifolds, world_geometry
 from kforge.engine.collision_filter import joint_collision_matrix, modes_collide
 from kforge.engine.demo import write_demo
-from kforge.engine.determinism import use_deterministic_ops, with_deterministic_ops
+from kforge.engine.determinism import use_deterministic_ops
 from kforge.engine.geometry import (
     CONVEXITY_TOLERANCE,
     MIN_POLYGON_AREA,
@@ -35,12 +35,11 @@ from kforge.engine.params import (
 from kforge.engine.physics_step import StepInfo, step
 from kforge.engine.render import write_gif
 from kforge.engine.scene import ARENA_SIZE, FLOOR_TOP, SceneBuilder
-from kforge.engine.schemes import DEFAULT_PHYSICS_SCHEME, PHYSICS_SCHEMES, PhysicsScheme, physics_scheme
+from kforge.engine.schemes import PHYSICS_SCHEMES, PhysicsScheme, physics_scheme
 from kforge.engine.state import NO_FEATURE, SimState, empty_state
 
 __all__ = [
     "ARENA_SIZE",
-    "DEFAULT_PHYSICS_SCHEME",
     "Batching",
     "CONVEXITY_TOLERANCE",
     "FLOOR_TOP",
@@ -49,7 +48,6 @@ __all__ = [
     "MIN_POLYGON_AREA",
     "NO_FEATURE",
     "PHYSICS_SCHEMES",
-    "SOLVER_LOOP_FORMS",
     "CollisionRules",
     "ContactLaw",
     "ContactPoints",
@@ -74,7 +72,6 @@ __all__ = [
     "rotate_host",
     "step",
     "use_deterministic_ops",
-    "with_deterministic_ops",
     "write_demo",
     "world_geometry",
     "write_gif",

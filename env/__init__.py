@@ -16,8 +16,8 @@ from kforge.env.level_filter import FilterReason, filter_levels
 from kforge.env.observations import EntityObservation, ObservationType, observation_shape, observe
 from kforge.env.params import NUM_ACTION_SLOTS, EnvParams, StaticEnvParams, under_scheme
 from kforge.env.pixels import render_image
-from kforge.env.play import GIF_FPS, record_episode
-from kforge.env.rollout import Outcome, Policy, first_episode_outcomes
+from kforge.env.play import record_episode
+from kforge.env.rollout import Policy
 from kforge.env.sampler import sample_level, sample_levels
 from kforge.env.sampler_shapes import DISC_INERTIA_SHARE
 from kforge.env.state import EnvState, Level, Role, empty_task, initial_state
@@ -25,7 +25,6 @@ from kforge.env.state import EnvState, Level, Role, empty_task, initial_state
 __all__ = [
     "BUNDLED_SIZES",
     "DISC_INERTIA_SHARE",
-    "GIF_FPS",
     "GIF_RESOLUTION",
     "MULTI_DISCRETE_SIZES",
     "NUM_ACTION_SLOTS",
@@ -38,7 +37,6 @@ __all__ = [
     "KinetixStateError",
     "Level",
     "ObservationType",
-    "Outcome",
     "Policy",
     "Role",
     "StaticEnvParams",
@@ -48,7 +46,6 @@ __all__ = [
     "bundled_level_path",
     "empty_task",
     "filter_levels",
-    "first_episode_outcomes",
     "initial_state",
     "kinetix_leaf_specs",
     "level_to_dict",

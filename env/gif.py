@@ -16,6 +16,9 @@ from kforge.env.state import EnvState
 GIF_RESOLUTION = 500
 """Default GIF side [px]: Kinetix's full screen, 100 px/m."""
 
+GIF_FPS = 30.0
+"""Default GIF frame rate [frames/s]: one frame per env step of 2/60 s plays at about real time."""
+
 FRAMES_PER_RENDER_CALL = 32
 """Frames rendered per compiled call (bounds device memory for long sequences)."""
 
@@ -30,7 +33,7 @@ def write_state_gif(
     states: EnvState,
     static: StaticEnvParams,
     path,
-    fps: float = 30.0,
+    fps: float = GIF_FPS,
     resolution: int = GIF_RESOLUTION,
     supersample: int = 1,
 ) -> Path:

@@ -14,8 +14,6 @@ from kforge.env.params import EnvParams, StaticEnvParams
 from kforge.env.rollout import Policy
 from kforge.env.state import EnvState, Level
 
-GIF_FPS = 30.0  # [frames/s]; one frame per env step of 2/60 s plays at about real time
-
 
 @functools.partial(jax.jit, static_argnames=("static", "policy", "num_steps"))
 def record_episode(

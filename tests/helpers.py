@@ -1,18 +1,15 @@
-"""Helpers that every test folder shares: the `MEASURED` line a test prints its figures in, stacking of pytrees, and
-the compiled scan of engine steps that the engine tests' rollouts are made of.
+"""Helpers that every test folder shares: the `MEASURED` line a test prints its figures in (the one helper for a
+test's figures and timings), and stacking pytrees and bringing them to numpy. The shared rollouts are in
+tests/rollouts.py.
 
 Test modules and conftest files import them as `from tests.helpers import ...`.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
-
 import jax
 import jax.numpy as jnp
-
-from kforge import engine
-from kforge.engine import SimState, StaticSimParams, StepInfo
+import numpy as np
 
 
 def measured(name: str, **values) -> None:
@@ -29,22 +26,6 @@ def stack(*trees):
     return jax.tree.map(lambda *leaves: jnp.stack(leaves), *trees)
 
 
-def scan_steps(static: StaticSimParams, record: Callable[[SimState, StepInfo], object], masked: bool = False):
-    """`run(state, params, motor_actions (K, J), thruster_actions (K, T)[, valid_steps])` -> (final state, per-step
-    `record(state after the step, its StepInfo)` stacked over K), a `lax.scan` of `engine.step` to jit or vmap.
-
-    `masked`: steps from `valid_steps` on leave the state as it was, so that one compiled length serves every
-    shorter run.
-    """
-
-    def run(state, params, motor_actions, thruster_actions, valid_steps=None):
-        def body(carry, inputs):
-            index, motor, thrust = inputs
-            new, info = engine.step(carry, params, motor, thrust, static=static)
-            if masked:
-                new = jax.tree.map(lambda after, before: jnp.where(index < valid_steps, after, before), new, carry)
-            return new, record(new, info)
-
-        return jax.lax.scan(body, state, (jnp.arange(motor_actions.shape[0]), motor_actions, thruster_actions))
-
-    return run
+def to_numpy(tree):
+    """`tree` with numpy leaves (copied to the host)."""
+    return jax.tree.map(np.asarray, tree)

@@ -19,7 +19,6 @@ from tqdm import tqdm
 from kforge.engine import KINETIX_SIZES, physics_scheme
 from kforge.env import (
     BUNDLED_SIZES,
-    GIF_FPS,
     GIF_RESOLUTION,
     EnvParams,
     Level,
@@ -136,7 +135,7 @@ def preview_command(args: argparse.Namespace) -> None:
         states, _ = record_episode(
             level, params, static, Policy(args.policy), jax.random.key(args.policy_seed), args.steps
         )
-        path = write_state_gif(jax.device_get(states), static, out, fps=GIF_FPS, resolution=resolution)
+        path = write_state_gif(jax.device_get(states), static, out, resolution=resolution)
     else:
         out.parent.mkdir(parents=True, exist_ok=True)
         Image.fromarray(np.asarray(_start_image(level, static, resolution))).save(out)

@@ -46,7 +46,7 @@ def main(argv: Sequence[str] | None = None, prog: str | None = None) -> None:
     import numpy as np
 
     from kforge.engine import physics_scheme
-    from kforge.env import GIF_FPS, Policy, load_level, record_episode, under_scheme, write_state_gif
+    from kforge.env import Policy, load_level, record_episode, under_scheme, write_state_gif
 
     loaded = load_level(args.level)
     params, static = under_scheme(physics_scheme(args.physics), loaded.params, loaded.static)
@@ -55,7 +55,7 @@ def main(argv: Sequence[str] | None = None, prog: str | None = None) -> None:
     states, results = record_episode(
         loaded.level, params, static, Policy(args.policy), jax.random.key(args.seed), args.steps
     )
-    path = write_state_gif(jax.device_get(states), static, out, fps=GIF_FPS)
+    path = write_state_gif(jax.device_get(states), static, out)
     results = jax.device_get(results)
     ends = np.flatnonzero(results.done)
     outcomes = [next(f"{name} at step {t + 1}" for name in OUTCOMES if getattr(results, name)[t]) for t in ends]

@@ -15,11 +15,9 @@ from kforge.pipeline.generation.coordinator import COMPILING, STARTING
 from kforge.pipeline.storage import (
     CONFIG_FILE,
     DATA_DIR,
-    FAILED,
     FILTERED_PREFIX,
-    KEPT,
     MANIFEST_DIR,
-    UNSOLVED,
+    Outcome,
     is_remote,
     join,
 )
@@ -166,7 +164,8 @@ def closing_summary(summary: dict, output_dir: str | os.PathLike) -> str:
         f"dataset {status}: {root} ({'on object storage' if remote else _size(root)})",
         f"levels: {summary['levels']} sampled, {sum(filtered.values())} filtered"
         + (f" ({by_reason})" if by_reason else "")
-        + f", {outcomes.get(KEPT, 0)} kept, {outcomes.get(UNSOLVED, 0)} unsolved, {outcomes.get(FAILED, 0)} failed",
+        + f", {outcomes.get(Outcome.KEPT, 0)} kept, {outcomes.get(Outcome.UNSOLVED, 0)} unsolved"
+        + f", {outcomes.get(Outcome.FAILED, 0)} failed",
         f"this run: {count(summary['committed_in_run'], 'level batch', 'level batches')} committed in "
         f"{tqdm.format_interval(summary['seconds'])}, {count(len(summary['worker_failures']), 'worker failure')}"
         + (f" ({'; '.join(summary['worker_failure_causes'])})" if summary.get("worker_failure_causes") else "")

@@ -24,7 +24,7 @@ from kforge.pipeline.generation.definition import data_fingerprint
 from kforge.pipeline.generation.level_batch import batches_per_shard
 from kforge.pipeline.generation.resolved import ResolvedJob
 from kforge.pipeline.generation.schema import TRACKING_MODES, ConfigError, JobConfig
-from kforge.pipeline.storage import FAILED, FILTERED_PREFIX, KEPT, PROVENANCE, UNSOLVED, Outcome, read_record_json
+from kforge.pipeline.storage import FILTERED_PREFIX, PROVENANCE, Outcome, read_record_json
 
 WANDB_MODE_ENV = "WANDB_MODE"
 """Environment variable that overrides `tracking.wandb` when set (wandb's own name for it)."""
@@ -40,7 +40,7 @@ SHARD_STEP = "completed_shards"
 TOTAL_SECONDS = "total"
 """Key of a batch's whole wall time among its record's `provenance.seconds` (the others are its phases)."""
 
-KNOWN_OUTCOMES = (KEPT, UNSOLVED, FAILED) + tuple(
+KNOWN_OUTCOMES = (Outcome.KEPT, Outcome.UNSOLVED, Outcome.FAILED) + tuple(
     f"{FILTERED_PREFIX}{reason.name.lower()}" for reason in FilterReason if reason != FilterReason.KEPT
 )
 """Outcomes of levels in the split, always logged (as 0 when absent) so every chart has a point per step."""
@@ -81,9 +81,9 @@ def batch_metrics(records: Sequence[dict], job: JobConfig) -> dict[str, float]:
     metrics: dict[str, float] = {"levels": len(levels)}
     metrics |= {outcome_key(outcome): counts[outcome] for outcome in (*KNOWN_OUTCOMES, *sorted(counts))}
     if levels:
-        metrics["kept_rate"] = counts[KEPT] / len(levels)
+        metrics["kept_rate"] = counts[Outcome.KEPT] / len(levels)
     if trained:
-        metrics["solve_rate"] = counts[KEPT] / len(trained)
+        metrics["solve_rate"] = counts[Outcome.KEPT] / len(trained)
     rates = [level["expert_success_rate"] for level in trained if level["expert_success_rate"] is not None]
     if rates:
         metrics["expert_success_rate"] = sum(rates) / len(rates)
@@ -149,7 +149,7 @@ class Tracker:
             totals.batches += 1
             totals.env_steps += metrics["env_steps"]
             totals.transitions += metrics["transitions"]
-            totals.kept += metrics[KEPT]
+            totals.kept += metrics[Outcome.KEPT]
             elapsed = time.perf_counter() - self._started
             progress = {
                 BATCH_STEP: totals.batches,

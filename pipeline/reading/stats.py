@@ -25,11 +25,8 @@ from tqdm import tqdm
 from kforge.pipeline.storage import (
     CONFIG_FILE,
     DATA_DIR,
-    FAILED,
     FILTERED_PREFIX,
-    KEPT,
     MANIFEST_DIR,
-    UNSOLVED,
     DatasetError,
     Outcome,
     Store,
@@ -74,10 +71,10 @@ MAX_CURVE_LEVELS = 100_000
 """Learning curves held for the plot: those of trained levels whose id is a multiple of a stride chosen so that at
 most this many slots qualify (bounds memory for release-size datasets; small datasets keep every curve)."""
 
-TRAINED_OUTCOMES = (KEPT, UNSOLVED, FAILED)
+TRAINED_OUTCOMES = (Outcome.KEPT, Outcome.UNSOLVED, Outcome.FAILED)
 """Outcomes of levels whose expert was trained and judged."""
 
-WINDOW_OUTCOMES = (KEPT, UNSOLVED)
+WINDOW_OUTCOMES = (Outcome.KEPT, Outcome.UNSOLVED)
 """Outcomes whose windows' episode lengths are plotted."""
 
 KEY_CONFIG_VALUES = (
@@ -159,7 +156,7 @@ class DatasetStats:
 
     @property
     def stored_transitions(self) -> int:
-        return self.outcomes[KEPT] * self.window_steps
+        return self.outcomes[Outcome.KEPT] * self.window_steps
 
     @property
     def total_bytes(self) -> int:
@@ -314,7 +311,7 @@ def shard_columns(stats: DatasetStats) -> list[str]:
     present = set().union(*stats.shards.values()) if stats.shards else set()
     filtered = sorted(key for key in present if key.startswith(FILTERED_PREFIX))
     timings = [f"seconds/{phase}" for phase in (*PHASES, "total") if f"seconds/{phase}" in present]
-    return ["batches", "sampled", *filtered, "trained", "solved", KEPT, UNSOLVED, FAILED, *timings]
+    return ["batches", "sampled", *filtered, "trained", "solved", *TRAINED_OUTCOMES, *timings]
 
 
 def shard_table(stats: DatasetStats) -> str:
@@ -362,9 +359,9 @@ def count_rows(stats: DatasetStats) -> list[tuple[str, int, str]]:
     rows += [
         ("trained", stats.trained, "an expert was trained on the level"),
         ("solved", stats.solved, f"trained, and the selected expert's evaluation success rate > {SOLVED_ABOVE:g}"),
-        ("kept", outcomes[KEPT], "the expert's window was stored: every episode ending in it is a success"),
-        ("unsolved", outcomes[UNSOLVED], "trained, window not stored"),
-        ("failed", outcomes[FAILED], "training or rollout produced non-finite values"),
+        ("kept", outcomes[Outcome.KEPT], "the expert's window was stored: every episode ending in it is a success"),
+        ("unsolved", outcomes[Outcome.UNSOLVED], "trained, window not stored"),
+        ("failed", outcomes[Outcome.FAILED], "training or rollout produced non-finite values"),
     ]
     return rows
 
@@ -389,7 +386,7 @@ def card_markdown(stats: DatasetStats, figures: dict[str, str]) -> str:
     lines += [
         f"| {label} | {count:,} | {_share(count, sampled)} | {meaning} |" for label, count, meaning in count_rows(stats)
     ]
-    kept = stats.outcomes[KEPT]
+    kept = stats.outcomes[Outcome.KEPT]
     transitions = stats.stored_transitions
     lines += [
         "",
@@ -492,7 +489,7 @@ def plot_outcomes(stats: DatasetStats, out: Path | io.BytesIO) -> None:
     """Bar chart: levels per outcome (kept, unsolved, failed, each filter reason)."""
     figure, axes = _figure()
     outcomes = stats.outcomes
-    labels = [KEPT, UNSOLVED, FAILED] + [f"{FILTERED_PREFIX}{reason}" for reason in stats.filtered]
+    labels = [*TRAINED_OUTCOMES] + [f"{FILTERED_PREFIX}{reason}" for reason in stats.filtered]
     counts = [outcomes[label] for label in labels]
     colours = ["tab:green", "tab:orange", "tab:red"] + ["tab:gray"] * len(stats.filtered)
     bars = axes.bar(labels, counts, color=colours)

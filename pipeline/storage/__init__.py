@@ -9,8 +9,6 @@ from kforge.pipeline.storage.layout import (
     ACTION,
     ACTION_MASK,
     DONE,
-    LEVEL_ID,
-    LEVEL_SEED,
     STATE_PREFIX,
     VALID,
     DatasetError,
@@ -27,22 +25,15 @@ from kforge.pipeline.storage.manifest import (
     read_record_sized,
     record_key,
     shard_name,
-    write_record,
 )
 from kforge.pipeline.storage.records import (
-    FAILED,
     FILTERED_PREFIX,
-    KEPT,
     PROVENANCE,
-    UNSOLVED,
-    ArrayEntry,
     BatchRecord,
-    LevelRecord,
     Outcome,
 )
 from kforge.pipeline.storage.repair import require_intact, withdraw_bad_batches
 from kforge.pipeline.storage.shard_store import (
-    BLOSC_LEVEL,
     CONFIG_FILE,
     DATA_DIR,
     MANIFEST_DIR,
@@ -51,7 +42,6 @@ from kforge.pipeline.storage.shard_store import (
     create_dataset,
     open_dataset,
 )
-from kforge.pipeline.storage.state_codec import encode, is_coded
 from kforge.pipeline.storage.store import Store, StoreError, is_remote, join, open_store
 from kforge.pipeline.storage.verify import format_report, verify_dataset
 from kforge.pipeline.storage.writer import (
@@ -62,9 +52,7 @@ from kforge.pipeline.storage.writer import (
 )
 
 __all__ = [
-    "ArrayEntry",
     "BatchRecord",
-    "LevelRecord",
     "Outcome",
     "Lease",
     "LeaseLost",
@@ -76,19 +64,13 @@ __all__ = [
     "commit_age_limit",
     "ACTION",
     "ACTION_MASK",
-    "BLOSC_LEVEL",
     "CONFIG_FILE",
     "DATA_DIR",
     "DONE",
-    "FAILED",
     "FILTERED_PREFIX",
-    "KEPT",
-    "LEVEL_ID",
-    "LEVEL_SEED",
     "MANIFEST_DIR",
     "PROVENANCE",
     "STATE_PREFIX",
-    "UNSOLVED",
     "VALID",
     "BatchTrajectories",
     "ShardWriter",
@@ -99,10 +81,8 @@ __all__ = [
     "Layout",
     "all_committed",
     "create_dataset",
-    "encode",
     "format_report",
     "grow_dataset",
-    "is_coded",
     "iter_records",
     "learning_curves",
     "make_layout",
@@ -116,5 +96,4 @@ __all__ = [
     "unflatten_state",
     "verify_dataset",
     "withdraw_bad_batches",
-    "write_record",
 ]

@@ -55,9 +55,6 @@ class Outcome(enum.StrEnum):
         return self in (Outcome.KEPT, Outcome.UNSOLVED)
 
 
-KEPT, UNSOLVED, FAILED = Outcome.KEPT, Outcome.UNSOLVED, Outcome.FAILED
-
-
 @dataclasses.dataclass(frozen=True)
 class LevelRecord:
     """One slot of a level batch."""

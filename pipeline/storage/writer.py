@@ -38,7 +38,7 @@ from kforge.pipeline.storage.manifest import (
     temp_records,
     write_record,
 )
-from kforge.pipeline.storage.records import KEPT, ArrayEntry, BatchRecord, LevelRecord, Outcome
+from kforge.pipeline.storage.records import ArrayEntry, BatchRecord, LevelRecord, Outcome
 from kforge.pipeline.storage.shard_store import Dataset, array_digest, open_dataset
 from kforge.pipeline.storage.store import Store, open_store
 
@@ -59,7 +59,7 @@ class BatchTrajectories:
     level_id: np.ndarray  # (L,) int: the level's index in its split
     level_seed: np.ndarray  # (L,) int: the seed the level was sampled from
     expert_success_rate: np.ndarray  # (L,) f32 [-] success rate of the level's expert in evaluation
-    outcome: Sequence[str]  # (L,) KEPT, or why the level was not kept (e.g. "filtered:trivial", "unsolved")
+    outcome: Sequence[str]  # (L,) Outcome.KEPT, or why the level was not kept (e.g. "filtered:trivial", "unsolved")
     expert_env_steps: np.ndarray | None = None  # (L,) int: env steps the selected expert had trained for
     trained_env_steps: np.ndarray | None = None  # (L,) int: env steps each level's training used
     budget_mode: str | None = None  # how experts trained: "fixed" / "streamed" (the whole budget) or "adaptive"
@@ -129,7 +129,7 @@ def stored_arrays(layout: Layout, levels_per_batch: int, result: BatchTrajectori
     if len(result.outcome) != size:
         raise DatasetError(f"outcome: expected {size} entries, got {len(result.outcome)}")
     for level in range(size):
-        if bool(kept[level]) != (result.outcome[level] == KEPT):
+        if bool(kept[level]) != (result.outcome[level] == Outcome.KEPT):
             raise DatasetError(f"level {level}: kept={bool(kept[level])} but outcome {result.outcome[level]!r}")
     done = _check_shape(DONE, result.done, (size, steps), bool)
     success = _check_shape(SUCCESS, result.success, (size, steps), bool)

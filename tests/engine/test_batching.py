@@ -9,21 +9,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from engine_test_helpers import (
-    PARAMS,
-    ROLLOUT_STEPS,
-    SIZE_M,
-    python_loop,
-    random_actions,
-    random_scene,
-    run_batch,
-    stack_states,
-)
+from engine_test_helpers import PARAMS, SIZE_M, random_scene
 
 from benchmarks.kernels import count_hlo_kernels
 from kforge import engine
 from kforge.engine import SceneBuilder, SimParams
-from kforge.engine.batch_last import BATCH_CHUNK, vmap_in_chunks
+from kforge.engine.batch_last import BATCH_CHUNK, SOLVER_LOOP_FORMS, vmap_in_chunks
+from tests.helpers import stack
+from tests.rollouts import ROLLOUT_STEPS, python_loop, random_actions, run_batch
 
 COMPARE_STEPS = 50
 VMAP_ATOL = 1e-6
@@ -289,7 +282,7 @@ def _step_batch_in_mode(mode: str, batch, solver_loops: str = "auto"):
     """`MODE_STEPS` vmapped steps of the mode test batch under `engine.Batching(mode, TEST_CHUNK_LIMIT,
     solver_loops)`: the first step's (state, info), the state after the last step, and the compiled program's text."""
     picks = _mode_picks(batch)
-    states = stack_states([batch["states"][k] for k in picks])
+    states = stack(*[batch["states"][k] for k in picks])
     motors, thrusters = batch["motors"][picks], batch["thrusters"][picks]
     static = dataclasses.replace(SIZE_M, batching=engine.Batching(mode, TEST_CHUNK_LIMIT, solver_loops))
     stepped = jax.jit(jax.vmap(lambda s, m, t: engine.step(s, PARAMS, m, t, static=static)))
@@ -340,7 +333,7 @@ def test_chunked_and_whole_batching_and_every_solver_loop_form_give_the_same_sta
     written out, the fewer kernels the whole step runs."""
     _, chunked, chunked_program = chunked_run
     whole, programs = {}, {}
-    for form in engine.SOLVER_LOOP_FORMS:
+    for form in SOLVER_LOOP_FORMS:
         _, whole[form], programs[form] = _step_batch_in_mode("whole", batch, solver_loops=form)
     assert len({chunked_program, *programs.values()}) == 4, "the batching option did not change the program"
     for form, stepped in whole.items():
@@ -361,7 +354,7 @@ def test_the_batching_is_a_static_option_of_each_step_not_a_physics_option(batch
     in their batching are different programs; the batching is not among the physics options a dataset's definition
     holds."""
     zeros_m, zeros_t = jnp.zeros(SIZE_M.num_joints), jnp.zeros(SIZE_M.num_thrusters)
-    states = stack_states(batch["states"][:2])
+    states = stack(*batch["states"][:2])
     jaxprs = {}
     for mode in ("chunked", "whole"):
         static = dataclasses.replace(SIZE_M, batching=engine.Batching(mode))

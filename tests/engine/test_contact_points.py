@@ -12,12 +12,13 @@ import math
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from engine_test_helpers import SIZE_S, pair_index, run, zero_gravity
+from engine_test_helpers import SIZE_S, pair_index, zero_gravity
 
 from kforge.engine import FLOOR_TOP, ContactLaw, ContactPoints, SceneBuilder, SimParams, StaticSimParams, pair_layout
 from kforge.engine.collision import manifolds, world_geometry
 from kforge.engine.params import ContactPoints as ContactPointsFromParams
 from tests.helpers import measured
+from tests.rollouts import run_scene
 
 FLOOR = 0
 """A `SceneBuilder`'s floor: reserved polygon slot 0, its top at `engine.FLOOR_TOP`."""
@@ -120,7 +121,7 @@ def _spinning_disc_in_the_floor(law: ContactPoints, depth: float, radius: float,
     state = zero_gravity(builder.build())
     params = SimParams(speculative_distance=0.0, speculative_reach=0.0)
     static = dataclasses.replace(SIZE_S, contact_law=ContactLaw.BAUMGARTE, contact_points=law, **JAX2D_SCHEME)
-    _, traj = run(state, static, 1, params=params)
+    _, traj = run_scene(state, static, 1, params=params)
     mass = 1.0 / float(state.bodies.inverse_mass[disc])
     inertia = 1.0 / float(state.bodies.inverse_inertia[disc])
     return float(traj.angular_velocity[-1, disc]), mass, inertia

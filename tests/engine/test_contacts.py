@@ -19,7 +19,6 @@ from engine_test_helpers import (
     G,
     pair_index,
     rotate,
-    run,
     speed,
     world_vertices,
     zero_gravity,
@@ -27,6 +26,7 @@ from engine_test_helpers import (
 
 from kforge.engine import ContactLaw, SceneBuilder, SimParams, StaticSimParams
 from tests.helpers import measured
+from tests.rollouts import run_scene
 
 PARAMS = SimParams()
 DT = PARAMS.dt
@@ -45,7 +45,7 @@ def test_box_at_rest_1000_steps():
     builder = SceneBuilder(SIZE_S)
     box = builder.add_box((2.5, FLOOR_TOP + 0.25), (0.5, 0.5))
     state = builder.build()
-    final, traj = run(state, SIZE_S, 1000)
+    final, traj = run_scene(state, SIZE_S, 1000)
     penetration = FLOOR_TOP - world_vertices(traj, state, box)[..., 1].min(-1)
     drift = np.abs(traj.position[:, box, 0] - 2.5).max()
     end_speed = speed(traj, box)[-1]
@@ -67,7 +67,7 @@ def test_three_stack_1000_steps():
     y0 = [FLOOR_TOP + 0.2 + 0.4 * i for i in range(3)]
     boxes = [builder.add_box((2.5, y), (0.4, 0.4)) for y in y0]
     state = builder.build()
-    _, traj = run(state, SIZE_L, 1000)
+    _, traj = run_scene(state, SIZE_L, 1000)
     drift, sag = _stack_metrics(traj, state, boxes, [2.5] * 3, y0)
     end_speed = max(speed(traj, b)[-1] for b in boxes)
     measured("3-stack", drift_m=drift, sag_m=sag, end_speed=end_speed)
@@ -81,7 +81,7 @@ def test_six_stack_with_offsets_1000_steps():
     y0 = [FLOOR_TOP + 0.2 + 0.4 * i for i in range(6)]
     boxes = [builder.add_box((x, y), (0.4, 0.4)) for x, y in zip(x0, y0, strict=True)]
     state = builder.build()
-    _, traj = run(state, SIZE_L, 1000)
+    _, traj = run_scene(state, SIZE_L, 1000)
     drift, sag = _stack_metrics(traj, state, boxes, x0, y0)
     max_tilt = max(np.abs(traj.rotation[:, b]).max() for b in boxes)
     measured("6-stack +-2.5 cm", drift_m=drift, sag_m=sag, max_tilt_rad=max_tilt)
@@ -123,7 +123,7 @@ def test_stack_in_last_slots_b1_regression(size):
     y0 = [float(state.bodies.position[b, 1]) for b in bodies]
     last_pairs = [pair_index(static, p - 2, p - 1), pair_index(static, p - 1, n - 1), pair_index(static, n - 2, n - 1)]
     assert last_pairs[-1] == len(state.contacts.normal_impulse) - 1
-    _, traj = run(state, static, 1000)
+    _, traj = run_scene(state, static, 1000)
     drift, sag = _stack_metrics(traj, state, bodies, x0, y0)
     loads = traj.normal_impulse[-1, last_pairs].sum(-1)
     end_speed = max(speed(traj, b)[-1] for b in bodies)
@@ -146,7 +146,7 @@ def test_pyramid_stable_and_symmetric():
     right = builder.add_box((2.5 + 0.21, FLOOR_TOP + 0.2), (0.4, 0.4))
     top = builder.add_box((2.5, FLOOR_TOP + 0.6), (0.4, 0.4))
     state = builder.build()
-    _, traj = run(state, SIZE_L, 600)
+    _, traj = run_scene(state, SIZE_L, 600)
     pos, rot = traj.position, traj.rotation
     top_shift = np.abs(pos[:, top, 0] - 2.5).max()
     top_tilt = np.abs(rot[:, top]).max()
@@ -182,7 +182,7 @@ def test_drop_tilted_box_settles_flat():
     lowest = half[0] * math.sin(tilt) + half[1] * math.cos(tilt)
     box = builder.add_box((2.5, FLOOR_TOP + 0.1 + lowest), (0.6, 0.3), rotation=tilt)
     state = builder.build()
-    _, traj = run(state, SIZE_S, 300)
+    _, traj = run_scene(state, SIZE_S, 300)
     bottom = world_vertices(traj, state, box)[..., 1].min(-1)
     landing = int(np.flatnonzero(bottom < FLOOR_TOP + SLOP)[0])
     angle = np.abs(traj.rotation[:, box])
@@ -200,7 +200,7 @@ def _bounce_heights(restitution: float, drop: float, steps: int, radius: float =
     builder = SceneBuilder(SIZE_S, boundaries=False)
     _own_floor(builder, restitution=1.0)
     ball = builder.add_circle((2.5, FLOOR_TOP + radius + drop), radius, restitution=restitution)
-    _, traj = run(builder.build(), SIZE_S, steps, params=params)
+    _, traj = run_scene(builder.build(), SIZE_S, steps, params=params)
     clearance = traj.position[:, ball, 1] - radius - FLOOR_TOP
     vy = traj.velocity[:, ball, 1]
     bounces = np.flatnonzero((vy[:-1] < -0.1) & (vy[1:] > 0.05)) + 1  # downward before, upward after
@@ -245,7 +245,7 @@ def test_slow_contact_below_threshold_does_not_bounce():
     builder = SceneBuilder(SIZE_S, boundaries=False)
     _own_floor(builder, restitution=1.0)
     ball = builder.add_circle((2.5, FLOOR_TOP + 0.1 + drop), 0.1, restitution=1.0)
-    _, traj = run(builder.build(), SIZE_S, 120)
+    _, traj = run_scene(builder.build(), SIZE_S, 120)
     clearance = traj.position[:, ball, 1] - 0.1 - FLOOR_TOP
     landing = int(np.flatnonzero(clearance < SLOP)[0])
     rebound = clearance[landing:].max()
@@ -269,7 +269,7 @@ def _circle_collision(r_a: float, r_b: float, v: float = 2.0, steps: int = 60):
     b = builder.add_circle((1.0 + r_a + r_b + 0.3, 2.0), r_b, restitution=1.0)
     state = zero_gravity(builder.build())
     mass = 1.0 / np.asarray(state.bodies.inverse_mass, np.float64)[[a, b]]
-    _, traj = run(state, SIZE_S, steps)
+    _, traj = run_scene(state, SIZE_S, steps)
     v0, v1 = traj.velocity[0, [a, b]], traj.velocity[-1, [a, b]]
     w1 = traj.angular_velocity[-1, [a, b]]
     inertia = 1.0 / np.asarray(state.bodies.inverse_inertia, np.float64)[[a, b]]
@@ -329,7 +329,7 @@ def _on_slope(angle_deg: float, shape: str, steps: int = 60, friction: float = 1
         body = builder.add_box(surface + 0.15 * normal, (0.3, 0.3), rotation=angle, friction=friction)
     else:
         body = builder.add_circle(surface + 0.1 * normal, 0.1)
-    _, traj = run(builder.build(), SIZE_S, steps)
+    _, traj = run_scene(builder.build(), SIZE_S, steps)
     return traj, body, tangent
 
 
@@ -402,7 +402,7 @@ def _shoot(shape: str, v: float, phase: float, params: SimParams = PARAMS, stati
         body = builder.add_box((start, 2.0), (0.1, 0.1), velocity=(v, 0.0))
     else:
         body = builder.add_circle((start, 2.0), 0.05, velocity=(v, 0.0))
-    _, traj = run(zero_gravity(builder.build()), static, 100, params=params)
+    _, traj = run_scene(zero_gravity(builder.build()), static, 100, params=params)
     return bool(traj.position[:, body, 0].max() > WALL_X)
 
 
@@ -444,7 +444,7 @@ def test_speculative_contact_that_acts_counts_as_touching():
     builder = SceneBuilder(SIZE_S, boundaries=False)
     wall = builder.add_box((2.0, 2.0), (0.2, 2.0), static=True, slot=0)
     disc = builder.add_circle((0.95, 2.0), 0.1, velocity=(6.0, 0.0))  # 0.85 m gap, 0.1 m per step
-    _, traj = run(zero_gravity(builder.build()), SIZE_S, 20)
+    _, traj = run_scene(zero_gravity(builder.build()), SIZE_S, 20)
     pair = pair_index(SIZE_S, wall, disc)
     first = int(np.argmax(traj.touching[:, pair]))
     measured(
@@ -465,8 +465,8 @@ def test_a_push_counts_as_touching_only_from_within_push_touch_distance():
     wall = builder.add_box((2.0, 2.0), (0.2, 2.0), static=True, slot=0)
     disc = builder.add_circle((0.95, 2.0), 0.1, velocity=(6.0, 0.0))
     state, pair = zero_gravity(builder.build()), pair_index(SIZE_S, wall, disc)
-    _, counted = run(state, SIZE_S, 20)
-    _, near_only = run(state, SIZE_S, 20, params=SimParams(push_touch_distance=0.02))
+    _, counted = run_scene(state, SIZE_S, 20)
+    _, near_only = run_scene(state, SIZE_S, 20, params=SimParams(push_touch_distance=0.02))
     pushed = int(np.argmax(counted.touching[:, pair]))
     first = int(np.argmax(near_only.touching[:, pair]))
     measured(
@@ -493,7 +493,7 @@ def _pass_corner(clearance: float, swept: bool, speed_m_per_s: float = 8.5):
     start = closest - 1.0 * PASS_DIRECTION
     disc = builder.add_circle(tuple(start), 0.1, velocity=tuple(speed_m_per_s * PASS_DIRECTION))
     static = dataclasses.replace(SIZE_S, swept_speculative_contacts=swept)
-    _, traj = run(zero_gravity(builder.build()), static, 20)
+    _, traj = run_scene(zero_gravity(builder.build()), static, 20)
     return traj, pair_index(SIZE_S, box, disc), disc
 
 
@@ -541,7 +541,7 @@ def test_discs_that_pass_each_other_do_not_meet():
         start = np.array([2.5, 2.0]) + 0.21 * np.array([1.0, 1.0]) / math.sqrt(2.0) - 1.0 * PASS_DIRECTION
         flying = builder.add_circle(tuple(start), 0.1, velocity=tuple(8.5 * PASS_DIRECTION))
         static = dataclasses.replace(SIZE_S, swept_speculative_contacts=swept)
-        _, traj = run(zero_gravity(builder.build()), static, 20)
+        _, traj = run_scene(zero_gravity(builder.build()), static, 20)
         results[swept] = (
             float(np.abs(traj.velocity[:, resting]).max()),
             bool(traj.touching[:, pair_index(SIZE_S, resting, flying)].any()),
@@ -576,7 +576,7 @@ def _land_tilted_box(params: SimParams, height: float, steps: int):
     start = (2.5, FLOOR_TOP - LANDING_CORNER[1] + height)
     box = builder.add_box(start, LANDING_BOX, rotation=LANDING_TILT, velocity=(0.0, -LANDING_SPEED))
     state = zero_gravity(builder.build())
-    return state, box, run(state, SIZE_S, steps, params=params)[1]
+    return state, box, run_scene(state, SIZE_S, steps, params=params)[1]
 
 
 def _lowest_corner_above_floor(params: SimParams, steps: int = 20) -> np.ndarray:
@@ -626,7 +626,7 @@ def test_circle_centre_inside_box_separates():
     builder = SceneBuilder(SIZE_S, boundaries=False)
     box = builder.add_box((2.5, 2.0), (0.4, 0.4))
     circle = builder.add_circle((2.55, 2.02), 0.1)
-    _, traj = run(zero_gravity(builder.build()), SIZE_S, 100)
+    _, traj = run_scene(zero_gravity(builder.build()), SIZE_S, 100)
     local = rotate(-traj.rotation[:, box, None], (traj.position[:, circle] - traj.position[:, box])[:, None])[:, 0]
     separation = _box_signed_distance(local, np.array([0.2, 0.2])) - 0.1
     separated = np.flatnonzero(separation < -SLOP)
@@ -643,7 +643,7 @@ def test_coincident_circles_separate():
     builder = SceneBuilder(SIZE_S, boundaries=False)
     a = builder.add_circle((2.5, 2.0), 0.1)
     b = builder.add_circle((2.5, 2.0), 0.1)
-    _, traj = run(zero_gravity(builder.build()), SIZE_S, 100)
+    _, traj = run_scene(zero_gravity(builder.build()), SIZE_S, 100)
     separation = np.linalg.norm(traj.position[:, a] - traj.position[:, b], axis=-1) - 0.2
     overlapping = np.flatnonzero(separation < -SLOP)
     steps_to_separate = int(overlapping[-1]) + 1 if overlapping.size else 0
@@ -665,7 +665,7 @@ def test_jointed_overlapping_bodies_get_no_contact_impulse():
     b = builder.add_box((2.5, FLOOR_TOP + 0.2), (0.4, 0.4))  # overlaps a by 0.2 m
     builder.add_revolute_joint(a, b, (2.4, FLOOR_TOP + 0.2))
     state = builder.build()
-    _, traj = run(state, SIZE_M, 200)
+    _, traj = run_scene(state, SIZE_M, 200)
     pair = pair_index(SIZE_M, a, b)
     floor_pair = pair_index(SIZE_M, 0, a)
     max_speed = max(speed(traj, a).max(), speed(traj, b).max())
@@ -687,7 +687,7 @@ def test_collision_modes(mode_static, mode_falling):
     builder = SceneBuilder(SIZE_S, boundaries=False)
     builder.add_box((2.5, 1.0), (2.0, 0.2), static=True, slot=0, collision_mode=mode_static)
     box = builder.add_box((2.5, 1.4), (0.2, 0.2), collision_mode=mode_falling)
-    _, traj = run(builder.build(), SIZE_S, 100)
+    _, traj = run_scene(builder.build(), SIZE_S, 100)
     should_collide = mode_static == 2 or mode_falling == 2 or (mode_static == 1 and mode_falling == 1)
     final_y = traj.position[-1, box, 1]
     measured(
@@ -780,7 +780,7 @@ def _box_started_in_the_floor(law: ContactLaw, depth: float, steps: int = 30, ba
     box = builder.add_box((2.5, FLOOR_TOP + size / 2 - depth), (size, size))
     params = SimParams(baumgarte_depth=baumgarte_depth)
     static = dataclasses.replace(SIZE_S, contact_law=law)
-    _, traj = run(zero_gravity(builder.build()), static, steps, params=params)
+    _, traj = run_scene(zero_gravity(builder.build()), static, steps, params=params)
     return traj.velocity[:, box, 1], traj.position[:, box, 1] - size / 2 - FLOOR_TOP
 
 
@@ -825,7 +825,7 @@ def _disc_started_in_the_floor(depth: float, static: StaticSimParams, steps: int
     disc = builder.add_circle((2.5, FLOOR_TOP + radius - depth), radius)
     params = SimParams(speculative_distance=0.0, speculative_reach=0.0)
     static = dataclasses.replace(static, contact_law=ContactLaw.BAUMGARTE)
-    _, traj = run(zero_gravity(builder.build()), static, steps, params=params)
+    _, traj = run_scene(zero_gravity(builder.build()), static, steps, params=params)
     return traj.velocity[:, disc, 1], traj.position[:, disc, 1] - radius - FLOOR_TOP
 
 
@@ -872,7 +872,7 @@ def _box_resting_one_step(block: bool):
         SIZE_S, num_iterations=3, num_relax_iterations=0, block_contacts=block, contact_law=ContactLaw.BAUMGARTE
     )
     params = SimParams(speculative_distance=0.0, speculative_reach=0.0)
-    final, traj = run(state, static, 1, params=params)
+    final, traj = run_scene(state, static, 1, params=params)
     impulses = np.asarray(final.contacts.normal_impulse[pair_index(static, 0, box)], np.float64)
     mass = 1.0 / float(state.bodies.inverse_mass[box])
     return traj.angular_velocity[-1, box], impulses, mass, DT / static.num_substeps

@@ -5,8 +5,8 @@ import os
 import subprocess
 import sys
 
-from kforge.engine import use_deterministic_ops, with_deterministic_ops
-from kforge.engine.determinism import DETERMINISTIC_GPU_OPS_FLAG, XLA_FLAGS_ENV
+from kforge.engine import use_deterministic_ops
+from kforge.engine.determinism import DETERMINISTIC_GPU_OPS_FLAG, XLA_FLAGS_ENV, with_deterministic_ops
 
 HOST_DEVICES_FLAG = "--xla_force_host_platform_device_count=2"
 

@@ -9,10 +9,11 @@ from __future__ import annotations
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from engine_test_helpers import PARAMS, SIZE_M, cross, rotate, run_batch
+from engine_test_helpers import PARAMS, SIZE_M, cross, rotate
 
 from kforge import engine
 from kforge.engine import SceneBuilder
+from tests.rollouts import run_batch
 
 pytestmark = pytest.mark.smoke
 

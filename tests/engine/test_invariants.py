@@ -11,22 +11,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from engine_test_helpers import (
-    BATCH,
-    PARAMS,
-    SIZE_M,
-    bounding_radius,
-    kinetic_energy,
-    masses,
-    random_actions,
-    random_scene,
-    run_batch,
-    stack_states,
-    to_numpy,
-)
+from engine_test_helpers import PARAMS, SIZE_M, bounding_radius, kinetic_energy, masses, random_scene
 
 from kforge.engine import SceneBuilder, pair_layout
 from kforge.engine.collision_filter import modes_collide
+from tests.helpers import stack, to_numpy
+from tests.rollouts import BATCH, random_actions, run_batch
 
 NUM_OVERLAPPING = BATCH // 2
 SLOP = PARAMS.touch_distance  # [m] 0.005
@@ -44,7 +34,7 @@ def fuzz():
     final, traj = run_batch(states, motors, thrusters)
     return dict(
         states=states,
-        initial=to_numpy(stack_states(states)),
+        initial=to_numpy(stack(*states)),
         motors=motors,
         thrusters=thrusters,
         final=final,
@@ -238,7 +228,7 @@ def test_inactive_junk_changes_nothing(fuzz):
     if sep_diff > JUNK_ATOL:
         failures.append(f"info.separation: max diff {sep_diff:.3g}")
     # Junk bodies themselves stay where they were put.
-    junk_initial = to_numpy(stack_states(junk_states)).bodies
+    junk_initial = to_numpy(stack(*junk_states)).bodies
     for field in ("position", "velocity"):
         start = np.asarray(getattr(junk_initial, field))[:, None]
         moved = (np.asarray(getattr(junk_traj.bodies, field)) != start).any(-1) & ~active[:, None, :]
@@ -331,7 +321,7 @@ def zero_g():
     rng = np.random.default_rng(5)
     states = [_zero_g_scene(rng) for _ in range(8)]
     _, traj = run_batch(states)
-    initial = to_numpy(stack_states(states))
+    initial = to_numpy(stack(*states))
     assert not (initial.bodies.active & (initial.bodies.inverse_mass == 0)).any(), "no static bodies"
     mass, inertia = masses(initial.bodies)
     return dict(initial=initial, traj=traj, mass=mass, inertia=inertia)

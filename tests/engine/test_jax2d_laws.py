@@ -8,11 +8,12 @@ import dataclasses
 
 import numpy as np
 import pytest
-from engine_test_helpers import FLOOR_TOP, SIZE_L, SIZE_S, run, zero_gravity
+from engine_test_helpers import FLOOR_TOP, SIZE_L, SIZE_S, zero_gravity
 
 from kforge.engine import SceneBuilder, SimParams, physics_scheme
 from kforge.engine.jax2d_contacts import solver_batches
 from kforge.engine.pairs import pair_layout
+from tests.rollouts import run_scene
 
 KINETIX = physics_scheme("kinetix")
 JOINT_STIFFNESS, JOINT_VELOCITY_BIAS, JOINT_POSITION_SHARE = 0.6, 2.0, 0.7
@@ -42,7 +43,7 @@ def test_one_pass_of_jax2ds_joint_moves_both_bodies_and_pushes_them_together_by_
     start_x = np.asarray(state.bodies.position)[[a, b], 0]
     one_pass = dataclasses.replace(KINETIX.static(SIZE_S), num_iterations=1)
     params = KINETIX.sim(SimParams())
-    _, trajectory = run(state, one_pass, 1, params=params)
+    _, trajectory = run_scene(state, one_pass, 1, params=params)
     impulse = JOINT_STIFFNESS * JOINT_VELOCITY_BIAS * gap / inverse_mass.sum()
     velocity = np.array([inverse_mass[0], -inverse_mass[1]]) * impulse
     moved = np.array([1.0, -1.0]) * JOINT_POSITION_SHARE * gap * inverse_mass / inverse_mass.sum()
@@ -61,7 +62,7 @@ def test_jax2ds_joint_keeps_the_momentum_and_the_centre_of_mass_of_a_free_pair()
     state = state.replace(bodies=state.bodies.replace(velocity=velocity, angular_velocity=spin))
     mass = 1.0 / np.asarray(state.bodies.inverse_mass)[[a, b]]
     steps = 60
-    final, trajectory = run(state, KINETIX.static(SIZE_S), steps, params=KINETIX.sim(SimParams()))
+    final, trajectory = run_scene(state, KINETIX.static(SIZE_S), steps, params=KINETIX.sim(SimParams()))
     momentum = np.einsum("b,tbk->tk", mass, trajectory.velocity[:, [a, b]])
     np.testing.assert_allclose(momentum, np.broadcast_to(momentum[0], momentum.shape), atol=1e-5)
     centre = np.einsum("b,tbk->tk", mass, trajectory.position[:, [a, b]]) / mass.sum()
@@ -104,7 +105,7 @@ def test_the_last_pair_of_a_padded_kind_keeps_no_impulse_and_the_others_keep_the
     radius = 0.3
     lower = builder.add_circle((2.5, FLOOR_TOP + radius), radius)
     upper = builder.add_circle((2.5, FLOOR_TOP + 3 * radius), radius)
-    state, _ = run(builder.build(), KINETIX.static(SIZE_S), 120, params=KINETIX.sim(SimParams()))
+    state, _ = run_scene(builder.build(), KINETIX.static(SIZE_S), 120, params=KINETIX.sim(SimParams()))
     layout = pair_layout(KINETIX.static(SIZE_S))
     pairs = list(zip(layout.body_a.tolist(), layout.body_b.tolist(), strict=True))
     normal = np.asarray(state.contacts.normal_impulse)
@@ -124,7 +125,7 @@ def test_the_step_starts_with_gravity_then_thrust_in_jax2ds_arithmetic():
     builder.add_thruster(box, (2.6, 3.05), angle, power=power)
     state = builder.build()
     params = KINETIX.sim(SimParams())
-    _, trajectory = run(state, KINETIX.static(SIZE_S), 1, params=params, thrust=np.ones(1, np.float32))
+    _, trajectory = run_scene(state, KINETIX.static(SIZE_S), 1, params=params, thrust=np.ones(1, np.float32))
     f32 = np.float32
     bodies, thruster = state.bodies, state.thrusters
     rotation = f32(bodies.rotation[box])

@@ -12,11 +12,12 @@ import math
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from engine_test_helpers import SIZE_L, SIZE_S, G, crossings, elliptic_k, joint_anchor_error, masses, rotate, run
+from engine_test_helpers import SIZE_L, SIZE_S, G, crossings, elliptic_k, joint_anchor_error, masses, rotate
 
 from kforge.engine import ContactLaw, MotorLaw, SceneBuilder, SimParams
 from kforge.engine.params import JointLaw
 from tests.helpers import measured
+from tests.rollouts import run_scene
 
 STATIC = SIZE_L
 PARAMS = SimParams()
@@ -57,7 +58,7 @@ def _pendulum(theta0: float, seconds: float = 10.0):
     bob = builder.add_circle(PIVOT + LENGTH * np.array([math.sin(theta0), -math.cos(theta0)]), BOB_RADIUS)
     builder.add_revolute_joint(0, bob, PIVOT)
     state = builder.build()
-    _, traj = run(state, STATIC, int(round(seconds / DT)))
+    _, traj = run_scene(state, STATIC, int(round(seconds / DT)))
     arm = traj.position[:, bob] - PIVOT
     theta = np.arctan2(arm[:, 0], -arm[:, 1])
     # Period from all zero crossings (two per period): slope of crossing time vs crossing index, doubled.
@@ -119,7 +120,7 @@ def chain_errors():
     for i in range(1, 5):
         builder.add_revolute_joint(links[i - 1], links[i], PIVOT + (0.4 * i, 0.0))
     state = builder.build()
-    _, traj = run(state, STATIC, 600)
+    _, traj = run_scene(state, STATIC, 600)
     errors = np.stack([joint_anchor_error(traj, state, j) for j in range(5)], -1).max(-1)
     lowest = traj.position[:, links[-1], 1].min()
     measured(
@@ -153,7 +154,7 @@ def test_mass_ratio_100_to_1_across_a_joint():
     state = builder.build()
     inverse_mass = np.asarray(state.bodies.inverse_mass)
     assert abs(inverse_mass[light] / inverse_mass[heavy] - 100.0) < 1e-3
-    _, traj = run(state, STATIC, 300)
+    _, traj = run_scene(state, STATIC, 300)
     errors = np.stack([joint_anchor_error(traj, state, j) for j in range(2)], -1)
     measured(
         "mass ratio 100:1",
@@ -180,7 +181,7 @@ def test_fixed_joint_cantilever_holds_relative_angle():
     builder.add_fixed_joint(wall, beam, root)
     builder.add_fixed_joint(beam, load, tip)
     state = builder.build()
-    _, traj = run(state, STATIC, 300)
+    _, traj = run_scene(state, STATIC, 300)
     angle_errors = np.stack([np.abs(_joint_angle(traj, state, j)) for j in range(2)], -1)
     anchor_errors = np.stack([joint_anchor_error(traj, state, j) for j in range(2)], -1)
     tip_drop = traj.position[0, load, 1] - traj.position[:, load, 1]
@@ -205,7 +206,7 @@ def test_revolute_limits_under_gravity_and_release():
     for bar in (right, left):
         builder.add_revolute_joint(0, bar, PIVOT, motor_speed=1.0, motor_power=1.0, motor_on=False, limits=(-0.5, 0.5))
     state = builder.build()
-    state, fall = run(state, STATIC, 120)
+    state, fall = run_scene(state, STATIC, 120)
     fall_right, fall_left = _joint_angle(fall, state, 0), _joint_angle(fall, state, 1)
     overshoot_fall = max(-0.5 - fall_right.min(), fall_left.max() - 0.5)
     # Drive away from the limits: motors on, the right bar up (positive), the left bar down (negative).
@@ -214,7 +215,7 @@ def test_revolute_limits_under_gravity_and_release():
     state = state.replace(joints=state.joints.replace(motor_on=jnp.asarray(motor_on)))
     actions = np.zeros(STATIC.num_joints, np.float32)
     actions[:2] = (1.0, -1.0)
-    _, drive = run(state, STATIC, 120, motor=actions)
+    _, drive = run_scene(state, STATIC, 120, motor=actions)
     drive_right, drive_left = _joint_angle(drive, state, 0), _joint_angle(drive, state, 1)
     released_after = int(np.flatnonzero((drive_right > 0.0) & (drive_left < 0.0))[0])
     overshoot_drive = max(drive_right.max() - 0.5, -0.5 - drive_left.min())
@@ -254,7 +255,7 @@ def test_a_spinning_wheel_meets_its_angle_limit():
     """A wheel pinned at its centre (no gravity torque), limits +-0.5 rad, spinning at 2.7 rad/s (0.045 rad a step)
     towards the upper limit: the speculative limit rows stop it at the limit and hold it there."""
     state, wheel = _wheel_spinning_towards_its_limit(STATIC)
-    _, traj = run(state, STATIC, 30)
+    _, traj = run_scene(state, STATIC, 30)
     angle, omega = _joint_angle(traj, state, 0), traj.angular_velocity[:, wheel]
     measured("wheel at its limit", max_angle_rad=angle.max(), final_omega=omega[-1])
     assert angle.max() < 0.5 + 1e-3
@@ -271,7 +272,7 @@ def test_relaxing_joints_only_holds_a_wheel_at_its_limit_where_no_relaxing_pass_
     final = {}
     for relax in (0, 1):
         static = dataclasses.replace(SIZE_S, num_relax_iterations=relax, relax_contacts=False, **scheme)
-        _, traj = run(state, static, 30, params=params)
+        _, traj = run_scene(state, static, 30, params=params)
         final[relax] = (_joint_angle(traj, state, 0).max(), traj.angular_velocity[-1, wheel])
     measured("wheel at its limit, joints relaxed or not", relaxed=final[1], not_relaxed=final[0])
     assert final[1][0] < 0.5 + 1e-3 and abs(final[1][1]) < 1e-3
@@ -289,7 +290,7 @@ def test_a_wheel_started_past_its_limit_returns_as_each_joint_law_says():
     state = state.replace(bodies=state.bodies.replace(rotation=state.bodies.rotation.at[wheel].set(1.5)))
     excess = {}
     for law in (JointLaw.SOFT, JointLaw.JAX2D):
-        _, traj = run(state, dataclasses.replace(STATIC, joint_law=law), 90)
+        _, traj = run_scene(state, dataclasses.replace(STATIC, joint_law=law), 90)
         excess[law] = _joint_angle(traj, state, 0) - 0.5
     measured(
         "wheel started past its limit",
@@ -319,7 +320,7 @@ def test_servo_motor_free_wheel_follows_kinetix_recurrence(motor_speed):
     """Kinetix's servo on a free wheel: w' = w - base_power x power x dt x tanh(decay x (w - target)) exactly, as
     the wheel's own inertia is the axial inertia; it overshoots, then settles on the target."""
     state, wheel = _motor_wheel(motor_speed)
-    _, traj = run(state, STATIC, 60, motor=_motor_actions())
+    _, traj = run_scene(state, STATIC, 60, motor=_motor_actions())
     target = motor_speed * PARAMS.base_motor_speed
     expected = [0.0]
     for _ in range(60):
@@ -345,7 +346,7 @@ def test_servo_motor_holds_a_bar_where_its_impulse_balances_gravity():
     inertia = 1.0 / float(state.bodies.inverse_inertia[bar])
     holding = PARAMS.base_motor_power * power * inertia * math.tanh(PARAMS.motor_decay * PARAMS.base_motor_speed)
     equilibrium = -math.acos(holding / (mass * G * length / 2))
-    _, traj = run(state, STATIC, 600, motor=_motor_actions())
+    _, traj = run_scene(state, STATIC, 600, motor=_motor_actions())
     angle = _joint_angle(traj, state, 0)
     first, last = angle[1:121], angle[-120:]
     measured(
@@ -361,7 +362,7 @@ def test_servo_motor_holds_a_bar_where_its_impulse_balances_gravity():
 
 def test_constraint_motor_free_wheel_reaches_target_speed():
     state, wheel = _motor_wheel()
-    _, traj = run(state, CONSTRAINT_MOTORS, 100, motor=_motor_actions())
+    _, traj = run_scene(state, CONSTRAINT_MOTORS, 100, motor=_motor_actions())
     target = 1.0 * PARAMS.base_motor_speed * 1.0
     omega = traj.angular_velocity[:, wheel]
     relative_error = np.abs(omega / target - 1.0)
@@ -387,7 +388,7 @@ def test_motor_with_zero_action_is_off_and_the_wheel_spins_freely(static):
     wheel = builder.add_circle(PIVOT, 0.2, angular_velocity=3.0)
     builder.add_revolute_joint(0, wheel, PIVOT, motor_speed=1.0, motor_power=1.0, motor_on=True)
     state = builder.build()
-    _, traj = run(state, static, 60, motor=np.zeros(STATIC.num_joints, np.float32))
+    _, traj = run_scene(state, static, 60, motor=np.zeros(STATIC.num_joints, np.float32))
     np.testing.assert_allclose(traj.angular_velocity[:, wheel], 3.0, rtol=1e-5)
     assert np.all(traj.motor_impulse[:, 0] == 0.0)
 
@@ -401,7 +402,7 @@ def test_constraint_motor_under_heavy_load_respects_and_saturates_torque_bound()
     bound = _motor_bound(state, 0)
     mass = 1.0 / float(state.bodies.inverse_mass[bar])
     assert bound / SUBSTEP < mass * G * 0.5  # the motor torque cannot hold the bar horizontal
-    _, traj = run(state, CONSTRAINT_MOTORS, 300, motor=_motor_actions())
+    _, traj = run_scene(state, CONSTRAINT_MOTORS, 300, motor=_motor_actions())
     impulse = np.abs(traj.motor_impulse[:, 0])
     saturated = impulse >= bound * (1 - 1e-4)
     angle = _joint_angle(traj, state, 0)
@@ -432,7 +433,7 @@ def test_servo_motors_on_a_shared_hub_conserve_angular_momentum():
     state = builder.build().replace(gravity=jnp.zeros(2))
     actions = np.zeros(STATIC.num_joints, np.float32)
     actions[:2] = 1.0
-    _, traj = run(state, STATIC, 20, motor=actions)
+    _, traj = run_scene(state, STATIC, 20, motor=actions)
     mass, inertia = masses(state.bodies)
     bodies = [hub, left, right]
     spin = inertia[bodies] * traj.angular_velocity[:, bodies]

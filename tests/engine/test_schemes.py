@@ -9,10 +9,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from engine_test_helpers import SIZE_M, SIZE_S, run, zero_gravity
+from engine_test_helpers import SIZE_M, SIZE_S, zero_gravity
 
 from kforge.engine import (
-    DEFAULT_PHYSICS_SCHEME,
     FLOOR_TOP,
     PHYSICS_SCHEMES,
     Batching,
@@ -28,6 +27,8 @@ from kforge.engine import (
     step,
 )
 from kforge.engine.params import ContactOrder, JointLaw
+from kforge.engine.schemes import DEFAULT_PHYSICS_SCHEME
+from tests.rollouts import run_scene
 
 KINETIX = physics_scheme("kinetix")
 
@@ -90,7 +91,7 @@ def _disc_in_the_floor_first_step_speed(scheme_name: str, depth: float) -> float
     builder = SceneBuilder(SIZE_S)
     radius = 0.25
     disc = builder.add_circle((2.5, FLOOR_TOP + radius - depth), radius)
-    _, traj = run(zero_gravity(builder.build()), scheme.static(SIZE_S), 1, params=scheme.sim(SimParams()))
+    _, traj = run_scene(zero_gravity(builder.build()), scheme.static(SIZE_S), 1, params=scheme.sim(SimParams()))
     return float(np.asarray(traj.velocity)[1, disc, 1])
 
 

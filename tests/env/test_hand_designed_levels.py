@@ -7,8 +7,6 @@ size m rollouts are marked slow.
 
 from __future__ import annotations
 
-import functools
-
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -16,6 +14,8 @@ import pytest
 
 from kforge import env
 from kforge.env.level_files import LoadedLevel, load_level
+from tests.helpers import stack
+from tests.rollouts import env_episodes
 
 EPISODE_STEPS = 256
 """Env steps per rollout: one full Kinetix episode."""
@@ -86,28 +86,20 @@ def _has_nan(tree) -> jnp.ndarray:
     )
 
 
-@functools.partial(jax.jit, static_argnames=("static",))
-def _rollouts(levels: env.Level, actions: jnp.ndarray, params: env.EnvParams, static: env.StaticEnvParams):
-    """Per-step (B, T) success, failure, reward and "state has NaN" of B episodes with given (B, T, 6) actions."""
-
-    def episode(level, level_actions):
-        def one_step(state, action):
-            state, result = env.step(state, action, level, params, static)
-            return state, (result.success, result.failure, result.reward, _has_nan(state) | result.unstable)
-
-        return jax.lax.scan(one_step, env.reset(level), level_actions)[1]
-
-    return jax.vmap(episode)(levels, actions)
+def _outcome_record(state: env.EnvState, result: env.StepResult) -> tuple[jnp.ndarray, ...]:
+    """A step's success, failure, reward and "state has NaN", as `env_episodes` records them."""
+    return result.success, result.failure, result.reward, _has_nan(state) | result.unstable
 
 
-def _run(loaded: list[LoadedLevel], actions: np.ndarray) -> tuple[np.ndarray, ...]:
-    """Roll out episodes (padded to ROLLOUT_BATCH) of same-size levels sharing one EnvParams."""
+def _play(loaded: list[LoadedLevel], actions: np.ndarray) -> tuple[np.ndarray, ...]:
+    """Per-step (B, T) success, failure, reward and "state has NaN" of same-size levels sharing one EnvParams, played
+    with (B, T, 6) actions in one batch padded to ROLLOUT_BATCH."""
     count = len(loaded)
     assert 0 < count <= ROLLOUT_BATCH and all(item.params == loaded[0].params for item in loaded)
     padded = loaded + [loaded[-1]] * (ROLLOUT_BATCH - count)
     actions = np.concatenate([actions, np.zeros((ROLLOUT_BATCH - count, *actions.shape[1:]), actions.dtype)])
-    levels = jax.tree.map(lambda *leaves: jnp.stack(leaves), *[item.level for item in padded])
-    outputs = _rollouts(levels, jnp.asarray(actions), loaded[0].params, loaded[0].static)
+    levels = stack(*[item.level for item in padded])
+    outputs = env_episodes(levels, jnp.asarray(actions), loaded[0].params, loaded[0].static, _outcome_record)
     return tuple(np.asarray(x)[:count] for x in outputs)
 
 
@@ -121,7 +113,7 @@ def _first_outcome(success: np.ndarray, failure: np.ndarray) -> str:
 def _outcomes_of_size(size: str, levels_dir) -> dict[tuple[str, str, str], str]:
     cases = [case for case in EXPECTED if case[0] == size]
     loaded = [load_level(levels_dir / size / f"{name}.json") for _, name, _ in cases]
-    success, failure, _, _ = _run(loaded, np.stack([SCRIPTS[script] for _, _, script in cases]))
+    success, failure, _, _ = _play(loaded, np.stack([SCRIPTS[script] for _, _, script in cases]))
     return {case: _first_outcome(s, f) for case, s, f in zip(cases, success, failure, strict=True)}
 
 
@@ -160,7 +152,7 @@ def test_random_play_on_every_level_stays_finite(size, levels_dir):
     actions = jax.vmap(lambda key: env.random_action(key, env.ActionType.MULTI_DISCRETE))(keys)
     actions = np.asarray(actions).reshape(len(loaded), EPISODE_STEPS, env.NUM_ACTION_SLOTS)
     assert set(np.unique(actions[..., THRUSTER_0])) == {0, 1} and set(np.unique(actions[..., MOTOR_0])) == {0, 1, 2}
-    _, _, reward, nan = _run(loaded, actions)
+    _, _, reward, nan = _play(loaded, actions)
     for path, level_reward, level_nan in zip(paths, reward, nan, strict=True):
         assert not level_nan.any(), f"{path.stem}: NaN in the state at step {int(np.argmax(level_nan))}"
         assert np.all(np.isfinite(level_reward)), path.stem

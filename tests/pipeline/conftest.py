@@ -25,16 +25,18 @@ import pytest
 import zarr
 
 from kforge.engine import SceneBuilder
-from kforge.env import ActionType, EnvParams, Role, StaticEnvParams, random_action, reset, step
+from kforge.env import ActionType, EnvParams, Role, StaticEnvParams, random_action
 from kforge.env.level_builder import build_level
 from kforge.pipeline.generation import load_config, to_yaml
 from kforge.pipeline.generation.run import run_job
 from kforge.pipeline.storage import PROVENANCE, Lease, all_committed, iter_records, open_store
 from kforge.pipeline.storage.layout import make_layout
 from kforge.pipeline.storage.lease import LEASE_KEY, LeaseHeld, LeaseHolder, read_holder
+from kforge.pipeline.storage.records import Outcome
 from kforge.pipeline.storage.shard_store import DatasetSpec, Geometry, create_dataset
-from kforge.pipeline.storage.writer import KEPT, BatchTrajectories, write_level_batch
+from kforge.pipeline.storage.writer import BatchTrajectories, write_level_batch
 from tests.helpers import stack
+from tests.rollouts import env_loop
 
 # Test modules import these helpers as `pipeline_test_helpers` (works under every pytest import mode).
 sys.modules["pipeline_test_helpers"] = sys.modules[__name__]
@@ -64,8 +66,8 @@ def drop_level(gap: float, target: Role):
 def rollout(levels, seed: int = 0):
     """(states (L, T), actions, done, success) of random-action windows from each level's start.
 
-    Steps with the jitted `env.step` one state at a time, so the only compiled program is the one the replay test
-    uses too.
+    Steps with the jitted `env.step` one state at a time (`env_loop`), so the only compiled program is the one the
+    replay test uses too.
     """
     num_levels = jax.tree.leaves(levels)[0].shape[0]
     keys = jax.random.split(jax.random.PRNGKey(seed), (num_levels, NUM_STEPS))
@@ -73,13 +75,8 @@ def rollout(levels, seed: int = 0):
     windows = []
     for index in range(num_levels):
         level = jax.tree.map(lambda x, i=index: x[i], levels)
-        state, states, done, success = reset(level), [], [], []
-        for t in range(NUM_STEPS):
-            states.append(state)
-            state, result = step(state, actions[index, t], level, PARAMS, STATIC, ACTION_TYPE)
-            done.append(result.done)
-            success.append(result.success)
-        windows.append((stack(*states), np.stack(done), np.stack(success)))
+        states, results = env_loop(level, actions[index], PARAMS, STATIC, ACTION_TYPE)
+        windows.append((states, np.asarray(results.done), np.asarray(results.success)))
     states = jax.tree.map(np.asarray, stack(*(w[0] for w in windows)))
     return states, actions, np.stack([w[1] for w in windows]), np.stack([w[2] for w in windows])
 
@@ -109,7 +106,7 @@ def batch_result(rolled_out, level_ids=(10, 11, 12)) -> BatchTrajectories:
         level_id=np.asarray(level_ids),
         level_seed=np.asarray(level_ids) * 1000 + 7,
         expert_success_rate=np.array([1.0, 0.75, 0.0], np.float32),
-        outcome=(KEPT, KEPT, "unsolved"),
+        outcome=(Outcome.KEPT, Outcome.KEPT, "unsolved"),
         expert_env_steps=np.array([2000, 1000, 4000]),
     )
 

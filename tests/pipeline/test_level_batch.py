@@ -13,7 +13,7 @@ from kforge.pipeline.generation.level_batch import (
     run_level_batch,
     sample_batch,
 )
-from kforge.pipeline.storage import FILTERED_PREFIX, KEPT, UNSOLVED, Outcome
+from kforge.pipeline.storage import FILTERED_PREFIX, Outcome
 from kforge.pipeline.storage.writer import MAX_CURVE_POINTS, learning_curves
 
 
@@ -45,10 +45,10 @@ def test_level_batch_is_deterministic_and_outcomes_are_consistent(job):
     assert list(result.outcome) == [Outcome.PADDING] * 2 and not result.kept.any()
     first = run_level_batch(job, 0, 0)
     for i, outcome in enumerate(first.outcome):
-        assert outcome == KEPT or outcome == UNSOLVED or outcome.startswith(FILTERED_PREFIX), outcome
+        assert outcome == Outcome.KEPT or outcome == Outcome.UNSOLVED or outcome.startswith(FILTERED_PREFIX), outcome
         done, success = first.done[i], first.success[i]
         window_ok = bool(done.any()) and bool(np.all(success[done]))
-        assert (outcome == KEPT) == (window_ok and not outcome.startswith(FILTERED_PREFIX))
+        assert (outcome == Outcome.KEPT) == (window_ok and not outcome.startswith(FILTERED_PREFIX))
     assert first.action.shape == (2, 24, 6) and first.expert_success_rate.shape == (2,)
     # The experts are the selected ones: trained to an evaluation point, rated by its episodes.
     config = job.ppo

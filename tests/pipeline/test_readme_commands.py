@@ -15,6 +15,8 @@ from pathlib import Path
 
 import pytest
 
+from tests.helpers import measured
+
 REPO = Path(__file__).resolve().parents[2]
 README = REPO / "README.md"
 
@@ -85,7 +87,7 @@ def run(command: str, cwd: Path, env: dict) -> str:
         ["bash", "-c", as_run(command)], cwd=cwd, env=env, capture_output=True, text=True, timeout=RUN_SECONDS
     )
     output = result.stdout + result.stderr
-    print(f"{time.perf_counter() - started:6.1f} s  exit {result.returncode}  {as_run(command)}")
+    measured("README command", seconds=time.perf_counter() - started, exit=result.returncode, command=as_run(command))
     assert result.returncode == 0, f"{command!r} exited {result.returncode}:\n{output[-3000:]}"
     chatter = [line for line in output.splitlines() if THIRD_PARTY_LINE.match(line)]
     assert not chatter, f"{command!r} printed third-party output without --verbose: {chatter[:5]}"

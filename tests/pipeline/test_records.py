@@ -8,8 +8,8 @@ import json
 import pytest
 
 from kforge.env import FilterReason
-from kforge.pipeline.storage import DatasetError, Outcome, write_record
-from kforge.pipeline.storage.manifest import read_record
+from kforge.pipeline.storage import DatasetError, Outcome
+from kforge.pipeline.storage.manifest import read_record, write_record
 from kforge.pipeline.storage.records import BatchRecord
 
 pytestmark = pytest.mark.smoke

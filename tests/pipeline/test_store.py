@@ -16,9 +16,10 @@ from kforge.env import step
 from kforge.pipeline.storage.layout import DatasetError, flatten_state, unflatten_state
 from kforge.pipeline.storage.lease import Lease, LeaseLost
 from kforge.pipeline.storage.manifest import committed_batches, read_record, record_key
+from kforge.pipeline.storage.records import Outcome
 from kforge.pipeline.storage.shard_store import create_dataset, open_dataset
 from kforge.pipeline.storage.store import LOCAL_PARTIAL_SUFFIX
-from kforge.pipeline.storage.writer import KEPT, clean_uncommitted, stored_arrays, write_level_batch
+from kforge.pipeline.storage.writer import clean_uncommitted, stored_arrays, write_level_batch
 
 SHARD, BATCH = 1, 0
 SLOTS = GEOMETRY.slots(SHARD, BATCH)  # slots 6, 7, 8: levels 0 and 1 kept, level 2 empty
@@ -174,7 +175,7 @@ def test_a_retry_overwrites_the_same_files_without_duplicates(written, rolled_ou
 def test_a_kept_trajectory_must_end_its_episodes_in_success(tmp_path, rolled_out):
     dataset = create_dataset(tmp_path / "ds", dataset_spec())
     result = batch_result(rolled_out)
-    failing = dataclasses.replace(result, kept=np.ones(3, bool), outcome=(KEPT,) * 3)
+    failing = dataclasses.replace(result, kept=np.ones(3, bool), outcome=(Outcome.KEPT,) * 3)
     with pytest.raises(DatasetError, match="level 2: kept but episodes ending at steps .* are not successes"):
         write_level_batch(dataset, 0, 0, failing)
     assert committed_batches(dataset.root, 0) == []
