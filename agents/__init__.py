@@ -1,8 +1,9 @@
 """RL agents that train on env tasks: PPO specialists, one parameter set per level, many levels per program.
 
 Public surface: the config, training of a level batch, evaluation and the dataset's expert windows (each with its plan
-of how the expert plays), training in segments for adaptive budgets; for behaviour cloning, its policy networks and
-objective, and episodes of any policy given as an actor function.
+of how the expert plays), training in segments for adaptive budgets, and PPO fine-tuning from a BC policy
+(`PPOConfig.actor`, `with_bc_actor`); for behaviour cloning, its policy networks and objective, and episodes of any
+policy given as an actor function.
 
 The PPO hyperparameters' declaration (`PPOHyperparameters`) loads without JAX, so that a job config's schema can
 derive from it; every other name imports its module when first used.
@@ -18,6 +19,7 @@ _SOURCES = {
     "kforge.agents.config": "PPOConfig",
     "kforge.agents.episodes": "EpisodePlan evaluate network_actor run_episode",
     "kforge.agents.imitation": "ImitationTerms imitation_terms",
+    "kforge.agents.networks": "with_bc_actor",
     "kforge.agents.ppo": "initial_params train_levels",
     "kforge.agents.segments": "check_segmented put_slot start_level train_segments",
 }
@@ -45,6 +47,7 @@ __all__ = [
     "start_level",
     "train_levels",
     "train_segments",
+    "with_bc_actor",
 ]
 
 

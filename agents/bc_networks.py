@@ -150,14 +150,15 @@ class EntityTransformerPolicy(nn.Module):
         return _logits_layer()(nn.relu(nn.Dense(self.hidden_size)(pooled)))
 
 
-def make_bc_network(config: NetworkConfig) -> nn.Module:
-    """The BC policy network that `config` describes."""
+def make_bc_network(config: NetworkConfig, name: str | None = None) -> nn.Module:
+    """The BC policy network that `config` describes (named `name` inside a parent module)."""
     if config.architecture is Architecture.MLP:
-        return MLPPolicy(hidden_size=config.hidden_size, num_hidden_layers=config.num_hidden_layers)
+        return MLPPolicy(hidden_size=config.hidden_size, num_hidden_layers=config.num_hidden_layers, name=name)
     return EntityTransformerPolicy(
         embed_size=config.embed_size,
         num_heads=config.num_heads,
         num_layers=config.num_layers,
         hidden_size=config.hidden_size,
         attention_size=config.attention_size,
+        name=name,
     )

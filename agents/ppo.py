@@ -449,15 +449,21 @@ def train_levels(
     config: PPOConfig,
     env_params: EnvParams,
     static: StaticEnvParams,
+    params=None,
 ) -> TrainOutput:
     """`train_level` on every level of a batch (leading axis L) with its own key; outputs gain a leading L axis.
 
-    Initial parameters are drawn level after level (`lax.map`, not `vmap`): a batched orthogonal initialisation
+    `params`: each level's starting parameters (leading axis L; e.g. a BC policy's, through `with_bc_actor`), to
+    fine-tune instead of training from fresh ones. The rollouts and minibatches draw the same randomness from `keys`
+    either way, so a fine-tuned level and its fresh twin differ only in where they start.
+
+    Fresh parameters are drawn level after level (`lax.map`, not `vmap`): a batched orthogonal initialisation
     runs LAPACK QR on XLA's CPU thread pool, which deadlocked with two such calls in flight on a 2-core machine.
     """
     check_level_keys(keys, num_levels(levels))
     split = jax.vmap(jax.random.split)(keys)
-    params = jax.lax.map(lambda key: initial_params(key, config, static), split[:, 0])
+    if params is None:
+        params = jax.lax.map(lambda key: initial_params(key, config, static), split[:, 0])
     return jax.vmap(lambda level, level_params, key: train_from(level, level_params, key, config, env_params, static))(
         levels, params, split[:, 1]
     )

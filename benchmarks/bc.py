@@ -14,6 +14,8 @@ stopped in (and BC training itself resumes from its checkpoints):
 - `evaluate-N`: `pipeline.learning.evaluate_policy` on the train, unseen (`--unseen-levels` filter-kept levels from
   the fixed split index 2^31) and hand (all 74) sets, `--episodes` first episodes per start, the no-op and random
   policies on the same starts with the same keys;
+- `train-mlp-N` and `warm-start-*` (`--warm-start-levels`, 0 leaves them out): benchmarks/warm_start.py, PPO
+  fine-tuned from an MLP BC policy of the largest N against PPO from scratch on unseen levels, paired by level;
 - `transfer`: benchmarks/kinetix_transfer.py with the policy of the largest N: the hand-designed levels and
   `--kinetix-levels` levels of Kinetix's own sampler played in kinetix-env 3.0.2 and in kforge (`--skip-transfer`
   leaves it out).
@@ -32,6 +34,8 @@ from pathlib import Path
 from benchmarks.kinetix_transfer import SAMPLED_LEVELS, transfer
 from benchmarks.kinetix_venv import DEFAULT_KINETIX_VENV, REPOSITORY
 from benchmarks.machine import describe_machine, provenance
+from benchmarks.stages import stage
+from benchmarks.warm_start import warm_start
 from kforge.pipeline.learning import (
     UNSEEN_FIRST_LEVEL,
     Episodes,
@@ -64,24 +68,6 @@ VALIDATION_FRACTION = 0.1
 """Share of each count's levels held out for validation (configs/bc.yaml's default)."""
 
 
-def stage(work_dir: Path, name: str, settings: dict, compute, log) -> dict:
-    """The result of stage `name`: read from its file when done with the same settings, else computed and kept."""
-    path = work_dir / "stages" / f"{name}.json"
-    if path.is_file():
-        kept = json.loads(path.read_text())
-        if kept["settings"] == settings:
-            log(f"{name}: done before, read from {path}")
-            return kept["result"]
-        log(f"{name}: settings changed since it was done, running it again")
-    log(f"{name}: running")
-    result = compute()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    temporary = path.with_suffix(".tmp")
-    temporary.write_text(json.dumps({"settings": settings, "result": result}, indent=1))
-    os.replace(temporary, path)
-    return result
-
-
 def budget(levels: int, epochs: int, batch_size: int) -> dict:
     """The budget rule: at most `epochs` passes over the training trajectories (one per level) in batches of at most
     `batch_size`, validated every `EPOCHS_PER_VALIDATION` passes (so the plateau rule stops every count alike)."""
@@ -96,10 +82,13 @@ def budget(levels: int, epochs: int, batch_size: int) -> dict:
     }
 
 
-def train_stage(args, count: int, log) -> dict:
-    run_dir = Path(args.work_dir) / f"bc-{count}-levels"
+def train_stage(args, count: int, log, architecture: str | None = None) -> dict:
+    """BC on the dataset's first `count` kept levels under the budget rule: configs/bc.yaml's network, or another
+    `architecture` (the run directory then names it)."""
+    run_dir = Path(args.work_dir) / (f"bc-{architecture}-{count}-levels" if architecture else f"bc-{count}-levels")
     rule = budget(count, args.epochs, args.batch_size)
     overrides = [
+        *([f"model.architecture={architecture}"] if architecture else []),
         f"output_dir={run_dir}",
         f"train.levels={count}",
         f"train.num_steps={rule['num_steps']}",
@@ -209,6 +198,20 @@ def without_machine_paths(text: str, args) -> str:
     return text.replace(json.dumps(f"{REPOSITORY}{os.sep}")[1:-1], "")
 
 
+def warm_start_stage(args, count: int, log) -> dict:
+    """`train-mlp-N`: BC with an MLP over flat observations on the largest count under the same budget rule (PPO's
+    actor reads flat observations); then benchmarks/warm_start.py from it, its programs kept as stages."""
+    rule = budget(count, args.epochs, args.batch_size)
+    settings = {"dataset": Path(args.dataset).name, "levels": count, "epochs": args.epochs, "architecture": "mlp"}
+    training = stage(
+        args.work_dir, f"train-mlp-{count}", settings | rule, lambda: train_stage(args, count, log, "mlp"), log
+    )
+    result = warm_start(
+        args.dataset, training["run_dir"], args.warm_start_levels, args.warm_start_steps, args.work_dir, log
+    )
+    return {"bc_training": training} | result
+
+
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--dataset", required=True, help="a dataset made by kforge run")
@@ -220,6 +223,8 @@ def main(argv=None) -> None:
     parser.add_argument("--kinetix-levels", type=int, default=SAMPLED_LEVELS, help="levels of Kinetix's sampler")
     parser.add_argument("--skip-transfer", action="store_true", help="leave out the kinetix-env stage")
     parser.add_argument("--kinetix-venv", type=Path, default=DEFAULT_KINETIX_VENV)
+    parser.add_argument("--warm-start-levels", type=int, default=32, help="unseen levels of the warm start; 0: none")
+    parser.add_argument("--warm-start-steps", type=int, default=1_000_000, help="PPO env steps per level and arm")
     parser.add_argument("--work-dir", type=Path, default=Path("outputs/benchmarks/bc"), help="runs and stage results")
     parser.add_argument("--json", type=Path, help="write the report here")
     parser.add_argument("--plot", type=Path, help="write the scaling plot here (PNG)")
@@ -274,6 +279,8 @@ def main(argv=None) -> None:
             ),
             log,
         )
+    if rows and args.warm_start_levels:
+        report["warm_start"] = warm_start_stage(args, rows[-1]["levels"], log)
     print(table(rows))
     if args.json:
         args.json.write_text(without_machine_paths(json.dumps(report, indent=1), args) + "\n")

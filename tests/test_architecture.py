@@ -109,6 +109,8 @@ BENCHMARK_INTERNALS: dict[tuple[str, str], str] = {
     ("benchmarks.bc_throughput", "pipeline.learning.train"): "times the BC learner (Learner)",
     ("benchmarks.kinetix_transfer", "pipeline.learning.evaluation"): "plays level files as kforge's evaluation does",
     ("benchmarks.kinetix_transfer", "pipeline.learning.evaluation_sets"): "names a policy's level size (size_of)",
+    ("benchmarks.warm_start", "pipeline.learning.evaluation"): "resolves the dataset's job as evaluation does",
+    ("benchmarks.warm_start", "pipeline.learning.evaluation_sets"): "trains on the unseen set's levels (unseen_starts)",
 }
 """(benchmark module, internal module of a package) -> why the benchmark imports that internal from the module that
 defines it: it measures or mirrors that internal on purpose, so the name stays off the package's surface."""
