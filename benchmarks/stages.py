@@ -8,24 +8,14 @@ import os
 from pathlib import Path
 
 
-def stage_result(work_dir: Path, name: str, settings: dict) -> dict | None:
-    """The kept result of stage `name` if it was done with `settings`, else None."""
+def stage(work_dir: Path, name: str, settings: dict, compute, log) -> dict:
+    """The result of stage `name`: read from its file when done with the same settings, else computed and kept."""
     path = work_dir / "stages" / f"{name}.json"
     if path.is_file():
         kept = json.loads(path.read_text())
         if kept["settings"] == settings:
+            log(f"{name}: done before, read from {path}")
             return kept["result"]
-    return None
-
-
-def stage(work_dir: Path, name: str, settings: dict, compute, log) -> dict:
-    """The result of stage `name`: read from its file when done with the same settings, else computed and kept."""
-    path = work_dir / "stages" / f"{name}.json"
-    kept = stage_result(work_dir, name, settings)
-    if kept is not None:
-        log(f"{name}: done before, read from {path}")
-        return kept
-    if path.is_file():
         log(f"{name}: settings changed since it was done, running it again")
     log(f"{name}: running")
     result = compute()
